@@ -1,0 +1,57 @@
+"""Atomic file output: write to a temporary sibling, fsync, then rename.
+
+Readers (a farm job, a re-run of a batch) must never see a half-written file, and a
+failed write must not truncate the previous good one. ``os.replace`` is atomic on
+POSIX within one file system, hence the temporary file lives beside the target.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+
+@contextlib.contextmanager
+def atomic_path(target: str | Path, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; on success fsync it and rename it over.
+
+    The temporary name keeps the target's suffix (``suffix`` overrides it) because
+    OpenImageIO and USD choose the file format from the extension. On an exception the
+    temporary file is removed and ``target`` is left untouched.
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=f".{target.stem}.", suffix=suffix if suffix is not None else target.suffix,
+        dir=target.parent,
+    )
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        if not tmp.exists() or tmp.stat().st_size == 0:
+            raise OSError(f"{target}: nothing was written")
+        with open(tmp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, target)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def atomic_write_text(target: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``target`` atomically and return the target path."""
+    with atomic_path(target) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(target)
+
+
+def atomic_write_json(target: str | Path, data: Any) -> Path:
+    """Write ``data`` as indented JSON atomically (NaN is refused: JSON has none)."""
+    return atomic_write_text(target, json.dumps(data, indent=2, allow_nan=False) + "\n")
