@@ -192,8 +192,12 @@ class _Curve:
     channel: int
 
 
-def prepare_profile(profile: MeasuredProfile, options: FitOptions) -> MeasuredProfile:
+def prepare_profile(
+    profile: MeasuredProfile, options: FitOptions
+) -> tuple[MeasuredProfile, list[str]]:
     """Validate and tidy one profile for fitting; raise :class:`InputError` on bad data.
+
+    Returns the tidied profile and notes on what was changed.
 
     Drops non-finite samples (with a warning), sorts by radius, averages duplicate
     radii, applies the fit range, and refuses what no fit can honour: too few samples,
@@ -201,6 +205,7 @@ def prepare_profile(profile: MeasuredProfile, options: FitOptions) -> MeasuredPr
     unit, or a profile whose integral is far from 1 when the weights must sum to 1.
     """
     src = profile.source
+    notes: list[str] = []
     r = np.asarray(profile.radius_mm, dtype=np.float64).reshape(-1)
     p = np.asarray(profile.values, dtype=np.float64)
     if p.ndim != 2 or p.shape != (r.size, 3):
@@ -213,10 +218,9 @@ def prepare_profile(profile: MeasuredProfile, options: FitOptions) -> MeasuredPr
         finite &= np.all(np.isfinite(s), axis=1)
     if not finite.all():
         bad = np.flatnonzero(~finite)
-        warnings.warn(
-            f"{src or profile.name}: dropped {bad.size} non-finite sample(s), first at row "
-            f"{int(bad[0])} (radius {r[bad[0]]!r})",
-            stacklevel=2,
+        notes.append(
+            f"dropped {bad.size} non-finite sample(s), first at row {int(bad[0])} "
+            f"(radius {r[bad[0]]!r} mm)"
         )
         r, p = r[finite], p[finite]
         s = None if s is None else s[finite]
@@ -234,6 +238,7 @@ def prepare_profile(profile: MeasuredProfile, options: FitOptions) -> MeasuredPr
             sm = np.zeros((uniq.size, 3))
             np.add.at(sm, inverse, s**2)
             s = np.sqrt(sm / counts[:, None]) / np.sqrt(counts[:, None])
+        notes.append(f"averaged {r.size - uniq.size} sample(s) at duplicate radii")
         r, p = uniq, pm
     keep = r >= options.min_radius_mm
     if options.max_radius_mm is not None:
@@ -278,7 +283,7 @@ def prepare_profile(profile: MeasuredProfile, options: FitOptions) -> MeasuredPr
                 "check that radii are in mm, or fit with --free-scale",
                 src,
             )
-    return MeasuredProfile(r, p, s, profile.name, profile.source)
+    return MeasuredProfile(r, p, s, profile.name, profile.source), notes
 
 
 def _k_of(options: FitOptions) -> int:
@@ -691,6 +696,18 @@ def _refine_slsqp(
     return _GroupSolution(lu, w, _objective(lu, w, curves), str(res.message), int(res.nit), "slsqp")
 
 
+def _with_exact_weights(
+    sol: _GroupSolution, curves: Sequence[_Curve], free_scale: bool
+) -> _GroupSolution:
+    """Re-solve the weights exactly for the final grid (the interior point leaves ~1e-9
+    where the optimum is 0); kept only if the objective does not grow."""
+    w_exact = _polish_weights(sol.log_u, curves, free_scale)
+    obj_exact = _objective(sol.log_u, w_exact, curves)
+    if obj_exact <= sol.objective * (1.0 + 1e-9) + 1e-15:
+        return _GroupSolution(sol.log_u, w_exact, obj_exact, sol.status, sol.iterations, sol.solver)
+    return sol
+
+
 def _merge_close_terms(
     sol: _GroupSolution, curves: Sequence[_Curve], free_scale: bool, tol: float
 ) -> tuple[_GroupSolution, int]:
@@ -749,7 +766,7 @@ def _solve_group(
     if fixed_log_u is not None:
         w0 = _polish_weights(fixed_log_u, curves, options.free_scale)
         sol = _refine_ipopt(curves, fixed_log_u, w0, log_bounds, True, options.free_scale)
-        return sol, notes
+        return _with_exact_weights(sol, curves, options.free_scale), notes
     lo, hi = log_bounds
     if options.init == "ga":
         log_u0, _ = genetic_seed(
@@ -773,6 +790,7 @@ def _solve_group(
     if not np.isfinite(sol.objective) or sol.objective > seed_obj:
         notes.append("the refinement did not improve on its start; the seed was kept")
         sol = _GroupSolution(log_u0, w0, seed_obj, sol.status, sol.iterations, sol.solver)
+    sol = _with_exact_weights(sol, curves, options.free_scale)
     sol, merged = _merge_close_terms(sol, curves, options.free_scale, options.merge_log_variance)
     if merged:
         notes.append(
@@ -809,11 +827,13 @@ def fit_profiles(
         raise InputError("no profiles to fit")
     k = _k_of(options)
     start = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        prepared = [prepare_profile(p, options) for p in profiles]
-    prep_notes = [[str(w.message) for w in caught if (p.source and str(p.source) in str(w.message))
-                   or p.name in str(w.message)] for p in profiles]
+    prepared, prep_notes = [], []
+    for prof in profiles:
+        tidy, notes = prepare_profile(prof, options)
+        for note in notes:
+            warnings.warn(f"{prof.source or prof.name}: {note}", UserWarning, stacklevel=2)
+        prepared.append(tidy)
+        prep_notes.append(notes)
     rng = np.random.default_rng(options.seed)
     lo_v, hi_v = _variance_bounds_mm2(prepared)
     length_mm = math.sqrt(math.sqrt(lo_v * hi_v))

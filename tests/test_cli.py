@@ -1,0 +1,71 @@
+"""The command line: exit codes, outputs, nothing written on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.profile_io import write_profile_csv
+
+from .reference_profiles import deon_profile, dipole_normalised
+
+
+def test_help_lists_verbs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "fit" in out and "Exit codes" in out
+
+
+def test_fit_help_gives_units(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fit", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "mm^2" in out and "--share" in out
+
+
+def test_fit_writes_the_documented_json(tmp_path: Path) -> None:
+    csv = write_profile_csv(tmp_path / "forehead.csv", deon_profile())
+    out = tmp_path / "fit.json"
+    assert main(["fit", str(csv), "-k", "6", "--share", "channels", "--seed", "1",
+                 "-o", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert len(doc["terms"]) == 6
+    assert set(doc["terms"][0]) == {"variance_mm2", "weights"}
+    assert len(doc["error"]) == 3 and max(doc["error"]) < 1e-3
+    assert doc["seconds"] > 0 and doc["status"] == "Solve_Succeeded"
+    assert doc["units"] == {"radius": "mm", "variance": "mm^2"}
+
+
+def test_fit_several_profiles_share_one_grid(tmp_path: Path) -> None:
+    a = write_profile_csv(tmp_path / "cheek.csv", dipole_normalised("skin1"))
+    b = write_profile_csv(tmp_path / "nose.csv", dipole_normalised("skin2"))
+    out = tmp_path / "fits"
+    assert main(["fit", str(a), str(b), "-k", "4", "--share", "profiles", "-o", str(out)]) == 0
+    docs = [json.loads((out / f"{n}.json").read_text()) for n in ("cheek", "nose")]
+    assert [t["variance_mm2"] for t in docs[0]["terms"]] == \
+        [t["variance_mm2"] for t in docs[1]["terms"]]
+
+
+def test_bad_input_exit_2_and_nothing_written(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("radius_mm,R,G,B\n0,0,0,0\n0.1,0,0,0\n")
+    out = tmp_path / "fit.json"
+    assert main(["fit", str(bad), "-k", "1", "-o", str(out)]) == 2
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == [bad]
+    assert "bad.csv" in capsys.readouterr().err
+
+
+def test_usage_error_exit_2() -> None:
+    assert main(["fit"]) == 2
+
+
+def test_console_script_runs() -> None:
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "--version"],
+                          capture_output=True, text=True, check=False)
+    assert proc.returncode == 0 and "skinpipe" in proc.stdout

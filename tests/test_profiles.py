@@ -1,0 +1,108 @@
+"""Reference values for the profile models (colour-science style: one test per method)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from pipeline.profiles import (
+    burley_profile,
+    dipole_profile,
+    dipole_total_reflectance,
+    fit_error_eq2c,
+    gaussian_2d,
+    ring_widths_mm,
+    sum_of_gaussians,
+    total_reflectance_numeric,
+)
+from pipeline.reference_data import (
+    DEON_2007_SKIN,
+    JENSEN_2001,
+    PARK_OH_2009_FOREHEAD,
+    normalized_weights,
+)
+
+
+def test_gaussian_2d_reference_values() -> None:
+    assert gaussian_2d(1.0, 0.0) == pytest.approx(1.0 / (2.0 * np.pi))
+    assert gaussian_2d(0.5, 1.0) == pytest.approx(np.exp(-1.0) / np.pi)
+
+
+@pytest.mark.parametrize("variance", [1e-4, 0.0064, 1.0, 7.41])
+def test_gaussian_2d_integrates_to_one(variance: float) -> None:
+    total, _ = quad(lambda r: 2 * np.pi * r * gaussian_2d(variance, r), 0, 50 * np.sqrt(variance))
+    assert total == pytest.approx(1.0, rel=1e-9)
+
+
+def test_sum_of_gaussians_shapes_and_total() -> None:
+    r = np.linspace(0, 40, 40001)
+    f = sum_of_gaussians(DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights, r)
+    assert f.shape == (r.size, 3)
+    np.testing.assert_allclose(total_reflectance_numeric(r, f), DEON_2007_SKIN.weights.sum(0),
+                               rtol=1e-5)
+
+
+def test_deon_weights_sum_to_one() -> None:
+    np.testing.assert_allclose(DEON_2007_SKIN.weights.sum(axis=0), [1.0, 1.0, 1.0], atol=1e-12)
+
+
+def test_park_oh_table_as_printed() -> None:
+    sums = PARK_OH_2009_FOREHEAD.weights.sum(axis=0)
+    np.testing.assert_allclose(sums, [1.0, 1.0926, 1.0], atol=1e-4)
+    np.testing.assert_allclose(normalized_weights(PARK_OH_2009_FOREHEAD).sum(axis=0), 1.0)
+    # three variances shared by all channels, nine channel-specific ones
+    assert PARK_OH_2009_FOREHEAD.variances_mm2.size == 12
+
+
+@pytest.mark.parametrize(
+    ("material", "expected"),
+    [("skin1", (0.44, 0.22, 0.13)), ("skin2", (0.63, 0.44, 0.34)), ("marble", (0.83, 0.79, 0.75))],
+)
+def test_dipole_total_reflectance_matches_published(material: str, expected: tuple) -> None:
+    np.testing.assert_allclose(dipole_total_reflectance(JENSEN_2001[material]), expected,
+                               atol=0.011)
+
+
+@pytest.mark.parametrize("material", ["skin1", "skin2", "marble", "ketchup"])
+def test_dipole_profile_integrates_to_closed_form(material: str) -> None:
+    coeffs = JENSEN_2001[material]
+    closed = dipole_total_reflectance(coeffs)
+    for c in range(3):
+        def integrand(r: float, c: int = c) -> float:
+            return 2 * np.pi * r * dipole_profile(np.array([r]), coeffs)[0, c]
+        total, _ = quad(integrand, 0, np.inf, limit=400)
+        assert total == pytest.approx(closed[c], rel=1e-4)
+
+
+def test_burley_integrates_to_albedo_and_is_singular() -> None:
+    albedo, mfp = np.array([0.8, 0.5, 0.3]), np.array([1.0, 0.5, 0.25])
+    for c in range(3):
+        def integrand(r: float, c: int = c) -> float:
+            return 2 * np.pi * r * burley_profile(np.array([r]), albedo, mfp)[0, c]
+        total, _ = quad(integrand, 0, np.inf, limit=400)
+        assert total == pytest.approx(albedo[c], rel=1e-6)
+    assert np.all(np.isinf(burley_profile(np.array([0.0]), albedo, mfp)))
+
+
+def test_ring_widths_cover_the_axis() -> None:
+    r = np.array([0.0, 0.1, 0.3, 0.7])
+    np.testing.assert_allclose(ring_widths_mm(r), [0.05, 0.15, 0.3, 0.2])
+    assert ring_widths_mm(r).sum() == pytest.approx(r[-1] - r[0])
+
+
+def test_fit_error_eq2c_reference_values() -> None:
+    r = np.linspace(0, 2, 50)
+    f = np.exp(-r)[:, None] * np.ones((1, 3))
+    np.testing.assert_allclose(fit_error_eq2c(r, f, f), 0.0)
+    np.testing.assert_allclose(fit_error_eq2c(r, 1.01 * f, f), 0.01, rtol=1e-12)
+    assert np.all(np.isinf(fit_error_eq2c(r, f, 0 * f)))
+
+
+def test_fit_error_ignores_the_entry_point_weight() -> None:
+    # r = 0 has zero area weight (eq. 2c): a wrong value there costs nothing.
+    r = np.linspace(0, 1, 11)
+    f = np.ones((11, 1))
+    p = f.copy()
+    p[0] = 100.0
+    assert fit_error_eq2c(r, p, f)[0] == 0.0
