@@ -64,6 +64,8 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                    help="leave out samples farther than this")
     p.add_argument("--free-scale", action="store_true",
                    help="also fit the total diffuse reflectance per channel (absolute captures)")
+    p.add_argument("--use-stddev", action="store_true",
+                   help="weight samples by 1/std^2 (from std_R,std_G,std_B) besides r dr")
     p.add_argument("--solver", choices=["ipopt", "slsqp"], default="ipopt",
                    help="local refinement after the seed (slsqp = the paper's SQP, for comparison)")
     p.add_argument("--init", choices=["ga", "naive", "random"], default="ga",
@@ -84,7 +86,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         k=args.k, share=args.share, fixed_variances_mm2=fixed, min_radius_mm=args.min_radius_mm,
         max_radius_mm=args.max_radius_mm, seed=args.seed, generations=args.generations,
         population=args.population, solver=args.solver, init=args.init,
-        free_scale=args.free_scale,
+        free_scale=args.free_scale, use_stddev=args.use_stddev,
     )
     profiles = [read_profile_csv(p) for p in args.profiles]
     names = [p.name for p in profiles]
@@ -116,6 +118,163 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -------------------------------------------------------------------------------- ingest
+
+
+def _add_ingest(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "ingest",
+        help="merge bracketed captures to HDR and extract radial profiles (CAPTURES -> CSVs)",
+        description=(
+            "Read CAPTURES/capture.json (see docs/capture-format.md), merge each region's "
+            "brackets into a scene-linear ACEScg HDR image, find the entry point to sub-pixel "
+            "accuracy and extract the radial profile per channel in mm. Writes "
+            "OUT_DIR/<region>.csv (radius_mm,R,G,B,std_R,std_G,std_B; integrating to 1 over "
+            "the measured disk unless --absolute), OUT_DIR/<region>.exr and ingest.json. "
+            "Nothing is written unless every region succeeds."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("captures", type=Path, metavar="CAPTURES", help="capture-set directory")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    p.add_argument("--ring-width-px", type=float, default=1.0,
+                   help="width of each ring, in camera pixels")
+    p.add_argument("--max-radius-mm", type=float, default=None,
+                   help="largest radius to extract (default: the largest ring inside the image)")
+    p.add_argument("--mode", choices=["rings", "cross_section"], default="rings",
+                   help="median over each ring, or the paper's single cross-section")
+    p.add_argument("--absolute", action="store_true",
+                   help="keep radiance units (per second of exposure) instead of normalising")
+    p.add_argument("--regions", type=lambda t: [x for x in t.split(",") if x], default=None,
+                   metavar="A,B", help="only these regions")
+    p.set_defaults(handler=cmd_ingest)
+
+
+def cmd_ingest(args: argparse.Namespace) -> int:
+    from .ingest import IngestOptions, ingest_capture_set
+
+    if not args.ring_width_px > 0:
+        raise InputError(f"--ring-width-px must be > 0, got {args.ring_width_px}")
+    options = IngestOptions(ring_width_px=args.ring_width_px, max_radius_mm=args.max_radius_mm,
+                            mode=args.mode, absolute=args.absolute)
+    report = ingest_capture_set(args.captures, args.output, options, progress=_eprint,
+                                regions=args.regions)
+    for name, entry in report["regions"].items():
+        print(f"{name}: {entry['samples']} samples to {entry['max_radius_mm']:.2f} mm "
+              f"-> {entry['csv']}")
+    return EXIT_OK
+
+
+def _add_simulate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="write a physically simulated capture set with known true profiles",
+        description=(
+            "Render single-pixel scattering captures of the six face regions of a sample "
+            "subject (forehead from Park & Oh 2009; the others from Jensen et al. 2001's "
+            "measured skin coefficients, varied per region): projector footprint, pixel "
+            "integration, hair strands, photon and read noise, clipping, 8-bit sRGB or "
+            "16-bit linear encoding, EXIF exposure times. Writes capture.json, the images "
+            "and truth.json."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("-o", "--output", type=Path, required=True, help="capture-set directory")
+    p.add_argument("--bits", type=int, choices=[8, 16], default=16,
+                   help="16 = linear TIFF, 8 = sRGB-encoded PNG")
+    p.add_argument("--brackets", type=int, default=5, help="exposures per region (1-9)")
+    p.add_argument("--hair", type=int, default=0, help="hair strands across each spot")
+    p.add_argument("--size-px", type=int, default=320, help="image width and height")
+    p.add_argument("--mm-per-pixel", type=float, default=0.025, help="camera scale")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.set_defaults(handler=cmd_simulate)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
+
+    if not 1 <= args.brackets <= 9:
+        raise InputError(f"--brackets must be 1-9, got {args.brackets}")
+    exposures = tuple(1 / 500 * 4.0**i for i in range(args.brackets))
+    settings = CaptureSettings(mm_per_pixel=args.mm_per_pixel, size_px=args.size_px,
+                               bits=args.bits, exposures_s=exposures, hair_strands=args.hair,
+                               image_format="tif" if args.bits == 16 else "png")
+    simulate_capture_set(sample_subject_truths(), args.output, settings, seed=args.seed,
+                         progress=_eprint)
+    print(f"wrote {args.output / 'capture.json'} and {args.output / 'truth.json'}")
+    return EXIT_OK
+
+
+# -------------------------------------------------------------------------------- report
+
+
+def _add_report(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="error against run time for a stage (JSON table + PNG plot)",
+        description=(
+            "Measure a stage's error/time trade-off in one run so that users can pick an "
+            "operating point. 'fit': k = 1..8 with GA+IPOPT (default), IPOPT from a naive "
+            "start, and GA+SLSQP (the paper's SQP), on the given profiles or, without any, "
+            "on reference profiles (d'Eon et al. 2007 skin, Jensen et al. 2001 dipoles)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("stage", choices=["fit"], help="which stage to measure")
+    p.add_argument("profiles", nargs="*", type=Path, metavar="PROFILE.csv",
+                   help="profiles to fit (default: built-in reference profiles)")
+    p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
+                   help="range of k to try, inclusive")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    p.set_defaults(handler=cmd_report)
+
+
+def _int_range(text: str) -> tuple[int, int]:
+    try:
+        a, _, b = text.partition(":")
+        lo, hi = int(a), int(b or a)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected A:B, got {text!r}") from exc
+    if not 1 <= lo <= hi <= 8:
+        raise argparse.ArgumentTypeError(f"need 1 <= A <= B <= 8, got {text!r}")
+    return lo, hi
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from .profile_io import read_profile_csv
+    from .report import fit_tradeoff, write_fit_report
+
+    if args.profiles:
+        profiles = [read_profile_csv(p) for p in args.profiles]
+    else:
+        profiles = _reference_profiles()
+    rows = fit_tradeoff(profiles, ks=range(args.k[0], args.k[1] + 1), progress=_eprint)
+    doc = write_fit_report(rows, args.output)
+    print(f"{'profile':<16} {'method':<12} {'k':>2} {'seconds':>8} {'error':>9}  pareto")
+    for row in doc["rows"]:
+        print(f"{row['profile']:<16} {row['method']:<12} {row['k']:>2} {row['seconds']:>8.3f} "
+              f"{row['error_max']:>9.2e}  {'*' if row['pareto'] else ''}")
+    print(f"wrote {args.output / 'fit_tradeoff.json'} and {args.output / 'fit_tradeoff.png'}")
+    return EXIT_OK
+
+
+def _reference_profiles() -> list:
+    import numpy as np
+
+    from .fit import MeasuredProfile
+    from .profiles import dipole_profile, dipole_total_reflectance, sum_of_gaussians
+    from .reference_data import DEON_2007_SKIN, JENSEN_2001
+
+    r = np.linspace(0.0, 4.0, 200)
+    out = [MeasuredProfile(r, sum_of_gaussians(DEON_2007_SKIN.variances_mm2,
+                                               DEON_2007_SKIN.weights, r), name="deon2007")]
+    for name in ("skin1", "skin2"):
+        c = JENSEN_2001[name]
+        out.append(MeasuredProfile(r, dipole_profile(r, c) / dipole_total_reflectance(c),
+                                   name=f"dipole_{name}"))
+    return out
+
+
 # ------------------------------------------------------------------------------ parser
 
 
@@ -136,7 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_fit]
+_VERBS: list[Callable[[argparse._SubParsersAction], None]] = [
+    _add_ingest, _add_fit, _add_report, _add_simulate,
+]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -74,7 +74,9 @@ class FitOptions:
     fixed_variances_mm2: a given grid (e.g. d'Eon's); only weights are solved.
     min_radius_mm / max_radius_mm: samples outside are left out (the paper drops the
     entry point, eq. 2 sums from i = 2). free_scale: fit the total diffuse reflectance
-    per channel too (for absolutely calibrated captures) instead of sum w = 1.
+    per channel too (absolute captures, or a profile truncated by the image) instead of
+    sum w = 1. use_stddev: weight samples by 1/std^2 as well as by r dr; off by default
+    because eq. 2c, the error we report, weights by area alone.
     """
 
     k: int = 6
@@ -88,6 +90,7 @@ class FitOptions:
     solver: Solver = "ipopt"
     init: Init = "ga"
     free_scale: bool = False
+    use_stddev: bool = False
     max_plausible_radius_mm: float = 100.0
     merge_log_variance: float = 0.02
 
@@ -306,7 +309,8 @@ def _variance_bounds_mm2(profiles: Sequence[MeasuredProfile]) -> tuple[float, fl
 
 
 def _make_curves(
-    profiles: Sequence[MeasuredProfile], channels: Sequence[tuple[int, int]], length_mm: float
+    profiles: Sequence[MeasuredProfile], channels: Sequence[tuple[int, int]], length_mm: float,
+    use_stddev: bool = False,
 ) -> list[_Curve]:
     curves = []
     rhos: dict[int, FloatArray] = {}
@@ -315,7 +319,7 @@ def _make_curves(
         rho = rhos.setdefault(pi, prof.radius_mm / length_mm)
         q = prof.values[:, c] * length_mm**2
         a = rho * ring_widths_mm(rho)
-        if prof.stddev is not None:
+        if use_stddev and prof.stddev is not None:
             inv_var = 1.0 / (prof.stddev[:, c] * length_mm**2) ** 2
             a = a * inv_var / np.mean(inv_var)
         norm = float(np.sum(a * q * q))
@@ -851,7 +855,7 @@ def fit_profiles(
         for i in range(len(profiles))
     ]
     for group in _groups_for(options.share, len(prepared)):
-        curves = _make_curves(prepared, group, length_mm)
+        curves = _make_curves(prepared, group, length_mm, options.use_stddev)
         sol, notes = _solve_group(curves, k, log_bounds, options, rng, fixed_log_u)
         if not (np.all(np.isfinite(sol.log_u)) and np.all(np.isfinite(sol.weights))):
             raise FitError(f"the optimiser returned non-finite values (status {sol.status})")
