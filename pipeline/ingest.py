@@ -199,14 +199,15 @@ def _weighted_centroid(hdr: FloatImage, window_px: float) -> tuple[float, float]
     return cx, cy
 
 
-def find_entry_point(hdr: FloatImage, radius_px: int = 12) -> tuple[float, float]:
+def find_entry_point(hdr: FloatImage, radius_px: int | None = None) -> tuple[float, float]:
     """Sub-pixel entry point (x, y) in pixel coordinates (pixel centres at integers).
 
     The centre of point symmetry of the log-intensity: the c minimising
     sum |f(c + d) - f(c - d)| over offsets d within ``radius_px``, f interpolated
-    (cubic). The L1 norm keeps a dark hair strand, which breaks the symmetry on a few
-    pixels whatever c is, from pulling the estimate; a plain centroid would shift away
-    from the strand. Starts from a tight centroid around the brightest pixel.
+    (cubic). ``radius_px`` defaults to where the spot falls to 30% of its peak (a
+    flat-topped dipole spot needs a wide window). The sum leaves out the half most
+    asymmetric pairs: a dark hair strand breaks the symmetry on a few pixels whatever c
+    is, and must not pull the estimate as it pulls a centroid. Starts from a tight centroid around the brightest pixel.
     """
     from scipy.optimize import minimize
     from scipy.ndimage import spline_filter
@@ -215,24 +216,33 @@ def find_entry_point(hdr: FloatImage, radius_px: int = 12) -> tuple[float, float
     lum = hdr.sum(axis=2).astype(np.float64)
     peak = float(lum.max())
     f = np.log(np.maximum(lum, 1e-6 * peak))
+    if radius_px is None:
+        yy0, xx0 = np.indices(lum.shape)
+        ring = np.hypot(xx0 - start[0], yy0 - start[1]).astype(np.int64).ravel()
+        mean = np.bincount(ring, lum.ravel()) / np.maximum(np.bincount(ring), 1)
+        below = np.flatnonzero(mean < 0.3 * mean[0])
+        radius_px = int(np.clip(below[0] if below.size else 12, 8, 60))
     coeffs = spline_filter(f, order=3)
     yy, xx = np.mgrid[-radius_px : radius_px + 1, -radius_px : radius_px + 1]
     half = (yy > 0) | ((yy == 0) & (xx > 0))
     inside = half & (xx**2 + yy**2 <= radius_px**2)
     dx, dy = xx[inside].astype(np.float64), yy[inside].astype(np.float64)
+    keep = int(0.5 * dx.size)
 
     def asymmetry(c: NDArray[np.float64]) -> float:
         a = map_coordinates(coeffs, [c[1] + dy, c[0] + dx], order=3, prefilter=False,
                             mode="nearest")
         b = map_coordinates(coeffs, [c[1] - dy, c[0] - dx], order=3, prefilter=False,
                             mode="nearest")
-        return float(np.abs(a - b).sum())
+        diff = np.abs(a - b)
+        # trimmed: the most asymmetric half are hair or follicles, whatever c is
+        return float(np.partition(diff, keep)[:keep].sum())
 
     res = minimize(asymmetry, np.array(start), method="Nelder-Mead",
                    options={"xatol": 1e-3, "fatol": 1e-9, "initial_simplex":
                             np.array(start) + np.array([[0, 0], [0.5, 0], [0, 0.5]])})
     cx, cy = float(res.x[0]), float(res.x[1])
-    if np.hypot(cx - start[0], cy - start[1]) > 3.0:
+    if np.hypot(cx - start[0], cy - start[1]) > max(3.0, 0.25 * radius_px):
         return start  # the symmetry search wandered off: keep the centroid (+-1 px)
     return cx, cy
 

@@ -1,0 +1,288 @@
+"""Ingest stage: simulate -> ingest -> fit recovers the truth; bad input fails cleanly."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from pipeline.cli import main
+from pipeline.errors import InputError
+from pipeline.fit import fit_sum_of_gaussians
+from pipeline.imageio import write_exr
+from pipeline.ingest import IngestOptions, ingest_capture_set, read_capture_set
+from pipeline.profile_io import read_profile_csv
+from pipeline.profiles import fit_error_eq2c
+from pipeline.simulate import (
+    CaptureSettings,
+    read_truth,
+    sample_subject_truths,
+    simulate_capture_set,
+)
+
+TRUTHS = {t.name: t for t in sample_subject_truths()}
+
+
+def disk_normalised_truth(truth, radius_mm: np.ndarray, r_max: float) -> np.ndarray:
+    """The true ACEScg profile scaled to integrate to 1 over the measured disk: the
+    capture sees nothing beyond it, so this is what a perfect ingest reports."""
+    rf = np.linspace(0.0, r_max, 8000)
+    tf = truth.acescg_profile(rf)
+    return truth.acescg_profile(radius_mm) / (2 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0))
+
+
+def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: int) -> dict:
+    caps = tmp / f"caps{seed}"
+    simulate_capture_set([TRUTHS[r] for r in regions], caps, settings, seed=seed)
+    report = ingest_capture_set(caps, tmp / f"out{seed}")
+    truth_doc = json.loads((caps / "truth.json").read_text())
+    results = {}
+    for name in regions:
+        prof = read_profile_csv(report["regions"][name]["csv"])
+        fit = fit_sum_of_gaussians(prof, k=6, free_scale=True, seed=seed)
+        r = prof.radius_mm
+        edge = r[-1] + 0.5 * (r[-1] - r[-2])
+        sel = (r >= 0.05) & (r <= 4.0)
+        truth = disk_normalised_truth(TRUTHS[name], r[sel], edge)
+        entry = np.array(report["regions"][name]["entry_point_px"])
+        results[name] = {
+            "fit_error": fit_error_eq2c(r[sel], truth, fit.evaluate(r[sel])),
+            "raw_error": fit_error_eq2c(r[sel], prof.values[sel], truth),
+            "entry_error_px": float(np.hypot(*(entry - truth_doc["regions"][name]["entry_point_px"]))),
+        }
+    return results
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_simulate_ingest_fit_recovers_truth(tmp_path: Path, seed: int) -> None:
+    res = run_chain(tmp_path, ["forehead", "cheek"], CaptureSettings(), seed)
+    for name, r in res.items():
+        assert r["fit_error"].max() < 0.03, (name, r)
+        assert r["entry_error_px"] < 0.25, (name, r)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_hair_strands_across_the_spot(tmp_path: Path, seed: int) -> None:
+    res = run_chain(tmp_path, ["lips", "chin"], CaptureSettings(hair_strands=3), seed)
+    for name, r in res.items():
+        assert r["fit_error"].max() < 0.05, (name, r)
+        assert r["entry_error_px"] < 0.25, (name, r)
+
+
+def test_eight_bit_srgb_captures(tmp_path: Path) -> None:
+    settings = CaptureSettings(bits=8, image_format="png",
+                               exposures_s=tuple(1 / 500 * 4.0**i for i in range(7)))
+    res = run_chain(tmp_path, ["nose"], settings, seed=7)
+    assert res["nose"]["fit_error"].max() < 0.03
+    assert res["nose"]["entry_error_px"] < 0.25
+
+
+def test_median_rings_beat_the_cross_section_under_hair(tmp_path: Path) -> None:
+    caps = tmp_path / "caps"
+    simulate_capture_set([TRUTHS["cheek"]], caps, CaptureSettings(hair_strands=4), seed=11)
+    errors = {}
+    for mode in ("rings", "cross_section"):
+        report = ingest_capture_set(caps, tmp_path / mode, IngestOptions(mode=mode))
+        prof = read_profile_csv(report["regions"]["cheek"]["csv"])
+        r = prof.radius_mm
+        sel = (r >= 0.05) & (r <= 3.9)
+        truth = disk_normalised_truth(TRUTHS["cheek"], r[sel], r[-1])
+        errors[mode] = fit_error_eq2c(r[sel], prof.values[sel], truth).max()
+    assert errors["rings"] < errors["cross_section"]
+
+
+def test_exposure_from_exif(tmp_path: Path) -> None:
+    caps = tmp_path / "caps"
+    simulate_capture_set([TRUTHS["nose"]], caps,
+                         CaptureSettings(size_px=96, exposure_in_manifest=False), seed=0)
+    doc = json.loads((caps / "capture.json").read_text())
+    assert "exposure_s" not in doc["regions"]["nose"]["images"][0]
+    report = ingest_capture_set(caps, tmp_path / "out")
+    assert report["regions"]["nose"]["brackets"] == 5
+
+
+# ------------------------------------------------------------------------- bad input
+
+
+@pytest.fixture(scope="module")
+def small_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    caps = tmp_path_factory.mktemp("small") / "caps"
+    simulate_capture_set([TRUTHS["forehead"], TRUTHS["cheek"]], caps,
+                         CaptureSettings(size_px=96, exposures_s=(1 / 500, 1 / 60, 1 / 8)),
+                         seed=3)
+    return caps
+
+
+def _copy(src: Path, tmp: Path) -> Path:
+    dst = tmp / "caps"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _manifest(caps: Path) -> dict:
+    return json.loads((caps / "capture.json").read_text())
+
+
+def _save(caps: Path, doc: dict) -> None:
+    (caps / "capture.json").write_text(json.dumps(doc))
+
+
+def _break_missing(caps: Path) -> str:
+    (caps / "cheek" / "e1.tif").unlink()
+    return "e1.tif"
+
+
+def _break_empty(caps: Path) -> str:
+    (caps / "cheek" / "e1.tif").write_bytes(b"")
+    return "e1.tif"
+
+
+def _break_truncated(caps: Path) -> str:
+    path = caps / "cheek" / "e2.tif"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+    return "e2.tif"
+
+
+def _break_garbage(caps: Path) -> str:
+    (caps / "cheek" / "e0.tif").write_bytes(b"not an image at all" * 50)
+    return "e0.tif"
+
+
+def _break_png_named_exr(caps: Path) -> str:
+    buf = oiio.ImageBuf(oiio.ImageSpec(96, 96, 3, "uint8"))
+    buf.write(str(caps / "cheek" / "fake.png"))
+    (caps / "cheek" / "fake.png").rename(caps / "cheek" / "e0.exr")
+    doc = _manifest(caps)
+    doc["regions"]["cheek"]["images"][0]["file"] = "cheek/e0.exr"
+    _save(caps, doc)
+    return "e0.exr"
+
+
+def _break_sizes(caps: Path) -> str:
+    buf = oiio.ImageBuf(str(caps / "cheek" / "e1.tif"))
+    small = oiio.ImageBufAlgo.cut(buf, oiio.ROI(0, 80, 0, 80))
+    small.write(str(caps / "cheek" / "e1.tif"))
+    return "differ in size"
+
+
+def _break_no_exposure(caps: Path) -> str:
+    buf = oiio.ImageBuf(str(caps / "cheek" / "e1.tif"))
+    pixels = buf.get_pixels(oiio.UINT16)
+    out = oiio.ImageBuf(oiio.ImageSpec(96, 96, 3, "uint16"))
+    out.set_pixels(oiio.ROI(0, 96, 0, 96), pixels)
+    out.write(str(caps / "cheek" / "e1.tif"))  # no EXIF
+    doc = _manifest(caps)
+    for img in doc["regions"]["cheek"]["images"]:
+        img.pop("exposure_s")
+    _save(caps, doc)
+    return "no exposure time"
+
+
+def _rewrite_all(caps: Path, value: int) -> None:
+    for f in (caps / "cheek").glob("*.tif"):
+        out = oiio.ImageBuf(oiio.ImageSpec(96, 96, 3, "uint16"))
+        out.set_pixels(oiio.ROI(0, 96, 0, 96), np.full((96, 96, 3), value, np.uint16))
+        out.specmod().attribute("ExposureTime", 0.01)
+        out.write(str(f))
+
+
+def _break_all_clipped(caps: Path) -> str:
+    _rewrite_all(caps, 65535)
+    return "clipped"
+
+
+def _break_all_black(caps: Path) -> str:
+    _rewrite_all(caps, 0)
+    return "black"
+
+
+def _break_nan_exr(caps: Path) -> str:
+    img = np.full((96, 96, 3), 0.5, np.float32)
+    img[10, 10, 1] = np.nan
+    write_exr(caps / "cheek" / "e0.exr", img, "lin_rec709_scene")
+    doc = _manifest(caps)
+    doc["regions"]["cheek"]["images"][0]["file"] = "cheek/e0.exr"
+    _save(caps, doc)
+    return "non-finite"
+
+
+def _break_json(caps: Path) -> str:
+    (caps / "capture.json").write_text("{not json")
+    return "not valid JSON"
+
+
+def _break_missing_key(caps: Path) -> str:
+    doc = _manifest(caps)
+    del doc["mm_per_pixel"]
+    _save(caps, doc)
+    return "missing key 'mm_per_pixel'"
+
+
+def _break_colorspace(caps: Path) -> str:
+    doc = _manifest(caps)
+    doc["camera_colorspace"] = "not_a_colourspace"
+    _save(caps, doc)
+    return "unknown OCIO colour space"
+
+
+def _break_single_clipped(caps: Path) -> str:
+    _rewrite_all(caps, 65535)
+    doc = _manifest(caps)
+    doc["regions"]["cheek"]["images"] = doc["regions"]["cheek"]["images"][:1]
+    _save(caps, doc)
+    return "clipped"
+
+
+BREAKERS = [_break_missing, _break_empty, _break_truncated, _break_garbage, _break_png_named_exr,
+            _break_sizes, _break_no_exposure, _break_all_clipped, _break_all_black,
+            _break_nan_exr, _break_json, _break_missing_key, _break_colorspace,
+            _break_single_clipped]
+
+
+@pytest.mark.parametrize("breaker", BREAKERS, ids=lambda f: f.__name__[7:])
+def test_bad_input_exit_2_names_file_writes_nothing(
+    small_capture: Path, tmp_path: Path, breaker, capsys: pytest.CaptureFixture[str]
+) -> None:
+    caps = _copy(small_capture, tmp_path)
+    expected = breaker(caps)
+    out = tmp_path / "out"
+    assert main(["ingest", str(caps), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert expected in err, err
+    assert str(caps) in err, err
+    assert not out.exists()
+
+
+def test_one_unclipped_bracket_is_allowed_with_a_warning(small_capture: Path,
+                                                          tmp_path: Path) -> None:
+    caps = _copy(small_capture, tmp_path)
+    doc = _manifest(caps)
+    for region in doc["regions"].values():
+        region["images"] = region["images"][:1]
+    _save(caps, doc)
+    notes: list[str] = []
+    report = ingest_capture_set(caps, tmp_path / "out", progress=notes.append)
+    assert report["regions"]["cheek"]["brackets"] == 1
+    assert any("one bracket only" in n for n in notes)
+
+
+def test_manifest_reader_rejects_bad_exposure(small_capture: Path, tmp_path: Path) -> None:
+    caps = _copy(small_capture, tmp_path)
+    doc = _manifest(caps)
+    doc["regions"]["cheek"]["images"][0]["exposure_s"] = -1
+    _save(caps, doc)
+    with pytest.raises(InputError, match="exposure_s must be > 0"):
+        read_capture_set(caps)
+
+
+def test_sample_assets_truth_matches_the_simulator() -> None:
+    truth = read_truth(Path(__file__).parents[1] / "sample_assets" / "captures" / "truth.json")
+    assert sorted(truth) == sorted(TRUTHS)
+    r = np.linspace(0, 4, 50)
+    for name, t in truth.items():
+        np.testing.assert_allclose(t.acescg_profile(r), TRUTHS[name].acescg_profile(r))
