@@ -114,7 +114,8 @@ def write_ldr(
     top = (1 << bits) - 1
     dtype = np.uint8 if bits == 8 else np.uint16
     arr = np.clip(np.rint(np.asarray(pixels, dtype=np.float64) * top), 0, top).astype(dtype)
-    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "uint8" if bits == 8 else "uint16")
+    fmt = "uint8" if bits == 8 else "uint16"
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], fmt)
     if path.suffix.lower() in (".tif", ".tiff"):
         spec.attribute("compression", "zip")
     for key, value in (attributes or {}).items():

@@ -25,7 +25,14 @@ from scipy.ndimage import map_coordinates, median_filter
 from .errors import InputError
 from .fileio import atomic_write_json
 from .fit import MeasuredProfile
-from .imageio import ACESCG, LoadedImage, check_colorspace, convert_colorspace, read_image, write_exr
+from .imageio import (
+    ACESCG,
+    LoadedImage,
+    check_colorspace,
+    convert_colorspace,
+    read_image,
+    write_exr,
+)
 from .profile_io import write_profile_csv
 
 FloatImage = NDArray[np.float32]
@@ -179,7 +186,7 @@ def _weighted_centroid(hdr: FloatImage, window_px: float) -> tuple[float, float]
     lum = hdr.sum(axis=2).astype(np.float64)
     smooth = median_filter(lum, size=3, mode="nearest")
     y0, x0 = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
-    half = int(math.ceil(4 * window_px))
+    half = math.ceil(4 * window_px)
     ys = slice(max(0, y0 - half), min(lum.shape[0], y0 + half + 1))
     xs = slice(max(0, x0 - half), min(lum.shape[1], x0 + half + 1))
     patch = lum[ys, xs]
@@ -207,10 +214,11 @@ def find_entry_point(hdr: FloatImage, radius_px: int | None = None) -> tuple[flo
     (cubic). ``radius_px`` defaults to where the spot falls to 30% of its peak (a
     flat-topped dipole spot needs a wide window). The sum leaves out the half most
     asymmetric pairs: a dark hair strand breaks the symmetry on a few pixels whatever c
-    is, and must not pull the estimate as it pulls a centroid. Starts from a tight centroid around the brightest pixel.
+    is, and must not pull the estimate as it pulls a centroid. Starts from a tight
+    centroid around the brightest pixel.
     """
-    from scipy.optimize import minimize
     from scipy.ndimage import spline_filter
+    from scipy.optimize import minimize
 
     start = _weighted_centroid(hdr, window_px=1.5)
     lum = hdr.sum(axis=2).astype(np.float64)

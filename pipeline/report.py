@@ -68,13 +68,36 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return front
 
 
-def write_fit_report(rows: Sequence[TradeoffRow], out_dir: Path, default_k: int = 6) -> dict:
-    """fit_tradeoff.json and fit_tradeoff.png (error vs seconds, log axes) in ``out_dir``."""
+def _plot_tradeoff(
+    points: Sequence[tuple[str, float, float, str]], path: Path, xlabel: str, title: str
+) -> None:
+    """Error (log) against seconds (log), one line per series; points labelled."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    fig, ax = plt.subplots(figsize=(7, 5), dpi=110)
+    for series in dict.fromkeys(p[0] for p in points):
+        sel = [p for p in points if p[0] == series]
+        ax.plot([p[1] for p in sel], [max(p[2], 1e-8) for p in sel], marker="o", alpha=0.8,
+                label=series)
+        for p in sel:
+            ax.annotate(p[3], (p[1], max(p[2], 1e-8)), fontsize=6)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("eq. 2c error (max over R, G, B)")
+    ax.set_title(title)
+    ax.legend(fontsize=6)
+    ax.grid(True, which="both", alpha=0.3)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+def write_fit_report(rows: Sequence[TradeoffRow], out_dir: Path, default_k: int = 6) -> dict:
+    """fit_tradeoff.json and fit_tradeoff.png (error vs seconds, log axes) in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     front: set[int] = set()
     for prof in {r.profile for r in rows}:
@@ -90,24 +113,66 @@ def write_fit_report(rows: Sequence[TradeoffRow], out_dir: Path, default_k: int 
                     "on_pareto_front": [i in front for i in default_rows]},
     }
     atomic_write_json(out_dir / "fit_tradeoff.json", doc)
-    fig, ax = plt.subplots(figsize=(7, 5), dpi=110)
-    markers = {"ga+ipopt": "o", "naive+ipopt": "s", "ga+slsqp": "^"}
-    for prof in sorted({r.profile for r in rows}):
-        for method in sorted({r.method for r in rows}):
-            sel = [r for r in rows if r.profile == prof and r.method == method]
-            ax.plot([r.seconds for r in sel], [max(r.error_max, 1e-8) for r in sel],
-                    marker=markers.get(method, "x"), linestyle="-", alpha=0.8,
-                    label=f"{prof} {method}")
-            for r in sel:
-                ax.annotate(str(r.k), (r.seconds, max(r.error_max, 1e-8)), fontsize=6)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("wall time per fit (s)")
-    ax.set_ylabel("eq. 2c error (max over R, G, B)")
-    ax.set_title("Fit: error against run time (labels: k)")
-    ax.legend(fontsize=6)
-    ax.grid(True, which="both", alpha=0.3)
-    with atomic_path(out_dir / "fit_tradeoff.png") as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    _plot_tradeoff(
+        [(f"{r.profile} {r.method}", r.seconds, r.error_max, str(r.k)) for r in rows],
+        out_dir / "fit_tradeoff.png", "wall time per fit (s)", "Fit: error against run time "
+        "(labels: k)",
+    )
+    return doc
+
+
+def ingest_tradeoff(
+    work_dir: Path,
+    regions: Sequence[str] = ("forehead", "cheek"),
+    brackets: Sequence[int] = (1, 3, 5, 7),
+    ring_widths_px: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
+    seed: int = 0,
+    progress: Any = None,
+) -> list[dict[str, Any]]:
+    """Profile error (against the simulator's truth, 0.05-4 mm) and ingest seconds, as
+    the number of brackets and the ring width vary. Captures are simulated in work_dir."""
+    from .ingest import IngestOptions, ingest_region, read_capture_set
+    from .profiles import fit_error_eq2c
+    from .simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
+
+    truths = {t.name: t for t in sample_subject_truths() if t.name in regions}
+    cases = [(n, 1.0) for n in brackets] + [(5, w) for w in ring_widths_px if w != 1.0]
+    rows = []
+    for n in sorted({c[0] for c in cases}):
+        caps = work_dir / f"brackets{n}"
+        settings = CaptureSettings(exposures_s=tuple(1 / 500 * 4.0**i for i in range(n)))
+        simulate_capture_set(list(truths.values()), caps, settings, seed=seed)
+        captures = read_capture_set(caps)
+        for _, width in [c for c in cases if c[0] == n]:
+            for name, truth in truths.items():
+                res = ingest_region(captures, name, IngestOptions(ring_width_px=width))
+                r = res.profile.radius_mm
+                edge = r[-1] + 0.5 * (r[-1] - r[-2])
+                rf = np.linspace(0.0, edge, 8000)
+                tf = truth.acescg_profile(rf)
+                disk = 2 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
+                sel = (r >= 0.05) & (r <= 4.0)
+                err = fit_error_eq2c(r[sel], res.profile.values[sel],
+                                     truth.acescg_profile(r[sel]) / disk)
+                rows.append({"region": name, "brackets": n, "ring_width_px": width,
+                             "seconds": res.seconds, "error_max": float(err.max()),
+                             "error": [float(e) for e in err]})
+                if progress is not None:
+                    progress(f"{name}: {n} brackets, ring {width} px: error {err.max():.2e}, "
+                             f"{res.seconds:.2f} s")
+    return rows
+
+
+def write_ingest_report(rows: Sequence[dict[str, Any]], out_dir: Path) -> dict:
+    """ingest_tradeoff.json and ingest_tradeoff.png in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    doc = {"stage": "ingest",
+           "error_measure": "max over channels of eq. 2c, measured profile vs the simulator's "
+                            "truth normalised over the measured disk, 0.05-4 mm",
+           "default": {"brackets": 5, "ring_width_px": 1.0}, "rows": list(rows)}
+    atomic_write_json(out_dir / "ingest_tradeoff.json", doc)
+    points = [(f"{r['region']} ring {r['ring_width_px']:g} px", r["seconds"], r["error_max"],
+               f"{r['brackets']}b") for r in rows]
+    _plot_tradeoff(points, out_dir / "ingest_tradeoff.png", "ingest seconds per region",
+                   "Ingest: error against run time (labels: brackets)")
     return doc

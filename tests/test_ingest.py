@@ -32,7 +32,8 @@ def disk_normalised_truth(truth, radius_mm: np.ndarray, r_max: float) -> np.ndar
     capture sees nothing beyond it, so this is what a perfect ingest reports."""
     rf = np.linspace(0.0, r_max, 8000)
     tf = truth.acescg_profile(rf)
-    return truth.acescg_profile(radius_mm) / (2 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0))
+    disk = 2 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
+    return truth.acescg_profile(radius_mm) / disk
 
 
 def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: int) -> dict:
@@ -49,10 +50,11 @@ def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: in
         sel = (r >= 0.05) & (r <= 4.0)
         truth = disk_normalised_truth(TRUTHS[name], r[sel], edge)
         entry = np.array(report["regions"][name]["entry_point_px"])
+        true_entry = truth_doc["regions"][name]["entry_point_px"]
         results[name] = {
             "fit_error": fit_error_eq2c(r[sel], truth, fit.evaluate(r[sel])),
             "raw_error": fit_error_eq2c(r[sel], prof.values[sel], truth),
-            "entry_error_px": float(np.hypot(*(entry - truth_doc["regions"][name]["entry_point_px"]))),
+            "entry_error_px": float(np.hypot(*(entry - true_entry))),
         }
     return results
 
