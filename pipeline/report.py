@@ -147,13 +147,9 @@ def ingest_tradeoff(
             for name, truth in truths.items():
                 res = ingest_region(captures, name, IngestOptions(ring_width_px=width))
                 r = res.profile.radius_mm
-                edge = r[-1] + 0.5 * (r[-1] - r[-2])
-                rf = np.linspace(0.0, edge, 8000)
-                tf = truth.acescg_profile(rf)
-                disk = 2 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
                 sel = (r >= 0.05) & (r <= 4.0)
-                err = fit_error_eq2c(r[sel], res.profile.values[sel],
-                                     truth.acescg_profile(r[sel]) / disk)
+                expected = truth.disk_normalised_profile(r[sel], r[-1] + 0.5 * (r[-1] - r[-2]))
+                err = fit_error_eq2c(r[sel], res.profile.values[sel], expected)
                 rows.append({"region": name, "brackets": n, "ring_width_px": width,
                              "seconds": res.seconds, "error_max": float(err.max()),
                              "error": [float(e) for e in err]})

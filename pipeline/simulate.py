@@ -64,6 +64,16 @@ class RegionTruth:
         m = colorspace_matrix(CAMERA_LINEAR, ACESCG)
         return (self.camera_profile(radius_mm) @ m.T) / (self.camera_albedo() @ m.T)
 
+    def disk_normalised_profile(
+        self, radius_mm: NDArray[np.float64], disk_radius_mm: float
+    ) -> NDArray[np.float64]:
+        """The ACEScg truth scaled to integrate to 1 over a disk: what a perfect ingest of
+        an image that sees nothing beyond ``disk_radius_mm`` reports."""
+        rf = np.linspace(0.0, disk_radius_mm, 8000)
+        tf = self.acescg_profile(rf)
+        disk = 2.0 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
+        return self.acescg_profile(radius_mm) / disk
+
     def camera_albedo(self) -> NDArray[np.float64]:
         if self.kind == "gaussians":
             return np.asarray(self.albedo, dtype=np.float64)

@@ -69,3 +69,27 @@ def test_console_script_runs() -> None:
     proc = subprocess.run([sys.executable, "-m", "pipeline", "--version"],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0 and "skinpipe" in proc.stdout
+
+
+def test_demo_on_sample_assets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "demo"
+    assert main(["demo", "-o", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert sorted(report["regions"]) == sorted(
+        ["forehead", "lips", "chin", "cheekbone", "cheek", "nose"])
+    for name, entry in report["regions"].items():
+        assert max(entry["error_vs_truth"]) < 0.03, name
+        assert (out / "fits" / f"{name}.json").is_file()
+        assert (out / "profiles" / f"{name}.exr").is_file()
+    captured = capsys.readouterr()
+    assert "[6/6]" in captured.err  # progress on stderr
+    assert "forehead" in captured.out
+
+
+def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:
+    captures = Path(__file__).parents[1] / "sample_assets" / "captures"
+    assert main(["ingest", str(captures), "--regions", "cheek", "-o", str(tmp_path)]) == 0
+    assert main(["fit", str(tmp_path / "cheek.csv"), "-k", "4", "--free-scale",
+                 "-o", str(tmp_path / "cheek.json")]) == 0
+    doc = json.loads((tmp_path / "cheek.json").read_text())
+    assert max(doc["error"]) < 0.01 and len(doc["total_reflectance"]) == 3

@@ -27,15 +27,6 @@ from pipeline.simulate import (
 TRUTHS = {t.name: t for t in sample_subject_truths()}
 
 
-def disk_normalised_truth(truth, radius_mm: np.ndarray, r_max: float) -> np.ndarray:
-    """The true ACEScg profile scaled to integrate to 1 over the measured disk: the
-    capture sees nothing beyond it, so this is what a perfect ingest reports."""
-    rf = np.linspace(0.0, r_max, 8000)
-    tf = truth.acescg_profile(rf)
-    disk = 2 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
-    return truth.acescg_profile(radius_mm) / disk
-
-
 def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: int) -> dict:
     caps = tmp / f"caps{seed}"
     simulate_capture_set([TRUTHS[r] for r in regions], caps, settings, seed=seed)
@@ -48,7 +39,7 @@ def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: in
         r = prof.radius_mm
         edge = r[-1] + 0.5 * (r[-1] - r[-2])
         sel = (r >= 0.05) & (r <= 4.0)
-        truth = disk_normalised_truth(TRUTHS[name], r[sel], edge)
+        truth = TRUTHS[name].disk_normalised_profile(r[sel], edge)
         entry = np.array(report["regions"][name]["entry_point_px"])
         true_entry = truth_doc["regions"][name]["entry_point_px"]
         results[name] = {
@@ -92,7 +83,7 @@ def test_median_rings_beat_the_cross_section_under_hair(tmp_path: Path) -> None:
         prof = read_profile_csv(report["regions"]["cheek"]["csv"])
         r = prof.radius_mm
         sel = (r >= 0.05) & (r <= 3.9)
-        truth = disk_normalised_truth(TRUTHS["cheek"], r[sel], r[-1])
+        truth = TRUTHS["cheek"].disk_normalised_profile(r[sel], r[-1])
         errors[mode] = fit_error_eq2c(r[sel], prof.values[sel], truth).max()
     assert errors["rings"] < errors["cross_section"]
 
