@@ -123,13 +123,15 @@ class FitResult:
 
     def to_json(self) -> dict[str, Any]:
         """The FIT.json document (see docs/fit.md)."""
+        # float32-exact numbers: USD stores them as float/color3f without any change,
+        # so FIT.json -> USD -> read back is an identity.
         doc: dict[str, Any] = {
             "name": self.name,
             "terms": [
-                {"variance_mm2": float(v), "weights": [float(x) for x in w]}
+                {"variance_mm2": _f32(v), "weights": [_f32(x) for x in w]}
                 for v, w in zip(self.variances_mm2, self.weights, strict=True)
             ],
-            "error": [float(e) for e in self.error],
+            "error": [_f32(e) for e in self.error],
             "error_measure": "Park & Oh 2009 eq. 2c (relative, r-weighted RMS), per channel",
             "seconds": float(self.seconds),
             "status": self.status,
@@ -149,6 +151,10 @@ class FitResult:
         if self.source is not None:
             doc["source"] = self.source
         return doc
+
+
+def _f32(x: float) -> float:
+    return float(np.float32(x))
 
 
 def fit_result_from_json(doc: dict[str, Any], name: str | None = None) -> FitResult:

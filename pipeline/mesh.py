@@ -1,0 +1,190 @@
+"""Meshes at the stage boundary: load (USD, PLY, OBJ), validate, clean up a raw scan.
+
+Embree and xatlas misbehave silently or hang on non-finite or huge coordinates and on
+bad indices, so every mesh is validated here before any later stage sees it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import InputError
+
+MAX_COORDINATE = 1e7  # in scene units; beyond this a mesh is treated as corrupt
+
+
+@dataclass(frozen=True)
+class MeshData:
+    """A polygon mesh: points (N, 3), per-face vertex counts (F,), flat vertex indices.
+
+    ``st`` is a per-vertex texture coordinate (N, 2) if the source had one;
+    ``meters_per_unit`` says what one unit of ``points`` is.
+    """
+
+    points: NDArray[np.float64]
+    face_counts: NDArray[np.int32]
+    face_indices: NDArray[np.int32]
+    meters_per_unit: float
+    st: NDArray[np.float64] | None = None
+    source: Path | None = None
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.face_counts.size)
+
+    def face_vertex_lists(self) -> list[NDArray[np.int32]]:
+        return np.split(self.face_indices, np.cumsum(self.face_counts)[:-1])
+
+    def face_centroids(self) -> NDArray[np.float64]:
+        starts = np.concatenate([[0], np.cumsum(self.face_counts)[:-1]])
+        sums = np.add.reduceat(self.points[self.face_indices], starts, axis=0)
+        return sums / self.face_counts[:, None]
+
+
+def validate_mesh(mesh: MeshData) -> MeshData:
+    """Raise InputError (naming the source) for a mesh no later stage can use safely."""
+    src = mesh.source
+    pts = mesh.points
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
+        raise InputError(f"mesh points must be a non-empty (N, 3) array, got {pts.shape}", src)
+    finite = np.isfinite(pts).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise InputError(f"{int((~finite).sum())} non-finite vertex position(s), first at "
+                         f"vertex {bad}: {pts[bad].tolist()}", src)
+    if np.abs(pts).max() > MAX_COORDINATE:
+        raise InputError(f"vertex coordinates up to {np.abs(pts).max():.3g} scene units: "
+                         "corrupt or in the wrong unit", src)
+    if mesh.face_counts.size == 0:
+        raise InputError("the mesh has no faces", src)
+    if np.any(mesh.face_counts < 3):
+        raise InputError("faces with fewer than 3 vertices", src)
+    if int(mesh.face_counts.sum()) != mesh.face_indices.size:
+        raise InputError(f"face vertex counts sum to {int(mesh.face_counts.sum())} but there "
+                         f"are {mesh.face_indices.size} indices", src)
+    if mesh.face_indices.min() < 0 or mesh.face_indices.max() >= pts.shape[0]:
+        raise InputError(f"face vertex indices outside 0..{pts.shape[0] - 1}", src)
+    if not mesh.meters_per_unit > 0:
+        raise InputError(f"metersPerUnit must be > 0, got {mesh.meters_per_unit}", src)
+    return mesh
+
+
+def load_mesh(path: str | Path, meters_per_unit: float | None = None,
+              prim_path: str | None = None) -> MeshData:
+    """Load a mesh from USD (the first Mesh, or ``prim_path``), PLY or OBJ (pymeshlab).
+
+    Scene units: a USD stage's metersPerUnit; for PLY/OBJ ``meters_per_unit`` (default
+    0.001, millimetres, the unit of range scans). The source file is only read.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such mesh file", path)
+    suffix = path.suffix.lower()
+    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
+        mesh = _load_usd_mesh(path, prim_path, meters_per_unit)
+    elif suffix in (".ply", ".obj"):
+        mesh = _load_meshlab(path, 0.001 if meters_per_unit is None else meters_per_unit)
+    else:
+        raise InputError(f"unsupported mesh type {suffix!r} (USD, PLY or OBJ)", path)
+    return validate_mesh(mesh)
+
+
+def _load_meshlab(path: Path, meters_per_unit: float) -> MeshData:
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    try:
+        ms.load_new_mesh(str(path))
+    except pymeshlab.PyMeshLabException as exc:
+        raise InputError(f"cannot load mesh: {exc}", path) from exc
+    m = ms.current_mesh()
+    faces = np.asarray(m.face_matrix(), dtype=np.int32)
+    st = np.asarray(m.vertex_tex_coord_matrix(), dtype=np.float64) \
+        if m.has_vertex_tex_coord() else None
+    return MeshData(np.asarray(m.vertex_matrix(), dtype=np.float64),
+                    np.full(faces.shape[0], 3, np.int32), faces.reshape(-1), meters_per_unit,
+                    st, path)
+
+
+def _load_usd_mesh(path: Path, prim_path: str | None, meters_per_unit: float | None) -> MeshData:
+    from pxr import Usd, UsdGeom
+
+    from .usd_io import open_stage_guarded
+
+    stage = open_stage_guarded(path)
+    if prim_path:
+        prim = stage.GetPrimAtPath(prim_path)
+        if not prim or not prim.IsA(UsdGeom.Mesh):
+            raise InputError(f"no Mesh at {prim_path}", path)
+    else:
+        prim = next((p for p in Usd.PrimRange(stage.GetPseudoRoot()) if p.IsA(UsdGeom.Mesh)),
+                    None)
+        if prim is None:
+            raise InputError("no Mesh prim in the stage", path)
+    mesh = UsdGeom.Mesh(prim)
+    points = mesh.GetPointsAttr().Get()
+    counts = mesh.GetFaceVertexCountsAttr().Get()
+    indices = mesh.GetFaceVertexIndicesAttr().Get()
+    if points is None or counts is None or indices is None:
+        raise InputError(f"{prim.GetPath()}: points or topology not authored", path)
+    xform = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(
+        Usd.TimeCode.Default()), dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts @ xform[:3, :3] + xform[3, :3]
+    st = None
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("st")
+    if pv and pv.HasValue() and pv.GetInterpolation() in (UsdGeom.Tokens.vertex,
+                                                           UsdGeom.Tokens.varying):
+        st = np.asarray(pv.ComputeFlattened(), dtype=np.float64)
+    mpu = meters_per_unit if meters_per_unit is not None else UsdGeom.GetStageMetersPerUnit(stage)
+    return MeshData(pts, np.asarray(counts, np.int32), np.asarray(indices, np.int32), mpu, st,
+                    path)
+
+
+def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int = 60,
+                 min_component_fraction: float = 0.01) -> MeshData:
+    """Clean a raw range scan with pymeshlab: merge duplicates, drop small floating
+    pieces and degenerate faces, close small holes, decimate to ``target_faces``
+    (quadric edge collapse), recompute a consistent orientation."""
+    import pymeshlab
+
+    if np.any(mesh.face_counts != 3):
+        raise InputError("prepare_scan needs a triangle mesh", mesh.source)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=mesh.points,
+                               face_matrix=mesh.face_indices.reshape(-1, 3)))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_duplicate_faces()
+    ms.meshing_remove_null_faces()
+    ms.meshing_remove_connected_component_by_diameter(
+        mincomponentdiag=pymeshlab.PercentageValue(100 * min_component_fraction * 10))
+    ms.meshing_remove_unreferenced_vertices()
+    ms.meshing_repair_non_manifold_edges()
+    ms.meshing_close_holes(maxholesize=max_hole_edges)
+    # A selection left by an earlier filter makes quadric decimation a silent no-op.
+    ms.set_selection_none()
+    if ms.current_mesh().face_number() > target_faces:
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=target_faces,
+                                                    preservenormal=True, planarquadric=True)
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    faces = np.asarray(m.face_matrix(), dtype=np.int32)
+    return validate_mesh(replace(mesh, points=np.asarray(m.vertex_matrix(), dtype=np.float64),
+                                 face_counts=np.full(faces.shape[0], 3, np.int32),
+                                 face_indices=faces.reshape(-1), st=None))
+
+
+def pymeshlab_face_scan() -> Path:
+    """The real face range scan shipped in pymeshlab's wheel (mm units, holes, noise)."""
+    import pymeshlab
+
+    path = Path(os.path.dirname(pymeshlab.__file__)) / "tests" / "sample_meshes" / \
+        "rangemaps" / "face000.ply"
+    if not path.is_file():
+        raise InputError("pymeshlab's sample face scan is not installed", path)
+    return path
