@@ -102,10 +102,11 @@ def assign_regions_from_landmarks(
 # ----------------------------------------------------------------------------- authoring
 
 
-def _layer_stage(meters_per_unit: float, up_axis: str, default_prim: str) -> Any:
+def _layer_stage(meters_per_unit: float, up_axis: str, default_prim: str,
+                 layer: Any = None) -> Any:
     from pxr import Usd, UsdGeom
 
-    stage = Usd.Stage.CreateInMemory()
+    stage = Usd.Stage.Open(layer) if layer is not None else Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
     UsdGeom.SetStageUpAxis(stage, up_axis)
     stage.SetMetadata("defaultPrim", default_prim)
@@ -199,6 +200,9 @@ def author_asset(
     """Write asset.usda, geo.usdc and look.usda for ``fits`` on ``mesh`` into ``out_dir``."""
     from pxr import Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
 
+    from .usd_schema import require_schema
+
+    require_schema()
     start = time.perf_counter()
     if not name.isidentifier():
         raise InputError(f"asset name must be a valid prim name, got {name!r}")
@@ -261,13 +265,13 @@ def author_asset(
         [Sdf.Path(material_path)])
 
     # asset.usda: the interface
-    asset = _layer_stage(mpu, up_axis, name)
+    asset_layer = Sdf.Layer.CreateAnonymous("asset.usda")  # held here, outlives the stage
+    asset = _layer_stage(mpu, up_axis, name, asset_layer)
     top = UsdGeom.Xform.Define(asset, root).GetPrim()
     Usd.ModelAPI(top).SetKind(Kind.Tokens.component)
     Usd.ModelAPI(top).SetAssetName(name)
     Usd.ModelAPI(top).SetAssetIdentifier(Sdf.AssetPath("./asset.usda"))
     Usd.ColorSpaceAPI.Apply(top).CreateColorSpaceNameAttr(WORKING_COLORSPACE)
-    asset_layer = asset.GetRootLayer()
     del asset  # sublayers are added to the bare layer: no stage tries to compose them here
     asset_layer.subLayerPaths = ["./look.usda", "./geo.usdc"]
     asset_layer.customLayerData = {

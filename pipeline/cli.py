@@ -7,6 +7,7 @@ Results go to stdout, diagnostics and progress to stderr. Exit codes: 0 success,
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -205,6 +206,248 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -------------------------------------------------------------------------------- author
+
+
+def _add_author(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "author",
+        help="write fitted profiles and a face mesh into a USD asset",
+        description=(
+            "Write ASSET_DIR/asset.usda (defaultPrim, kind component, metersPerUnit, upAxis, "
+            "colour space), geo.usdc (mesh, region primvars, GeomSubsets, "
+            "SkinProfileRegionsAPI) and look.usda (SkinDiffusionProfile prims under Looks, a "
+            "UsdPreviewSurface material and an approximate OpenPBR one). Regions come from a "
+            "landmarks file (soft borders) or from an existing uniform int primvar of a USD "
+            "mesh. Layers are written to temporary files and renamed; inputs are only read."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--fits", nargs="+", type=Path, required=True, metavar="DIR_OR_JSON",
+                   help="FIT.json files or directories of them; each fit's name is its region")
+    p.add_argument("--mesh", type=Path, required=True,
+                   help="face mesh: USD (first Mesh, or --mesh-prim), PLY or OBJ")
+    p.add_argument("--mesh-prim", default=None, help="Mesh prim path inside a USD mesh file")
+    p.add_argument("--landmarks", type=Path, default=None,
+                   help="JSON {'regions': {name: [[x, y, z], ...]}} in mesh units")
+    p.add_argument("--region-primvar", default=None, metavar="NAME",
+                   help="take regions from this uniform int primvar of a USD mesh instead")
+    p.add_argument("--region-names", type=lambda t: [x for x in t.split(",") if x],
+                   default=None, metavar="A,B",
+                   help="region names for the values 0, 1, ... of --region-primvar")
+    p.add_argument("--blend-mm", type=float, default=8.0,
+                   help="width of the soft border between landmark regions, mm")
+    p.add_argument("--profiles", type=Path, default=None, metavar="DIR",
+                   help="ingest output with <region>.csv measured samples to embed "
+                        "(default: each fit's source CSV, when it exists)")
+    p.add_argument("--meters-per-unit", type=float, default=None,
+                   help="scene unit of a PLY/OBJ mesh (default 0.001: millimetres)")
+    p.add_argument("--prepare-scan", action="store_true",
+                   help="clean a raw range scan first (pymeshlab: merge, drop small pieces, "
+                        "close small holes, decimate to --target-faces)")
+    p.add_argument("--target-faces", type=int, default=60000, help="with --prepare-scan")
+    p.add_argument("--name", default="Face", help="asset (and default prim) name")
+    p.add_argument("-o", "--output", type=Path, required=True, help="asset directory")
+    p.set_defaults(handler=cmd_author)
+
+
+def _measured_for(fits: list, profiles_dir: Path | None) -> dict:
+    from .profile_io import read_profile_csv
+
+    out = {}
+    for fit in fits:
+        if profiles_dir is not None:
+            csv: Path | None = profiles_dir / f"{fit.name}.csv"
+        else:
+            csv = Path(fit.source) if fit.source else None
+        if csv is not None and csv.is_file():
+            out[fit.name] = read_profile_csv(csv, name=fit.name)
+    return out
+
+
+def author_from_args(fits_paths: list[Path], mesh_path: Path, out: Path, *,
+                     landmarks: Path | None = None, region_primvar: str | None = None,
+                     region_names: list[str] | None = None, blend_mm: float = 8.0,
+                     profiles_dir: Path | None = None, meters_per_unit: float | None = None,
+                     prepare: bool = False, target_faces: int = 60000, name: str = "Face",
+                     mesh_prim: str | None = None):
+    """The author verb as a function (the demo calls it too)."""
+    import numpy as np
+
+    from .author import (
+        RegionAssignment,
+        assign_regions_from_landmarks,
+        author_asset,
+        read_landmarks,
+    )
+    from .mesh import load_mesh, prepare_scan
+    from .profile_io import read_fit_inputs
+
+    fits = read_fit_inputs(fits_paths)
+    mesh = load_mesh(mesh_path, meters_per_unit, mesh_prim)
+    if prepare:
+        _eprint(f"preparing the scan ({mesh.n_faces} faces -> {target_faces})")
+        mesh = prepare_scan(mesh, target_faces)
+    if landmarks is not None:
+        regions = assign_regions_from_landmarks(mesh, read_landmarks(landmarks), blend_mm)
+    elif region_primvar is not None:
+        from pxr import UsdGeom
+
+        from .usd_io import open_stage_guarded
+
+        stage = open_stage_guarded(mesh_path)
+        prim = stage.GetPrimAtPath(mesh_prim) if mesh_prim else next(
+            p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+        pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(region_primvar)
+        if not pv or not pv.HasValue() or pv.GetInterpolation() != UsdGeom.Tokens.uniform:
+            raise InputError(f"no uniform primvar {region_primvar!r} on {prim.GetPath()}",
+                             mesh_path)
+        idx = np.asarray(pv.Get(), dtype=np.int32)
+        if not region_names:
+            raise InputError("--region-primvar needs --region-names A,B,... (one per value)")
+        if idx.size != mesh.n_faces or idx.min() < 0 or idx.max() >= len(region_names):
+            raise InputError(f"{region_primvar} must hold one index in 0..{len(region_names) - 1}"
+                             f" per face ({mesh.n_faces} faces)", mesh_path)
+        regions = RegionAssignment(tuple(region_names), idx)
+    else:
+        raise InputError("give --landmarks or --region-primvar to place the regions")
+    return author_asset(fits, mesh, regions, out, name=name,
+                        measured=_measured_for(fits, profiles_dir))
+
+
+def cmd_author(args: argparse.Namespace) -> int:
+    paths = author_from_args(
+        args.fits, args.mesh, args.output, landmarks=args.landmarks,
+        region_primvar=args.region_primvar, region_names=args.region_names,
+        blend_mm=args.blend_mm, profiles_dir=args.profiles,
+        meters_per_unit=args.meters_per_unit, prepare=args.prepare_scan,
+        target_faces=args.target_faces, name=args.name, mesh_prim=args.mesh_prim)
+    print(f"wrote {paths.asset} (+ {paths.geo.name}, {paths.look.name}) in {paths.seconds:.2f} s")
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------------------ validate
+
+
+def _add_validate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "validate",
+        help="check USD assets with USD's validators and skinpipe's rules (for CI)",
+        description=(
+            "Run OpenUSD's built-in validators (pxr.UsdValidation) and skinpipe's named "
+            "rules (registered with the same registry; 'skinpipe validate --list-rules' "
+            "documents them) on each file. Prints problems with their sites, then "
+            "'Success!' or 'Failed!' like usdchecker. Exit 0 when every file passes, 1 when "
+            "a check fails, 2 when a file cannot be read. Text files nested too deep for "
+            "USD's parser are refused before parsing."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("assets", nargs="*", type=Path, metavar="ASSET.usd")
+    p.add_argument("--strict", action="store_true", help="warnings fail too")
+    p.add_argument("--json", action="store_true", help="print a JSON report instead")
+    p.add_argument("--junit", type=Path, default=None, metavar="FILE",
+                   help="also write a JUnit XML report")
+    p.add_argument("--skinpipe-only", action="store_true",
+                   help="run only skinpipe's rules, not USD's built-in validators")
+    p.add_argument("--list-rules", action="store_true", help="list skinpipe's rules and exit")
+    p.set_defaults(handler=cmd_validate)
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from .fileio import atomic_write_text
+    from .validate import RULES, SKIPPED_BUILTINS, junit_xml, validate_files
+
+    if args.list_rules:
+        for r in RULES:
+            print(f"{r.name}\n    {r.doc}")
+        for name, why in SKIPPED_BUILTINS.items():
+            print(f"(skipped built-in) {name}\n    {why}")
+        return EXIT_OK
+    if not args.assets:
+        raise InputError("no ASSET.usd given")
+    reports = validate_files(args.assets, include_builtin=not args.skinpipe_only)
+    if args.junit:
+        atomic_write_text(args.junit, junit_xml(reports, args.strict))
+    unreadable = any(r.unreadable is not None for r in reports)
+    failed = any(r.failed(args.strict) for r in reports)
+    if args.json:
+        print(json.dumps([{"file": r.path, "unreadable": r.unreadable,
+                           "seconds": round(r.seconds, 4),
+                           "result": "Failed" if r.failed(args.strict) else "Success",
+                           "problems": [p.__dict__ | {"sites": list(p.sites)}
+                                        for p in r.problems]} for r in reports], indent=2))
+    else:
+        for r in reports:
+            if r.unreadable is not None:
+                _eprint(f"{r.path}: cannot read: {r.unreadable}")
+            for prob in r.problems:
+                print(f"{r.path}: [{prob.rule}] {prob.severity}: {prob.message} "
+                      f"({', '.join(prob.sites)})")
+        print("Failed!" if failed else "Success!")
+    if unreadable:
+        return EXIT_BAD_INPUT
+    return EXIT_CHECK_FAILED if failed else EXIT_OK
+
+
+# ------------------------------------------------------------------------------- inspect
+
+
+def _add_inspect(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "inspect",
+        help="print an asset's fitted profiles and plot measured vs fitted",
+        description=(
+            "Print each SkinDiffusionProfile's terms per channel, eq. 2c errors and solver "
+            "facts; --plot draws measured samples and fitted curves per channel with "
+            "relative residuals (one PNG per profile when several are shown)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("asset", type=Path, metavar="ASSET.usd")
+    p.add_argument("--prim", default=None, help="a profile prim, or a mesh: its profiles")
+    p.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
+                   help="plot file; with several profiles OUT_<region>.png each")
+    p.add_argument("--log-radius", action="store_true", help="logarithmic radius axis")
+    p.set_defaults(handler=cmd_inspect)
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from .inspection import describe_profile, plot_profile, profiles_on_stage
+    from .usd_io import open_stage_guarded
+
+    stage = open_stage_guarded(args.asset)
+    found = profiles_on_stage(stage, args.prim)
+    if not found:
+        raise InputError(f"no SkinDiffusionProfile {'at ' + args.prim if args.prim else ''}"
+                         .strip(), args.asset)
+    for path, (fit, measured) in found.items():
+        print(describe_profile(path, fit, measured))
+        if args.plot is not None:
+            target = args.plot if len(found) == 1 else \
+                args.plot.with_name(f"{args.plot.stem}_{fit.name}{args.plot.suffix}")
+            plot_profile(fit, measured, target, log_radius=args.log_radius)
+            print(f"  plot: {target}")
+    return EXIT_OK
+
+
+def _add_env(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "env",
+        help="print the PXR_PLUGINPATH_NAME line for usdview and DCCs",
+        description="Print the shell line that makes usdview or a DCC see skinpipe's USD "
+                    "schema and usdview plugin (add it to your shell profile or launcher).",
+    )
+    p.set_defaults(handler=cmd_env)
+
+
+def cmd_env(args: argparse.Namespace) -> int:
+    from .usd_schema import pxr_plugin_path_line
+
+    print(pxr_plugin_path_line())
+    return EXIT_OK
+
+
 # ---------------------------------------------------------------------------------- demo
 
 
@@ -216,12 +459,14 @@ def sample_captures_dir() -> Path:
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
-        help="run the pipeline on the bundled sample assets (ingest -> fit)",
+        help="run the pipeline on the bundled sample assets (ingest -> fit -> author)",
         description=(
             "Ingest the bundled six-region sample captures (sample_assets/captures), fit each "
-            "region's profile with a sum of Gaussians, and compare both with the simulator's "
-            "known truth. Writes OUT/profiles/*.csv|exr, OUT/fits/*.json and OUT/report.json "
-            "(each stage's seconds and error)."
+            "region's profile with a sum of Gaussians, compare both with the simulator's "
+            "known truth, author a USD asset on pymeshlab's real face scan with the six "
+            "regions placed by sample_assets/face/landmarks.json, and validate it. Writes "
+            "OUT/profiles/*.csv|exr, OUT/fits/*.json, OUT/asset/ and OUT/report.json (each "
+            "stage's seconds and error)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -270,10 +515,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                    "fit": str(out / "fits" / f"{name}.json")}
         print(f"{name:<10} {len(fit.variances_mm2):>5} {fit.error.max():>16.2e} "
               f"{vs_truth.max():>9.2e} {fit.seconds:>6.2f}")
+    from .mesh import pymeshlab_face_scan
+    from .validate import validate_file
+
+    t0 = time.perf_counter()
+    _eprint("author: cleaning and decimating pymeshlab's face scan, placing six regions")
+    paths = author_from_args([out / "fits"], pymeshlab_face_scan(), out / "asset",
+                             landmarks=captures.parents[0] / "face" / "landmarks.json",
+                             profiles_dir=out / "profiles", prepare=True)
+    report["stages"]["author"] = {"seconds": time.perf_counter() - t0, "asset": str(paths.asset)}
+    t0 = time.perf_counter()
+    check = validate_file(paths.asset)
+    report["stages"]["validate"] = {"seconds": time.perf_counter() - t0,
+                                    "problems": [p.message for p in check.problems]}
+    print(f"asset: {paths.asset} ({'valid' if not check.problems else 'INVALID'})")
     report["total_seconds"] = time.perf_counter() - start
     atomic_write_json(out / "report.json", report)
     print(f"wrote {out / 'report.json'} ({report['total_seconds']:.1f} s)")
-    return EXIT_OK
+    return EXIT_OK if not check.problems else EXIT_CHECK_FAILED
 
 
 # -------------------------------------------------------------------------------- report
@@ -382,7 +641,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _VERBS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_ingest, _add_fit, _add_report, _add_simulate,
+    _add_demo, _add_ingest, _add_fit, _add_author, _add_validate, _add_inspect, _add_report,
+    _add_simulate, _add_env,
 ]
 
 

@@ -34,15 +34,27 @@ def usdview_plugin_dir() -> Path:
     return Path(__file__).resolve().parent / "usdview_plugin"
 
 
-def register_schema_plugin() -> None:
-    """Register the schema plugin with USD's plugin registry (idempotent)."""
+def register_schema_plugin() -> bool:
+    """Register the schema plugin with USD's plugin registry (idempotent).
+
+    A missing plugin is not an import error: ``skinpipe validate`` must still run and
+    report it (rule skinpipe:SchemaPluginRegistered), and :func:`require_schema` stops
+    the verbs that author typed prims.
+    """
     from pxr import Plug
 
     folder = schema_dir()
     if not (folder / "plugInfo.json").is_file():
-        raise SkinpipeError(f"skinpipe's USD schema plugin is missing: no plugInfo.json in "
-                            f"{folder}")
+        return False
     Plug.Registry().RegisterPlugins(str(folder))
+    return True
+
+
+def require_schema() -> None:
+    """Raise a clear error when the schema plugin is not registered."""
+    if not schema_is_registered():
+        raise SkinpipeError(f"skinpipe's USD schema plugin is not registered (no plugInfo.json "
+                            f"in {schema_dir()}?): refusing to author untyped profiles")
 
 
 def schema_is_registered() -> bool:

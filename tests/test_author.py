@@ -1,0 +1,162 @@
+"""Authoring: FIT.json -> USD -> read back is an identity; structure and safety."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Kind, Sdf, Usd, UsdGeom
+
+from pipeline.author import (
+    RegionAssignment,
+    assign_regions_from_landmarks,
+    author_asset,
+    read_landmarks,
+    read_profiles,
+)
+from pipeline.cli import main
+from pipeline.errors import InputError
+from pipeline.fit import fit_sum_of_gaussians
+from pipeline.mesh import MeshData, load_mesh, pymeshlab_face_scan
+from pipeline.profile_io import read_fit_json, write_fit_json
+from pipeline.usd_schema import schema_is_registered
+from pipeline.validate import validate_file
+
+from .reference_profiles import deon_profile, dipole_normalised
+
+SAMPLE_LANDMARKS = Path(__file__).parents[1] / "sample_assets" / "face" / "landmarks.json"
+
+
+def _patch() -> MeshData:
+    xs, ys = np.meshgrid(np.arange(5.0), np.arange(4.0))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.zeros(20)], axis=1) * 10.0
+    quads = [[r * 5 + c, r * 5 + c + 1, (r + 1) * 5 + c + 1, (r + 1) * 5 + c]
+             for r in range(3) for c in range(4)]
+    return MeshData(pts, np.full(12, 4, np.int32), np.array(quads, np.int32).reshape(-1), 0.001)
+
+
+@pytest.fixture(scope="module")
+def fit_files(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("fits")
+    for name, prof in (("forehead", deon_profile()), ("cheek", dipole_normalised("skin1"))):
+        fit = fit_sum_of_gaussians(prof, k=4, seed=1)
+        fit.name = name
+        write_fit_json(d / f"{name}.json", fit)
+    return d
+
+
+def test_schema_is_registered_on_import() -> None:
+    assert schema_is_registered()
+
+
+def test_round_trip_identical_numbers(fit_files: Path, tmp_path: Path) -> None:
+    fits = [read_fit_json(p) for p in sorted(fit_files.glob("*.json"))]
+    regions = RegionAssignment(("cheek", "forehead"),
+                               np.array([0] * 6 + [1] * 6, np.int32))
+    paths = author_asset(fits, _patch(), regions, tmp_path / "asset")
+    stage = Usd.Stage.Open(str(paths.asset))
+    back = {f.name: f for f, _ in read_profiles(stage).values()}
+    for fit in fits:
+        got = back[fit.name]
+        assert got.variances_mm2.tolist() == fit.variances_mm2.tolist()
+        assert got.weights.tolist() == fit.weights.tolist()
+        assert got.error.tolist() == fit.error.tolist()
+        assert got.status == fit.status and got.solver == fit.solver
+
+
+def test_asset_structure(fit_files: Path, tmp_path: Path) -> None:
+    fits = [read_fit_json(p) for p in sorted(fit_files.glob("*.json"))]
+    regions = RegionAssignment(("forehead", "cheek"), np.array([0] * 6 + [1] * 6, np.int32))
+    paths = author_asset(fits, _patch(), regions, tmp_path / "a", name="Jane")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == \
+        ["asset.usda", "geo.usdc", "look.usda"]
+    stage = Usd.Stage.Open(str(paths.asset))
+    root = stage.GetDefaultPrim()
+    assert root.GetPath() == "/Jane" and Usd.ModelAPI(root).GetKind() == Kind.Tokens.component
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 0.001
+    assert UsdGeom.GetStageUpAxis(stage) == "Y"
+    mesh = stage.GetPrimAtPath("/Jane/Geom/Mesh")
+    assert "SkinProfileRegionsAPI" in mesh.GetAppliedSchemas()
+    targets = mesh.GetRelationship("skin:profiles").GetTargets()
+    assert [t.name for t in targets] == ["forehead", "cheek"]
+    assert validate_file(paths.asset).problems == []
+
+
+def test_landmark_regions_cover_the_face_scan() -> None:
+    mesh = load_mesh(pymeshlab_face_scan())
+    regions = assign_regions_from_landmarks(mesh, read_landmarks(SAMPLE_LANDMARKS))
+    assert set(regions.names) == {"forehead", "lips", "chin", "cheekbone", "cheek", "nose"}
+    counts = np.bincount(regions.face_region, minlength=6)
+    assert np.all(counts > 1000)
+    np.testing.assert_allclose(regions.vertex_weights.sum(axis=1), 1.0, atol=1e-5)
+
+
+def test_missing_fit_for_a_region(fit_files: Path, tmp_path: Path) -> None:
+    fits = [read_fit_json(fit_files / "forehead.json")]
+    regions = RegionAssignment(("forehead", "nose"), np.zeros(12, np.int32))
+    with pytest.raises(InputError, match=r"no fit for region\(s\) \['nose'\]"):
+        author_asset(fits, _patch(), regions, tmp_path / "x")
+    assert not (tmp_path / "x").exists()
+
+
+def test_bad_mesh_inputs(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    with pytest.raises(InputError):
+        load_mesh(bad)
+    with pytest.raises(InputError, match="no such mesh"):
+        load_mesh(tmp_path / "missing.ply")
+
+
+def test_author_cli_never_touches_the_input_layer(fit_files: Path, tmp_path: Path) -> None:
+    src = tmp_path / "in" / "geo.usda"
+    stage = Usd.Stage.CreateNew(str(src))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    m = UsdGeom.Mesh.Define(stage, "/Head")
+    patch = _patch()
+    m.CreatePointsAttr(patch.points.tolist())
+    m.CreateFaceVertexCountsAttr(patch.face_counts.tolist())
+    m.CreateFaceVertexIndicesAttr(patch.face_indices.tolist())
+    pv = UsdGeom.PrimvarsAPI(m).CreatePrimvar("region", Sdf.ValueTypeNames.IntArray,
+                                             UsdGeom.Tokens.uniform)
+    pv.Set([0] * 6 + [1] * 6)
+    stage.Save()
+    before = src.read_bytes()
+    out = tmp_path / "asset"
+    assert main(["author", "--fits", str(fit_files), "--mesh", str(src), "--region-primvar",
+                 "region", "--region-names", "forehead,cheek", "-o", str(out)]) == 0
+    assert src.read_bytes() == before
+    assert main(["validate", str(out / "asset.usda")]) == 0
+    stage = Usd.Stage.Open(str(out / "asset.usda"))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+
+
+def test_inspect_prints_and_plots(fit_files: Path, tmp_path: Path,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    fits = [read_fit_json(p) for p in sorted(fit_files.glob("*.json"))]
+    regions = RegionAssignment(("forehead", "cheek"), np.array([0] * 6 + [1] * 6, np.int32))
+    paths = author_asset(fits, _patch(), regions, tmp_path / "a")
+    png = tmp_path / "p.png"
+    assert main(["inspect", str(paths.asset), "--plot", str(png), "--log-radius"]) == 0
+    out = capsys.readouterr().out
+    assert "region=forehead" in out and "eq. 2c error" in out
+    assert (tmp_path / "p_forehead.png").stat().st_size > 10000
+    assert main(["inspect", str(paths.asset), "--prim", "/Nope"]) == 2
+
+
+def test_env_prints_plugin_path(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["env"]) == 0
+    line = capsys.readouterr().out
+    assert line.startswith("export PXR_PLUGINPATH_NAME=") and "schemas" in line
+
+
+def test_usdview_plugin_info_names_a_real_container() -> None:
+    import pipeline.usdview_plugin as plugin
+
+    info = json.loads((Path(plugin.__file__).parent / "plugInfo.json").read_text())
+    types = info["Plugins"][0]["Info"]["Types"]
+    (name,) = types
+    assert name == "pipeline.usdview_plugin.SkinPluginContainer"
+    assert hasattr(plugin, "SkinPluginContainer") and hasattr(plugin, "plot_selected_profiles")
