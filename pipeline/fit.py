@@ -35,7 +35,6 @@ Solver = Literal["ipopt", "slsqp"]
 Init = Literal["ga", "naive", "random"]
 CHANNELS = ("R", "G", "B")
 ACCEPTED_IPOPT_STATUS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-_ERROR_ON_FAIL = True
 HESS_REG = 1e-8
 """Levenberg term added to the Gauss-Newton Hessian: keeps it regular where a term's
 weight is zero in every channel (its variance is then unidentifiable)."""
@@ -587,7 +586,7 @@ def _ipopt_solver(
         nlp["g"] = ca.vertcat(*constraints)
     opts = {
         "print_time": False,
-        "error_on_fail": _ERROR_ON_FAIL,
+        "error_on_fail": True,
         "hess_lag": hess,
         "ipopt": dict(IPOPT_OPTIONS),
     }

@@ -339,9 +339,7 @@ def normalise_profile(profile: MeasuredProfile) -> tuple[MeasuredProfile, NDArra
 # ------------------------------------------------------------------------------ the stage
 
 
-def _load_region(
-    captures: CaptureSet, region: str, warn: Callable[[str], None]
-) -> tuple[list[LoadedImage], list[float]]:
+def _load_region(captures: CaptureSet, region: str) -> tuple[list[LoadedImage], list[float]]:
     images = [read_image(b.path) for b in captures.regions[region]]
     exposures: list[float] = []
     for b, img in zip(captures.regions[region], images, strict=True):
@@ -377,7 +375,7 @@ def ingest_region(
             warn(f"{region}: {msg}")
 
     start = time.perf_counter()
-    images, exposures = _load_region(captures, region, note)
+    images, exposures = _load_region(captures, region)
     clip = options.clip_level
     if not any(img.is_float for img in images):
         if all(np.any(img.pixels >= clip) and _centre_clipped(img, clip) for img in images):
