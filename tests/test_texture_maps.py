@@ -1,0 +1,89 @@
+"""UV rasterisation and unwrapping: analytic references on flat patches."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.mesh import MeshData
+from pipeline.texture_maps import rasterize
+from pipeline.unwrap import triangulate, unwrap
+
+
+def _grid(n: int, size_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1))
+    uv = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    pts = np.stack([uv[:, 0] * size_mm, uv[:, 1] * size_mm, np.zeros(uv.shape[0])], axis=1)
+    tris = []
+    for r in range(n):
+        for c in range(n):
+            a = r * (n + 1) + c
+            tris += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
+    return pts, np.array(tris, np.int32), uv
+
+
+@pytest.mark.parametrize(("su", "sv"), [(1.0, 1.0), (0.5, 1.0), (0.25, 0.8)])
+def test_stretch_is_mm_per_texel(su: float, sv: float) -> None:
+    pts, tris, uv = _grid(8, 100.0)
+    maps = rasterize(pts, tris, uv * [su, sv], tris, 256, 0.001)
+    cov = maps.coverage > 0
+    # a 100 mm patch on su x 256 texels: 100 / (su 256) mm per texel along u
+    np.testing.assert_allclose(maps.mm_per_texel_u[cov], 100.0 / (su * 256), rtol=1e-5)
+    np.testing.assert_allclose(maps.mm_per_texel_v[cov], 100.0 / (sv * 256), rtol=1e-5)
+    assert abs(cov.mean() - su * sv) < 0.02
+
+
+def test_positions_and_normals_interpolate_exactly_on_a_plane() -> None:
+    pts, tris, uv = _grid(4, 50.0)
+    maps = rasterize(pts, tris, uv, tris, 64, 0.001)
+    cov = maps.coverage > 0
+    jj, ii = np.nonzero(cov)
+    expected_x = (ii + 0.5) / 64 * 50.0
+    expected_y = (jj + 0.5) / 64 * 50.0
+    np.testing.assert_allclose(maps.position[cov][:, 0], expected_x, atol=1e-4)
+    np.testing.assert_allclose(maps.position[cov][:, 1], expected_y, atol=1e-4)
+    np.testing.assert_allclose(maps.normal[cov], [[0, 0, 1]] * cov.sum(), atol=1e-6)
+    assert cov.all()
+
+
+def test_region_weights_are_interpolated() -> None:
+    pts, tris, uv = _grid(2, 10.0)
+    w = np.stack([uv[:, 0], 1 - uv[:, 0]], axis=1)
+    maps = rasterize(pts, tris, uv, tris, 32, 0.001, region_weights=w)
+    assert maps.region_weights is not None
+    np.testing.assert_allclose(maps.region_weights.sum(axis=2), 1.0, atol=1e-6)
+    np.testing.assert_allclose(maps.region_weights[:, :, 0][0], (np.arange(32) + 0.5) / 32,
+                               atol=1e-6)
+
+
+def test_bad_inputs() -> None:
+    pts, tris, uv = _grid(2, 10.0)
+    with pytest.raises(InputError, match="texture size"):
+        rasterize(pts, tris, uv, tris, 4, 0.001)
+    bad = uv.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InputError, match="non-finite"):
+        rasterize(pts, tris, bad, tris, 32, 0.001)
+
+
+def test_xatlas_unwrap_keeps_triangles_and_gives_finite_uvs() -> None:
+    pts, tris, _ = _grid(10, 100.0)
+    pts[:, 2] = 5.0 * np.sin(pts[:, 0] / 20.0)  # a gently curved sheet
+    mesh = MeshData(pts, np.full(tris.shape[0], 3, np.int32), tris.reshape(-1), 0.001)
+    layout = unwrap(mesh, resolution=256, timeout_s=60)
+    assert layout.uv_indices.size == tris.size
+    assert np.all((layout.uv >= 0) & (layout.uv <= 1))
+    maps = rasterize(pts, triangulate(mesh), layout.uv, layout.uv_indices.reshape(-1, 3), 256,
+                     0.001)
+    cov = maps.coverage > 0
+    # xatlas packs charts with uniform texel density: stretch varies little
+    ratio = maps.mm_per_texel_u[cov] / np.median(maps.mm_per_texel_u[cov])
+    assert np.percentile(np.abs(ratio - 1), 90) < 0.2
+
+
+def test_unwrap_refuses_a_degenerate_mesh() -> None:
+    pts = np.zeros((3, 3))
+    mesh = MeshData(pts, np.array([3], np.int32), np.array([0, 1, 2], np.int32), 0.001)
+    with pytest.raises(InputError, match="no area"):
+        unwrap(mesh)
