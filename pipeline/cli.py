@@ -482,7 +482,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .fit import FitOptions, fit_sum_of_gaussians
     from .ingest import ingest_capture_set
     from .profile_io import read_profile_csv, write_fit_json
-    from .profiles import fit_error_eq2c
     from .simulate import read_truth
 
     captures = sample_captures_dir()
@@ -503,10 +502,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         # Ingested profiles integrate to 1 over the image's disk only: fit the scale too.
         fit = fit_sum_of_gaussians(prof, FitOptions(k=args.k, free_scale=True))
         write_fit_json(out / "fits" / f"{name}.json", fit)
-        r = prof.radius_mm
-        sel = (r >= 0.05) & (r <= 4.0)
-        expected = truth[name].disk_normalised_profile(r[sel], r[-1] + 0.5 * (r[-1] - r[-2]))
-        vs_truth = fit_error_eq2c(r[sel], expected, fit.evaluate(r[sel]))
+        vs_truth = truth[name].profile_error(prof.radius_mm, fit.evaluate(prof.radius_mm))
         report["stages"]["fit"]["seconds"] += fit.seconds
         report["regions"][name] = {"ingest_seconds": entry["seconds"],
                                    "fit_seconds": fit.seconds,

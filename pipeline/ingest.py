@@ -34,6 +34,7 @@ from .imageio import (
     write_exr,
 )
 from .profile_io import write_profile_csv
+from .profiles import disk_radius_mm
 
 FloatImage = NDArray[np.float32]
 ProfileMode = Literal["rings", "cross_section"]
@@ -148,6 +149,7 @@ def merge_brackets(
                                                          else 2e-4)
     num = np.zeros(images[0].pixels.shape, dtype=np.float64)
     den = np.zeros_like(num)
+    radiance = []  # per bracket, ACEScg per second
     for img, t in zip(images, exposures_s, strict=True):
         code = img.pixels
         if img.is_float:
@@ -156,20 +158,16 @@ def merge_brackets(
             weight = weighting_function_Debevec1997(code, domain_l=floor, domain_h=clip_level)
             clipped = np.any(code >= clip_level, axis=2, keepdims=True)
             weight = np.where(clipped, 0.0, weight)
-        linear = convert_colorspace(code, colorspace, ACESCG).astype(np.float64)
-        num += weight * t * (linear / t)
+        radiance.append(convert_colorspace(code, colorspace, ACESCG).astype(np.float64) / t)
+        num += weight * t * radiance[-1]
         den += weight * t
     resolved = den > 0
     # Unresolved pixels: below the floor in every bracket -> the longest exposure's value;
     # clipped in every bracket -> the shortest exposure's (a lower bound).
     longest = int(np.argmax(exposures_s))
     shortest = int(np.argmin(exposures_s))
-    fallback_long = convert_colorspace(images[longest].pixels, colorspace, ACESCG) \
-        / exposures_s[longest]
-    fallback_short = convert_colorspace(images[shortest].pixels, colorspace, ACESCG) \
-        / exposures_s[shortest]
     bright = np.any(images[shortest].pixels >= clip_level, axis=2, keepdims=True)
-    fallback = np.where(bright, fallback_short, fallback_long)
+    fallback = np.where(bright, radiance[shortest], radiance[longest])
     hdr = np.where(resolved, num / np.where(resolved, den, 1.0), fallback)
     return hdr.astype(np.float32), ~np.all(resolved, axis=2)
 
@@ -327,7 +325,7 @@ def _floor_std(stderr: NDArray[np.float64], values: NDArray[np.float64]) -> NDAr
 def normalise_profile(profile: MeasuredProfile) -> tuple[MeasuredProfile, NDArray[np.float64]]:
     """Scale each channel so that 2 pi int p r dr = 1 over the measured disk (ring areas)."""
     r = profile.radius_mm
-    edges = np.concatenate([[0.0], 0.5 * (r[1:] + r[:-1]), [r[-1] + 0.5 * (r[-1] - r[-2])]])
+    edges = np.concatenate([[0.0], 0.5 * (r[1:] + r[:-1]), [disk_radius_mm(r)]])
     areas = np.pi * np.diff(edges**2)
     flux = (profile.values * areas[:, None]).sum(axis=0)
     if not np.all(flux > 0):

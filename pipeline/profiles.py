@@ -51,6 +51,13 @@ def ring_widths_mm(radius_mm: ArrayLike) -> FloatArray:
     return np.diff(edges)
 
 
+def disk_radius_mm(radius_mm: ArrayLike) -> float:
+    """Outer edge of the disk that ring samples at ``radius_mm`` cover: half a spacing
+    beyond the last ring (the rings' edges lie midway between samples)."""
+    r = np.asarray(radius_mm, dtype=np.float64)
+    return float(r[-1] + 0.5 * (r[-1] - r[-2]))
+
+
 def fit_error_eq2c(
     radius_mm: ArrayLike, measured: ArrayLike, fitted: ArrayLike
 ) -> FloatArray:

@@ -132,7 +132,6 @@ def ingest_tradeoff(
     """Profile error (against the simulator's truth, 0.05-4 mm) and ingest seconds, as
     the number of brackets and the ring width vary. Captures are simulated in work_dir."""
     from .ingest import IngestOptions, ingest_region, read_capture_set
-    from .profiles import fit_error_eq2c
     from .simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
 
     truths = {t.name: t for t in sample_subject_truths() if t.name in regions}
@@ -146,10 +145,7 @@ def ingest_tradeoff(
         for _, width in [c for c in cases if c[0] == n]:
             for name, truth in truths.items():
                 res = ingest_region(captures, name, IngestOptions(ring_width_px=width))
-                r = res.profile.radius_mm
-                sel = (r >= 0.05) & (r <= 4.0)
-                expected = truth.disk_normalised_profile(r[sel], r[-1] + 0.5 * (r[-1] - r[-2]))
-                err = fit_error_eq2c(r[sel], res.profile.values[sel], expected)
+                err = truth.profile_error(res.profile.radius_mm, res.profile.values)
                 rows.append({"region": name, "brackets": n, "ring_width_px": width,
                              "seconds": res.seconds, "error_max": float(err.max()),
                              "error": [float(e) for e in err]})

@@ -22,7 +22,13 @@ from numpy.typing import NDArray
 from .errors import InputError
 from .fileio import atomic_write_json
 from .imageio import ACESCG, colorspace_matrix, convert_colorspace, write_ldr
-from .profiles import dipole_profile, dipole_total_reflectance, sum_of_gaussians
+from .profiles import (
+    dipole_profile,
+    dipole_total_reflectance,
+    disk_radius_mm,
+    fit_error_eq2c,
+    sum_of_gaussians,
+)
 from .reference_data import (
     JENSEN_2001,
     PARK_OH_2009_FOREHEAD,
@@ -73,6 +79,15 @@ class RegionTruth:
         tf = self.acescg_profile(rf)
         disk = 2.0 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
         return self.acescg_profile(radius_mm) / disk
+
+    def profile_error(self, radius_mm: NDArray[np.float64], values: NDArray[np.float64],
+                      lo_mm: float = 0.05, hi_mm: float = 4.0) -> NDArray[np.float64]:
+        """eq. 2c between ingested ``values`` (ring samples at ``radius_mm``, normalised
+        over their disk) and the truth, over ``lo_mm``..``hi_mm``, per channel."""
+        r = np.asarray(radius_mm, dtype=np.float64)
+        sel = (r >= lo_mm) & (r <= hi_mm)
+        expected = self.disk_normalised_profile(r[sel], disk_radius_mm(r))
+        return fit_error_eq2c(r[sel], np.asarray(values)[sel], expected)
 
     def camera_albedo(self) -> NDArray[np.float64]:
         if self.kind == "gaussians":

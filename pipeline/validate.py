@@ -232,6 +232,11 @@ def _measured(prim: Any) -> list[tuple[str, str]]:
     return out
 
 
+def _is_regions_mesh(prim: Any) -> bool:
+    """A Mesh with SkinProfileRegionsAPI (RegionsApiOnMesh reports the API elsewhere)."""
+    return prim.GetTypeName() == "Mesh" and REGIONS_API in _applied_api_names(prim)
+
+
 def _profile_targets(prim: Any) -> list[Any]:
     rel = prim.GetRelationship(PROFILES_REL)
     return list(rel.GetTargets()) if rel else []
@@ -250,7 +255,7 @@ def _api_on_mesh(prim: Any) -> list[tuple[str, str]]:
 def _targets(prim: Any) -> list[tuple[str, str]]:
     """skin:profiles has at least one target, and every target exists and is a
     SkinDiffusionProfile."""
-    if prim.GetTypeName() != "Mesh" or REGIONS_API not in _applied_api_names(prim):
+    if not _is_regions_mesh(prim):
         return []
     site = f"{prim.GetPath()}.{PROFILES_REL}"
     targets = _profile_targets(prim)
@@ -267,7 +272,7 @@ def _region_index(prim: Any) -> list[tuple[str, str]]:
     valid index into skin:profiles: every face is covered by a profile."""
     from pxr import UsdGeom
 
-    if prim.GetTypeName() != "Mesh" or REGIONS_API not in _applied_api_names(prim):
+    if not _is_regions_mesh(prim):
         return []
     site = f"{prim.GetPath()}.primvars:{REGION_INDEX_PRIMVAR}"
     pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(REGION_INDEX_PRIMVAR)
@@ -293,7 +298,7 @@ def _region_weights(prim: Any) -> list[tuple[str, str]]:
     regions, one row per point, finite, >= 0, each row summing to 1 (tolerance 1e-3)."""
     from pxr import UsdGeom
 
-    if prim.GetTypeName() != "Mesh" or REGIONS_API not in _applied_api_names(prim):
+    if not _is_regions_mesh(prim):
         return []
     pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(REGION_WEIGHTS_PRIMVAR)
     if not pv or not pv.HasAuthoredValue():
@@ -323,7 +328,7 @@ def _subsets(prim: Any) -> list[tuple[str, str]]:
     holding exactly the faces whose region index points at it."""
     from pxr import UsdGeom
 
-    if prim.GetTypeName() != "Mesh" or REGIONS_API not in _applied_api_names(prim):
+    if not _is_regions_mesh(prim):
         return []
     mesh = UsdGeom.Mesh(prim)
     subsets = UsdGeom.Subset.GetGeomSubsets(mesh, UsdGeom.Tokens.face, SUBSET_FAMILY)

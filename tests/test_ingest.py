@@ -16,7 +16,6 @@ from pipeline.fit import fit_sum_of_gaussians
 from pipeline.imageio import write_exr
 from pipeline.ingest import IngestOptions, ingest_capture_set, read_capture_set
 from pipeline.profile_io import read_profile_csv
-from pipeline.profiles import fit_error_eq2c
 from pipeline.simulate import (
     CaptureSettings,
     read_truth,
@@ -37,14 +36,11 @@ def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: in
         prof = read_profile_csv(report["regions"][name]["csv"])
         fit = fit_sum_of_gaussians(prof, k=6, free_scale=True, seed=seed)
         r = prof.radius_mm
-        edge = r[-1] + 0.5 * (r[-1] - r[-2])
-        sel = (r >= 0.05) & (r <= 4.0)
-        truth = TRUTHS[name].disk_normalised_profile(r[sel], edge)
         entry = np.array(report["regions"][name]["entry_point_px"])
         true_entry = truth_doc["regions"][name]["entry_point_px"]
         results[name] = {
-            "fit_error": fit_error_eq2c(r[sel], truth, fit.evaluate(r[sel])),
-            "raw_error": fit_error_eq2c(r[sel], prof.values[sel], truth),
+            "fit_error": TRUTHS[name].profile_error(r, fit.evaluate(r)),
+            "raw_error": TRUTHS[name].profile_error(r, prof.values),
             "entry_error_px": float(np.hypot(*(entry - true_entry))),
         }
     return results
@@ -81,10 +77,8 @@ def test_median_rings_beat_the_cross_section_under_hair(tmp_path: Path) -> None:
     for mode in ("rings", "cross_section"):
         report = ingest_capture_set(caps, tmp_path / mode, IngestOptions(mode=mode))
         prof = read_profile_csv(report["regions"]["cheek"]["csv"])
-        r = prof.radius_mm
-        sel = (r >= 0.05) & (r <= 3.9)
-        truth = TRUTHS["cheek"].disk_normalised_profile(r[sel], r[-1])
-        errors[mode] = fit_error_eq2c(r[sel], prof.values[sel], truth).max()
+        errors[mode] = TRUTHS["cheek"].profile_error(prof.radius_mm, prof.values,
+                                                     hi_mm=3.9).max()
     assert errors["rings"] < errors["cross_section"]
 
 
