@@ -13,7 +13,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from . import __version__
+from . import __version__, cli_render
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, InputError, SkinpipeError
 
 Handler = Callable[[argparse.Namespace], int]
@@ -457,31 +457,34 @@ def sample_captures_dir() -> Path:
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
+    from .cli_render import add_render_options
+
     p = sub.add_parser(
         "demo",
-        help="run the pipeline on the bundled sample assets (ingest -> fit -> author)",
+        help="run the whole pipeline on the bundled sample assets",
         description=(
             "Ingest the bundled six-region sample captures (sample_assets/captures), fit each "
             "region's profile with a sum of Gaussians, compare both with the simulator's "
             "known truth, author a USD asset on pymeshlab's real face scan with the six "
-            "regions placed by sample_assets/face/landmarks.json, and validate it. Writes "
-            "OUT/profiles/*.csv|exr, OUT/fits/*.json, OUT/asset/ and OUT/report.json (each "
-            "stage's seconds and error)."
+            "regions placed by sample_assets/face/landmarks.json, paint it a skin albedo "
+            "(regional tones, freckles, moles), validate it, and render it with its six "
+            "profiles; then the paper's figure 7 (texture-mapped only vs with scattering) "
+            "and per-region vs one profile, side by side. Writes OUT/profiles, OUT/fits, "
+            "OUT/asset, OUT/scene.usda, OUT/render (EXR, PNG, render.json) and "
+            "OUT/report.json (each stage's seconds and error)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("-o", "--output", type=Path, default=Path("demo_out"), help="output directory")
     p.add_argument("-k", type=int, default=6, help="Gaussians per profile")
+    add_render_options(p, resolution="768x768", texture_size=1024)
     p.set_defaults(handler=cmd_demo)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    import time
-
+    from .cli_render import demo_comparisons, ocio_source, render_options, run_chain
     from .fileio import atomic_write_json
-    from .fit import FitOptions, fit_sum_of_gaussians
-    from .ingest import ingest_capture_set
-    from .profile_io import read_profile_csv, write_fit_json
+    from .mesh import pymeshlab_face_scan
     from .simulate import read_truth
 
     captures = sample_captures_dir()
@@ -489,46 +492,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
         raise InputError("the sample assets are missing (run from a clone of the repository)",
                          captures)
     out = args.output
-    start = time.perf_counter()
-    _eprint(f"ingest {captures}")
-    ingest = ingest_capture_set(captures, out / "profiles", progress=_eprint)
-    ingest_s = time.perf_counter() - start
-    truth = read_truth(captures / "truth.json")
-    report: dict = {"stages": {"ingest": {"seconds": ingest_s}, "fit": {"seconds": 0.0}},
-                    "regions": {}}
-    print(f"{'region':<10} {'terms':>5} {'fit err (eq.2c)':>16} {'vs truth':>9} {'fit s':>6}")
-    for name, entry in ingest["regions"].items():
-        prof = read_profile_csv(entry["csv"])
-        # Ingested profiles integrate to 1 over the image's disk only: fit the scale too.
-        fit = fit_sum_of_gaussians(prof, FitOptions(k=args.k, free_scale=True))
-        write_fit_json(out / "fits" / f"{name}.json", fit)
-        vs_truth = truth[name].profile_error(prof.radius_mm, fit.evaluate(prof.radius_mm))
-        report["stages"]["fit"]["seconds"] += fit.seconds
-        report["regions"][name] = {"ingest_seconds": entry["seconds"],
-                                   "fit_seconds": fit.seconds,
-                                   "fit_error": fit.error.tolist(),
-                                   "error_vs_truth": vs_truth.tolist(),
-                                   "fit": str(out / "fits" / f"{name}.json")}
-        print(f"{name:<10} {len(fit.variances_mm2):>5} {fit.error.max():>16.2e} "
-              f"{vs_truth.max():>9.2e} {fit.seconds:>6.2f}")
-    from .mesh import pymeshlab_face_scan
-    from .validate import validate_file
+    options = render_options(args)
+    report = run_chain(captures, pymeshlab_face_scan(), captures.parent / "face" /
+                       "landmarks.json", out, args.k, True, True, options, ocio_source(args),
+                       truth=read_truth(captures / "truth.json"))
+    import time
 
     t0 = time.perf_counter()
-    _eprint("author: cleaning and decimating pymeshlab's face scan, placing six regions")
-    paths = author_from_args([out / "fits"], pymeshlab_face_scan(), out / "asset",
-                             landmarks=captures.parents[0] / "face" / "landmarks.json",
-                             profiles_dir=out / "profiles", prepare=True)
-    report["stages"]["author"] = {"seconds": time.perf_counter() - t0, "asset": str(paths.asset)}
-    t0 = time.perf_counter()
-    check = validate_file(paths.asset)
-    report["stages"]["validate"] = {"seconds": time.perf_counter() - t0,
-                                    "problems": [p.message for p in check.problems]}
-    print(f"asset: {paths.asset} ({'valid' if not check.problems else 'INVALID'})")
-    report["total_seconds"] = time.perf_counter() - start
+    report["comparisons"] = demo_comparisons(out / "scene.usda", out / "render", options,
+                                             ocio_source(args))
+    report["stages"]["comparisons"] = {"seconds": time.perf_counter() - t0}
+    report["total_seconds"] += report["stages"]["comparisons"]["seconds"]
+    for key in ("figure7", "regions_vs_one"):
+        print(f"wrote {report['comparisons'][key]}")
     atomic_write_json(out / "report.json", report)
     print(f"wrote {out / 'report.json'} ({report['total_seconds']:.1f} s)")
-    return EXIT_OK if not check.problems else EXIT_CHECK_FAILED
+    return EXIT_OK if report["valid"] else EXIT_CHECK_FAILED
 
 
 # -------------------------------------------------------------------------------- report
@@ -624,7 +603,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="skinpipe",
         description=(
             "Measured skin scattering to production assets: ingest bracketed captures of a "
-            "lit skin point, fit sum-of-Gaussians diffusion profiles, author USD assets. "
+            "lit skin point, fit sum-of-Gaussians diffusion profiles, author USD assets, "
+            "render faces with texture-space diffusion. "
             "Radii in mm, variances in mm^2. Run 'skinpipe VERB --help' for each verb."
         ),
         epilog="Exit codes: 0 success, 1 a check failed, 2 bad input or usage.",
@@ -637,8 +617,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _VERBS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_ingest, _add_fit, _add_author, _add_validate, _add_inspect, _add_report,
-    _add_simulate, _add_env,
+    _add_demo, _add_ingest, _add_fit, _add_author, _add_validate, _add_inspect,
+    cli_render.add_paint_albedo, cli_render.add_shot, cli_render.add_render, cli_render.add_run,
+    _add_report, _add_simulate, _add_env,
 ]
 
 

@@ -183,27 +183,46 @@ def diffuse(
     mm_per_texel_v: NDArray[Any],
     coverage: NDArray[Any],
     variances_mm2: NDArray[Any],
-    texel_weights: NDArray[Any],
+    term_weights: NDArray[Any],
+    region_weights: NDArray[Any] | None = None,
 ) -> tuple[NDArray[np.float32], BlurStats]:
     """Diffused irradiance sum_i w_i(texel) (G(v_i) * E) for RGB irradiance (H, W, 3).
 
-    ``variances_mm2`` (K,) ascending; ``texel_weights`` (H, W, K, 3): each texel's
-    weights, already blended between regions. Terms whose weight is zero on every texel
-    are skipped, equal variances share a pass, and a term narrower than
-    MIN_SIGMA_TEXELS everywhere is folded into the unblurred irradiance.
+    ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
+    each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
+    each region a texel is (None: one region everywhere). A texel's weights are the
+    region-blended ones, so borders between regions blend smoothly. Terms whose weight
+    is zero on every texel are skipped, equal variances share a pass, and a term
+    narrower than MIN_SIGMA_TEXELS everywhere is folded into the unblurred irradiance.
     """
     e = np.asarray(irradiance, dtype=np.float32)
     h, w, _ = e.shape
     v = np.asarray(variances_mm2, dtype=np.float64)
-    tw = np.asarray(texel_weights, dtype=np.float32)
-    if v.ndim != 1 or tw.shape != (h, w, v.size, 3):
-        raise InputError(f"texel weights must be (H, W, K, 3) = ({h}, {w}, {v.size}, 3), "
-                         f"got {tw.shape}")
+    tw = np.asarray(term_weights, dtype=np.float32)
+    if tw.ndim == 2:
+        tw = tw[None]
+    n_regions = tw.shape[0]
+    if v.ndim != 1 or tw.shape != (n_regions, v.size, 3):
+        raise InputError(f"term weights must be (R, K, 3) with K = {v.size}, got {tw.shape}")
+    if region_weights is None:
+        if n_regions != 1:
+            raise InputError(f"{n_regions} regions' weights but no region weight map")
+        rw = None
+    else:
+        rw = np.asarray(region_weights, dtype=np.float32)
+        if rw.shape != (h, w, n_regions):
+            raise InputError(f"region weights must be ({h}, {w}, {n_regions}), got {rw.shape}")
     if np.any(np.diff(v) < 0) or np.any(v <= 0):
         raise InputError(f"variances must be > 0 and ascending, got {v.tolist()}")
     stats = BlurStats()
     out = np.zeros((h, w, 3), dtype=np.float32)
-    used = tw.reshape(-1, v.size, 3).max(axis=(0, 2)) > 0
+    if rw is not None:
+        present = rw.reshape(-1, n_regions).max(axis=0) > 0
+        for r in np.flatnonzero(~present):
+            stats.skipped.append(f"region {r}: no texel uses it")
+        used = (tw[present].max(axis=(0, 2)) > 0) if present.any() else np.zeros(v.size, bool)
+    else:
+        used = tw[0].max(axis=1) > 0
     mm_u = np.asarray(mm_per_texel_u, dtype=np.float64)
     mm_v = np.asarray(mm_per_texel_v, dtype=np.float64)
     cov = np.asarray(coverage, dtype=np.float32)
@@ -230,5 +249,6 @@ def diffuse(
             previous_v = v[i]
         elif i > 0:
             stats.skipped.append(f"term {i}: same variance as term {i - 1}, pass shared")
-        out += tw[:, :, i, :] * current
+        weight = tw[0, i] if rw is None else rw @ tw[:, i, :]
+        out += weight * current
     return out, stats

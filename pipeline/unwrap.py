@@ -9,6 +9,8 @@ after ``timeout_s``, and the UVs that come back are checked.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
+import tempfile
 import time
 from dataclasses import dataclass
 from queue import Empty
@@ -47,10 +49,11 @@ def triangulate(mesh: MeshData) -> NDArray[np.int32]:
     return np.asarray(tris, dtype=np.int32)
 
 
-def _run_xatlas(points: NDArray[np.float32], tris: NDArray[np.uint32], chart_area: float,
-                resolution: int, padding: int, queue: Any) -> None:
+def _run_xatlas(npz: str, chart_area: float, resolution: int, padding: int, queue: Any) -> None:
     import xatlas
 
+    with np.load(npz) as data:
+        points, tris = data["points"], data["tris"]
     atlas = xatlas.Atlas()
     atlas.add_mesh(points, tris)
     chart = xatlas.ChartOptions()
@@ -79,13 +82,17 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
     start = time.perf_counter()
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
+    # The mesh goes through a file: spawn pickles arguments into a pipe that blocks the
+    # parent for good if the child dies before reading them.
+    tmp = tempfile.NamedTemporaryFile(suffix=".npz", delete=False)
+    tmp.close()
+    np.savez(tmp.name, points=mesh.points.astype(np.float32), tris=tris.astype(np.uint32))
     proc = ctx.Process(target=_run_xatlas, args=(
-        mesh.points.astype(np.float32), tris.astype(np.uint32),
-        float(area.sum() / charts_per_mesh) if charts_per_mesh else 0.0, resolution, padding,
-        queue), daemon=True)
-    proc.start()
+        tmp.name, float(area.sum() / charts_per_mesh) if charts_per_mesh else 0.0, resolution,
+        padding, queue), daemon=True)
     result = None
     try:
+        proc.start()
         while result is None:
             try:
                 result = queue.get(timeout=0.2)
@@ -96,9 +103,11 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
                     raise SkinpipeError(f"xatlas did not finish in {timeout_s:.0f} s; decimate "
                                         "the mesh or raise charts_per_mesh") from None
     finally:
-        proc.join(timeout=5)
-        if proc.is_alive():
-            proc.kill()
+        if proc.pid is not None:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.kill()
+        os.unlink(tmp.name)
     vmapping, indices, uvs, charts, util = result
     seconds = time.perf_counter() - start
     uvs = np.asarray(uvs, dtype=np.float64)

@@ -37,8 +37,8 @@ def _pencil(n: int, mm_u: float, mm_v: float, variances: np.ndarray, weights: np
     c = n // 2
     e[c, c] = 1.0
     cov = np.ones((n, n), np.float32)
-    tw = np.broadcast_to(weights[None, None], (n, n, *weights.shape)).astype(np.float32)
-    out, stats = diffuse(e, np.full((n, n), mm_u), np.full((n, n), mm_v), cov, variances, tw)
+    out, stats = diffuse(e, np.full((n, n), mm_u), np.full((n, n), mm_v), cov, variances,
+                         weights)
     yy, xx = np.mgrid[0:n, 0:n]
     r = np.hypot((xx - c) * mm_u, (yy - c) * mm_v).ravel()
     return r, out.reshape(-1, 3) / (mm_u * mm_v), stats

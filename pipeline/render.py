@@ -1,0 +1,702 @@
+"""Render stage: texture-space diffusion of a face from a USD asset (paper, sections 3-4).
+
+Tasks, each cached on the content of its inputs (so a turntable computes the
+texture-space work once and re-runs only the camera's shading):
+
+    uvs -> texture maps -> albedo map -> irradiance -> diffusion -> shade -> output
+
+Units: texture-space radii and variances in mm (the stretch map turns scene units into
+mm with the stage's metersPerUnit); colours linear in the stage's working space
+(ACEScg, OCIO ``lin_ap1_scene``) until the display PNG.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .diffusion import diffuse
+from .errors import InputError, SkinpipeError
+from .fit import FitResult
+from .lighting import (
+    DEFAULT_RHO_S,
+    DEFAULT_ROUGHNESS,
+    irradiance_texture,
+    specular_albedo,
+    torrance_sparrow,
+)
+from .raytrace import RayScene
+from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
+from .texture_maps import TextureMaps, rasterize, vertex_normals
+from .unwrap import triangulate, unwrap
+
+AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
+MERGE_RELATIVE = 1e-3
+"""Variances closer than this (relative) share one blur."""
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Everything a render depends on besides the stage."""
+
+    resolution: tuple[int, int] = (1024, 1024)
+    texture_size: int = 1024
+    aovs: tuple[str, ...] = AOVS
+    light_samples: int = 16
+    roughness: float = DEFAULT_ROUGHNESS
+    rho_s: float = DEFAULT_RHO_S
+    albedo_split: float = 0.5
+    """Exponent of the albedo applied before scattering (0.5: sqrt before and after)."""
+    variance_grid: int = 12
+    """0: every region's own variances (merged where equal); N > 0: all regions
+    re-expressed on N shared variances (fewer blurs; the error is reported)."""
+    scattering: bool = True
+    single_profile: str | None = None
+    """None: each region its own profile; 'mean' or a region name: one for the face."""
+    camera: str | None = None
+    write_uvs: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        w, h = self.resolution
+        if not (1 <= w <= 16384 and 1 <= h <= 16384):
+            raise InputError(f"resolution must be 1-16384 on each side, got {w}x{h}")
+        bad = [a for a in self.aovs if a not in AOVS]
+        if bad or not self.aovs:
+            raise InputError(f"unknown AOV(s) {bad}; choose from {', '.join(AOVS)}")
+        if not 1 <= self.light_samples <= 1024:
+            raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
+        if not 0.0 <= self.albedo_split <= 1.0:
+            raise InputError(f"albedo split must be in [0, 1], got {self.albedo_split}")
+        if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
+            raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")
+
+
+# ------------------------------------------------------------------------ profiles
+
+
+@dataclass(frozen=True)
+class DiffusionTerms:
+    """Variances (K,) mm^2 shared by all regions and each region's weights (R, K, 3),
+    with the eq. 2c error of re-expressing each region's fit on them."""
+
+    variances_mm2: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    error: dict[str, float]
+    notes: list[str]
+
+
+def _normalised(fit: FitResult) -> NDArray[np.float64]:
+    s = fit.weights.sum(axis=0, keepdims=True)
+    return fit.weights / np.where(s > 0, s, 1.0)
+
+
+def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0,
+                    single: str | None = None, floor_mm2: float = 0.0) -> DiffusionTerms:
+    """The blur schedule for a set of region fits.
+
+    ``grid`` = 0 keeps every fit's own variances (equal ones merged). ``grid`` = N
+    re-expresses each region and channel on the smallest variance plus N - 1 log-spaced
+    ones from ``floor_mm2`` (narrower blurs are sub-texel and cost nothing) to the
+    largest, by
+    non-negative least squares on the r-weighted profile (the fit's eq. 2c objective),
+    then renormalises the weights to sum to 1. ``single`` = 'mean' or a region name
+    gives every region the same profile (the paper's comparison with one profile).
+    """
+    from scipy.optimize import nnls
+
+    from .profiles import fit_error_eq2c, sum_of_gaussians
+
+    fits = list(fits)
+    notes: list[str] = []
+    if single is not None:
+        names = [f.name for f in fits]
+        if single != "mean" and single not in names:
+            raise InputError(f"single profile {single!r}: not one of {names} or 'mean'")
+    all_v = np.concatenate([f.variances_mm2 for f in fits])
+    if grid > 0:
+        lo, hi = float(all_v.min()), float(all_v.max())
+        start = min(max(lo, floor_mm2), hi)
+        variances = np.unique(np.concatenate([[lo], np.geomspace(start, hi, grid - 1)])) \
+            if grid > 1 and hi > lo * 1.0001 else np.array([lo])
+    else:
+        variances = np.sort(all_v)
+        keep = np.concatenate([[True], np.diff(variances) > MERGE_RELATIVE * variances[1:]])
+        merged = int((~keep).sum())
+        if merged:
+            notes.append(f"{merged} equal variance(s) merged into one blur")
+        variances = variances[keep]
+    weights = np.zeros((len(fits), variances.size, 3))
+    error: dict[str, float] = {}
+    for r, fit in enumerate(fits):
+        w = _normalised(fit)
+        if grid > 0:
+            radius = np.linspace(0.0, 4.0 * math.sqrt(variances.max()), 400)[1:]
+            basis = np.stack([sum_of_gaussians([v], [[1, 1, 1]], radius)[:, 0]
+                              for v in variances], axis=1)
+            target = sum_of_gaussians(fit.variances_mm2, w, radius)
+            sw = np.sqrt(radius)[:, None]
+            for c in range(3):
+                a, _ = nnls(basis * sw, target[:, c] * sw[:, 0])
+                weights[r, :, c] = a / max(a.sum(), 1e-30)
+            approx = sum_of_gaussians(variances, weights[r], radius)
+            error[fit.name] = float(fit_error_eq2c(radius, approx, target).max())
+        else:
+            for v, row in zip(fit.variances_mm2, w, strict=True):
+                k = int(np.argmin(np.abs(variances - v)))
+                weights[r, k] += row
+            error[fit.name] = 0.0
+    if single is not None:
+        shared = weights.mean(axis=0) if single == "mean" else \
+            weights[[f.name for f in fits].index(single)]
+        weights[:] = shared
+        notes.append(f"one profile ({single}) for every region")
+    return DiffusionTerms(variances, weights, error, notes)
+
+
+# ------------------------------------------------------------------------ helpers
+
+
+def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float32]:
+    """Fill texels outside the charts from their surroundings (push-pull: Gortler et al.
+    1996), so bilinear lookups near a seam never blend in black. Covered texels are
+    returned unchanged."""
+    v = np.asarray(values, dtype=np.float32)
+    c = np.asarray(coverage, dtype=np.float32)
+    squeeze = v.ndim == 2
+    if squeeze:
+        v = v[..., None]
+    levels = [(v * c[..., None], c)]
+    while min(levels[-1][1].shape) > 1:
+        pv, pc = levels[-1]
+        h, w = pc.shape
+        h2, w2 = (h + 1) // 2, (w + 1) // 2
+        pv = np.pad(pv, ((0, h2 * 2 - h), (0, w2 * 2 - w), (0, 0)))
+        pc = np.pad(pc, ((0, h2 * 2 - h), (0, w2 * 2 - w)))
+        sv = pv.reshape(h2, 2, w2, 2, -1).sum(axis=(1, 3))
+        sc = pc.reshape(h2, 2, w2, 2).sum(axis=(1, 3))
+        levels.append((sv, sc))
+    # normalised colours per level, then fill each level's holes from the coarser one
+    filled = levels[-1][0] / np.maximum(levels[-1][1], 1e-30)[..., None]
+    for sv, sc in reversed(levels[:-1]):
+        h, w = sc.shape
+        up = np.repeat(np.repeat(filled, 2, axis=0), 2, axis=1)[:h, :w]
+        mean = sv / np.maximum(sc, 1e-30)[..., None]
+        filled = np.where(sc[..., None] > 0, mean, up)
+    out = np.where(c[..., None] > 0, v, filled).astype(np.float32)
+    return out[..., 0] if squeeze else out
+
+
+def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
+    """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
+    size_v, size_u = texture.shape[:2]
+    x = np.clip(uv[:, 0] * size_u - 0.5, 0, size_u - 1)
+    y = np.clip(uv[:, 1] * size_v - 0.5, 0, size_v - 1)
+    x0 = np.minimum(x.astype(np.int64), size_u - 2 if size_u > 1 else 0)
+    y0 = np.minimum(y.astype(np.int64), size_v - 2 if size_v > 1 else 0)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x1, y1 = np.minimum(x0 + 1, size_u - 1), np.minimum(y0 + 1, size_v - 1)
+    t = texture if texture.ndim == 3 else texture[..., None]
+    out = (t[y0, x0] * (1 - fx) * (1 - fy) + t[y0, x1] * fx * (1 - fy)
+           + t[y1, x0] * (1 - fx) * fy + t[y1, x1] * fx * fy)
+    return out.astype(np.float32)
+
+
+def uv_triangles(mesh: SceneMesh) -> NDArray[np.int32] | None:
+    """UV indices per triangle corner (the same fan triangulation as the mesh)."""
+    if mesh.uv is None:
+        return None
+    if mesh.uv_indices is None:
+        return triangulate(mesh.mesh)
+    # triangulate the face-vertex positions exactly as the vertex indices are
+    fv = replace(mesh.mesh, face_indices=np.arange(mesh.mesh.face_indices.size, dtype=np.int32))
+    return mesh.uv_indices[triangulate(fv)]
+
+
+def usable_uvs(mesh: SceneMesh) -> str | None:
+    """None if the mesh's ``st`` can carry texture-space diffusion, else why not."""
+    if mesh.uv is None:
+        return "no st primvar"
+    uv = mesh.uv
+    if not np.all(np.isfinite(uv)):
+        return "non-finite st values"
+    if uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
+        return "st outside [0, 1]"
+    if mesh.uv_indices is not None and (mesh.uv_indices.size != mesh.mesh.face_indices.size or
+                                        mesh.uv_indices.min() < 0 or
+                                        mesh.uv_indices.max() >= uv.shape[0]):
+        return "st indices do not match the faces"
+    if mesh.uv_indices is None and uv.shape[0] != mesh.mesh.points.shape[0]:
+        return "per-vertex st has the wrong length"
+    tq = uv[uv_triangles(mesh)]  # type: ignore[index]
+    area = 0.5 * np.abs(np.cross(tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]))
+    if np.count_nonzero(area > 0) < 0.95 * area.size:
+        return "more than 5% of the faces have zero UV area"
+    if area.sum() > 1.05:
+        return "UV triangles overlap (total UV area > 1)"
+    return None
+
+
+def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: NDArray[Any]
+                   ) -> str | None:
+    """Author faceVarying indexed ``st`` in the layer that holds the mesh's points and save
+    it atomically; returns the layer path, or None when it cannot be done safely."""
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    from .usd_io import export_layer_atomic
+
+    if mesh.points_layer is None:
+        return None
+    layer = Sdf.Layer.FindOrOpen(mesh.points_layer)
+    if layer is None or not layer.realPath or layer.anonymous:
+        return None
+    layer_stage = Usd.Stage.Open(layer)
+    prim = layer_stage.GetPrimAtPath(mesh.path)
+    if not prim:
+        return None
+    pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
+    pv.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
+    pv.SetIndices(Vt.IntArray.FromNumpy(np.asarray(uv_indices, np.int32)))
+    export_layer_atomic(layer, layer.realPath)
+    return str(layer.realPath)
+
+
+def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:
+    """The albedo in texture space (S, S, 3), linear in the working space, and what it
+    came from."""
+    from .imageio import convert_colorspace, read_image
+
+    albedo = mesh.albedo
+    if albedo.texture is None:
+        return np.broadcast_to(np.asarray(albedo.constant, np.float32),
+                               (size, size, 3)).copy(), "constant diffuseColor"
+    img = read_image(albedo.texture)
+    cs = albedo.colorspace or (working if img.is_float else "srgb_tx")
+    px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
+    # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
+    centres = (np.arange(size) + 0.5) / size
+    uu, vv = np.meshgrid(centres, centres)
+    bottom_up = np.ascontiguousarray(px[::-1])
+    sampled = bilinear(bottom_up, np.stack([uu.ravel(), vv.ravel()], axis=1))
+    return np.clip(sampled.reshape(size, size, 3), 0.0, None), f"{albedo.texture} ({cs})"
+
+
+# ------------------------------------------------------------------------ renderer
+
+
+@dataclass
+class TaskLog:
+    seconds: dict[str, float] = field(default_factory=dict)
+    cached: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    measures: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class SkinTextures:
+    """Texture-space results of one skin mesh."""
+
+    mesh: SceneMesh
+    uv: NDArray[np.float64]
+    uv_tris: NDArray[np.int32]
+    tris: NDArray[np.int32]
+    maps: TextureMaps
+    albedo: NDArray[np.float32]
+    irradiance: NDArray[np.float32] | None = None
+    visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
+    radiance: NDArray[np.float32] | None = None
+
+
+class Renderer:
+    """Renders frames of a stage; texture-space work is cached across frames and edits."""
+
+    def __init__(self, stage: Any, options: RenderOptions,
+                 progress: Callable[[str], None] | None = None) -> None:
+        self.stage = stage
+        self.options = options
+        self.delegate = SceneDelegate(stage, options.camera)
+        self.progress = progress or (lambda _msg: None)
+        self._cache: dict[str, Any] = {}
+
+    def close(self) -> None:
+        self.delegate.close()
+
+    def _cached(self, log: TaskLog, task: str, key: str, compute: Callable[[], Any]) -> Any:
+        full = f"{task}:{key}"
+        if full in self._cache:
+            log.cached.append(task)
+            return self._cache[full]
+        self.progress(task)
+        start = time.perf_counter()
+        value = compute()
+        log.seconds[task] = log.seconds.get(task, 0.0) + time.perf_counter() - start
+        for k in [k for k in self._cache if k.startswith(f"{task}:")]:
+            del self._cache[k]  # one generation per task: memory stays bounded
+        self._cache[full] = value
+        return value
+
+    # ---- texture-space tasks
+    def _uvs(self, log: TaskLog, mesh: SceneMesh) -> tuple[NDArray[Any], NDArray[np.int32]]:
+        why = usable_uvs(mesh)
+        if why is None:
+            return mesh.uv, uv_triangles(mesh)  # type: ignore[return-value]
+
+        def compute() -> tuple[NDArray[Any], NDArray[np.int32]]:
+            self.progress(f"unwrap {mesh.path} with xatlas ({why})")
+            layout = unwrap(mesh.mesh)
+            uv = layout.uv.astype(np.float32).astype(np.float64)
+            uv_tris = layout.uv_indices.reshape(-1, 3)
+            log.measures["unwrap"] = {"charts": layout.charts, "utilization": layout.utilization,
+                                      "seconds": layout.seconds, "reason": why}
+            if self.options.write_uvs and np.all(mesh.mesh.face_counts == 3):
+                written = write_uvs_back(self.stage, mesh, uv, layout.uv_indices)
+                log.measures["unwrap"]["written_to"] = written
+            return uv, uv_tris
+
+        return self._cached(log, "unwrap", mesh.geometry_key(), compute)
+
+    def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
+        opts = self.options
+        uv, uv_tris = self._uvs(log, mesh)
+        tris = triangulate(mesh.mesh)
+        key = content_hash(mesh.mesh.points, tris, uv, uv_tris, mesh.region_weights
+                           if mesh.region_weights is not None else 0, opts.texture_size,
+                           scene.meters_per_unit)
+        maps = self._cached(log, "texture_maps", key, lambda: rasterize(
+            mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.meters_per_unit,
+            mesh.region_weights))
+        albedo_key = content_hash(key, mesh.albedo, scene.working_colorspace)
+        albedo, source = self._cached(log, "albedo", albedo_key, lambda: albedo_map(
+            mesh, opts.texture_size, scene.working_colorspace))
+        log.measures["albedo_source"] = source
+        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo)
+
+    def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
+                    rays: RayScene, dome_textures: dict[str, NDArray[np.float32]]) -> None:
+        opts = self.options
+        maps = tex.maps
+        covered = maps.triangle >= 0
+        key = content_hash(tex.mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
+                           [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness,
+                           opts.rho_s, opts.seed)
+
+        def compute() -> Any:
+            res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
+                                     rays, opts.light_samples, opts.roughness, opts.rho_s,
+                                     opts.seed, dome_textures)
+            e = np.zeros((*covered.shape, 3), np.float32)
+            e[covered] = res.entering
+            vis = {}
+            for path, v in res.visibility.items():
+                full = np.zeros(covered.shape, np.float32)
+                full[covered] = v
+                vis[path] = push_pull(full, maps.coverage)
+            return e, vis, res
+
+        e, vis, res = self._cached(log, "irradiance", key, compute)
+        tex.irradiance, tex.visibility = e, vis
+        log.skipped += [s for s in res.skipped if s not in log.skipped]
+        log.measures["irradiance"] = {"rays": res.rays, "seconds": res.seconds,
+                                      "mrays_per_s": res.rays / max(res.seconds, 1e-9) / 1e6}
+
+    def _diffusion(self, log: TaskLog, tex: SkinTextures) -> None:
+        opts = self.options
+        maps = tex.maps
+        assert tex.irradiance is not None
+        texel_mm = float(np.median(np.sqrt(maps.mm_per_texel_u * maps.mm_per_texel_v)[
+            maps.triangle >= 0]))
+        # blurs narrower than half a texel change nothing a texture can hold
+        terms = diffusion_terms(tex.mesh.fits, opts.variance_grid, opts.single_profile,
+                                floor_mm2=(0.5 * texel_mm) ** 2)
+        key = content_hash(tex.irradiance, tex.albedo, terms.variances_mm2, terms.weights,
+                           opts.albedo_split, opts.scattering)
+
+        def compute() -> Any:
+            a = opts.albedo_split
+            pre = tex.irradiance * np.power(tex.albedo, a)
+            cov = maps.coverage
+            skipped: list[str] = []
+            if opts.scattering:
+                out, stats = diffuse(pre, maps.mm_per_texel_u, maps.mm_per_texel_v, cov,
+                                     terms.variances_mm2, terms.weights, maps.region_weights)
+                skipped, passes = stats.skipped, stats.passes
+            else:
+                out, passes = pre, 0
+                skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
+            # the blur moves flux, it must not create or lose it (chart borders included)
+            area = maps.mm_per_texel_u * maps.mm_per_texel_v * cov
+            flux_in = float((pre.sum(axis=2) * area).sum())
+            energy = float((out.sum(axis=2) * area).sum()) / flux_in if flux_in > 0 else 1.0
+            out = out * np.power(tex.albedo, 1.0 - a)
+            radiance = push_pull(out / math.pi, cov)
+            return radiance, skipped, passes, energy
+
+        radiance, skipped, passes, energy = self._cached(log, "diffusion", key, compute)
+        tex.radiance = radiance
+        log.skipped += [f"{tex.mesh.path}: {s}" for s in terms.notes + skipped]
+        log.measures["diffusion"] = {
+            "variances_mm2": terms.variances_mm2.tolist(),
+            "blur_passes": passes,
+            "energy_ratio": energy,
+            "grid_error_eq2c": terms.error,
+            "mm_per_texel_median": texel_mm,
+        }
+
+    # ---- per frame
+    def render(self, time_code: Any = None) -> tuple[dict[str, NDArray[np.float32]], TaskLog]:
+        """One frame: AOV images (H, W, 4 for beauty with alpha; H, W, 3 otherwise)."""
+        from .imageio import read_image
+
+        log = TaskLog()
+        t0 = time.perf_counter()
+        scene = self.delegate.sync(time_code)
+        log.seconds["sync"] = time.perf_counter() - t0
+        if not scene.meshes:
+            raise InputError("the stage has no visible mesh to render")
+        if not scene.skin:
+            raise InputError("no mesh with skin profiles (SkinProfileRegionsAPI + skin:profiles)"
+                             " on the stage")
+        if not scene.lights:
+            raise InputError("the stage has no UsdLux light (DistantLight, SphereLight, "
+                             "RectLight or DomeLight): nothing would be lit")
+        if scene.camera is None:
+            raise InputError("the stage has no UsdGeomCamera (add one, or pass --camera)")
+        rays = self._cached(log, "bvh", scene_geometry_key(scene), lambda: RayScene(
+            [(m.mesh.points, triangulate(m.mesh)) for m in scene.meshes]))
+        domes = {}
+        for light in scene.lights:
+            if light.kind == "dome" and light.texture:
+                domes[light.path] = self._cached(log, f"dome:{light.path}", str(light.texture),
+                                                 lambda lt=light: read_image(lt.texture).pixels)
+        skins = []
+        for mesh in scene.skin:
+            tex = self._textures(log, scene, mesh)
+            self._irradiance(log, scene, tex, rays, domes)
+            self._diffusion(log, tex)
+            skins.append(tex)
+        t0 = time.perf_counter()
+        images = self._shade(scene, skins, rays, log)
+        log.seconds["shade"] = time.perf_counter() - t0
+        log.measures["rays"] = {"counts": rays.stats.rays,
+                                "mrays_per_s": rays.stats.mrays_per_s()}
+        return images, log
+
+    def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
+               log: TaskLog) -> dict[str, NDArray[np.float32]]:
+        opts = self.options
+        width, height = opts.resolution
+        cam = scene.camera
+        assert cam is not None
+        origins, dirs = cam.rays(width, height)
+        prim, bu, bv, dist = rays.intersect(origins, dirs)
+        n_pix = width * height
+        out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
+        alpha = (prim >= 0).astype(np.float32)
+        mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
+        owner = np.where(prim[:, None] >= 0, rays.owner[np.maximum(prim, 0)], -1)
+        for m_i, mesh in enumerate(scene.meshes):
+            sel = np.flatnonzero(owner[:, 0] == m_i)
+            if sel.size == 0:
+                continue
+            tri_idx = owner[sel, 1]
+            tris = triangulate(mesh.mesh)
+            b = np.stack([1 - bu[sel] - bv[sel], bu[sel], bv[sel]], axis=1)[:, :, None]
+            pos = origins[sel] + dirs[sel] * dist[sel, None]
+            normals = vertex_normals(mesh.mesh.points, tris)
+            n = (normals[tris[tri_idx]] * b).sum(axis=1)
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            view = -dirs[sel]
+            # two-sided: a normal facing away from the camera is flipped
+            flip = np.einsum("ij,ij->i", n, view) < 0
+            n[flip] *= -1
+            tex = next((s for s in skins if mesh_index[s.mesh.path] == m_i), None)
+            if tex is None:
+                self._shade_plain(scene, mesh, pos, n, sel, rays, out)
+                continue
+            uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
+            n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
+            leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
+            assert tex.radiance is not None and tex.irradiance is not None
+            out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
+            out["albedo"][sel] = bilinear(tex.albedo, uv)
+            out["irradiance"][sel] = bilinear(push_pull(tex.irradiance, tex.maps.coverage), uv)
+            if "specular" in opts.aovs or "beauty" in opts.aovs:
+                out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
+        out["beauty"] = out["diffuse"] + out["specular"]
+        images = {}
+        for a in opts.aovs:
+            img = out[a].reshape(height, width, 3)
+            if a == "beauty":
+                img = np.concatenate([img, alpha.reshape(height, width, 1)], axis=2)
+            images[a] = img
+        skipped_aovs = [a for a in AOVS if a not in opts.aovs]
+        if skipped_aovs:
+            log.skipped.append(f"AOVs not asked for: {', '.join(skipped_aovs)}")
+        return images
+
+    def _specular(self, scene: SceneData, tex: SkinTextures, pos: NDArray[Any],
+                  n: NDArray[Any], view: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
+        opts = self.options
+        spec = np.zeros((pos.shape[0], 3))
+        for light in scene.lights:
+            if light.path not in tex.visibility or light.kind == "dome":
+                continue
+            l_dir, e_perp = light_direction(light, pos)
+            h = l_dir + view
+            h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+            nl = np.einsum("ij,ij->i", n, l_dir)
+            f = torrance_sparrow(nl, np.einsum("ij,ij->i", n, view), np.einsum("ij,ij->i", n, h),
+                                 np.einsum("ij,ij->i", view, h), opts.roughness, opts.rho_s)
+            vis = bilinear(tex.visibility[light.path], uv)[:, 0]
+            spec += (f * np.maximum(nl, 0) * vis)[:, None] * e_perp
+        return spec.astype(np.float32)
+
+    def _shade_plain(self, scene: SceneData, mesh: SceneMesh, pos: NDArray[Any],
+                     n: NDArray[Any], sel: NDArray[Any], rays: RayScene,
+                     out: dict[str, NDArray[np.float32]]) -> None:
+        """Meshes without skin profiles: Lambertian in their constant colour, direct light
+        from each light's centre with one shadow ray (dome lights: unshadowed ambient)."""
+        albedo = np.asarray(mesh.albedo.constant, np.float32)
+        e = np.zeros((pos.shape[0], 3))
+        origins = pos + n * (1e-5 * rays.diagonal)
+        for light in scene.lights:
+            if light.kind == "dome":
+                e += light.radiance * math.pi * 0.5
+                continue
+            l_dir, e_perp = light_direction(light, pos)
+            nl = np.maximum(np.einsum("ij,ij->i", n, l_dir), 0)
+            far = np.full(pos.shape[0], np.inf) if light.kind == "distant" else \
+                np.linalg.norm(light.position - pos, axis=1) * (1 - 1e-4)
+            lit = nl > 0
+            blocked = np.zeros(pos.shape[0], bool)
+            blocked[lit] = rays.occluded(origins[lit], l_dir[lit], np.minimum(far[lit], 1e30))
+            e += (nl * ~blocked)[:, None] * e_perp
+        out["diffuse"][sel] = albedo * e / math.pi
+        out["albedo"][sel] = albedo
+        out["irradiance"][sel] = e
+
+
+def light_direction(light: Any, pos: NDArray[Any]) -> tuple[NDArray[Any], NDArray[Any]]:
+    """Unit directions from points to a light's centre, and the irradiance it gives a
+    surface facing it (L x solid angle, or L x area x cos / d^2)."""
+    if light.kind == "distant":
+        return np.broadcast_to(-light.axis, pos.shape), np.broadcast_to(light.radiance,
+                                                                        pos.shape)
+    to = light.position - pos
+    d = np.linalg.norm(to, axis=1, keepdims=True)
+    l_dir = to / np.maximum(d, 1e-12)
+    if light.kind == "sphere":
+        r = max(light.radius, 1e-9)
+        cos_max = np.sqrt(1 - np.clip((r / np.maximum(d, r * 1.0001)) ** 2, 0, 1))
+        radiance = light.radiance / (4 * math.pi * r * r) if light.normalize else light.radiance
+        return l_dir, 2 * math.pi * (1 - cos_max) * radiance
+    m = light.matrix
+    area = abs(light.width * light.height) * np.linalg.norm(np.cross(m[0, :3], m[1, :3]))
+    radiance = light.radiance / max(area, 1e-12) if light.normalize else light.radiance
+    cos_l = np.maximum(-(l_dir @ light.axis), 0)[:, None]
+    return l_dir, radiance * area * cos_l / np.maximum(d * d, 1e-12)
+
+
+def scene_geometry_key(scene: SceneData) -> str:
+    return content_hash(*[m.geometry_key() for m in scene.meshes])
+
+
+# ------------------------------------------------------------------------ outputs
+
+
+def display_image(beauty: NDArray[Any], working: str, config_source: str
+                  ) -> tuple[NDArray[np.float32], dict[str, str]]:
+    """Display-referred pixels through the config's default display and view."""
+    import PyOpenColorIO as OCIO
+
+    from .imageio import check_colorspace, ocio_config
+
+    config = ocio_config(config_source)
+    src = check_colorspace(working, config_source)
+    display = config.getDefaultDisplay()
+    view = config.getDefaultView(display)
+    transform = OCIO.DisplayViewTransform(src=src, display=display, view=view)
+    proc = config.getProcessor(transform).getDefaultCPUProcessor()
+    rgb = np.ascontiguousarray(np.nan_to_num(beauty[..., :3], nan=0.0, posinf=1e4), np.float32)
+    rgb = rgb.copy()
+    proc.applyRGB(rgb.reshape(-1, 3))
+    return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
+
+
+def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32]],
+                  working: str, config_source: str) -> dict[str, Any]:
+    """OUT/<name>.exr (one layer per AOV, colour space in the header) and OUT/<name>.png."""
+    from .imageio import write_exr, write_ldr
+
+    channels, names = [], []
+    for aov, img in images.items():
+        chans = ("R", "G", "B", "A") if img.shape[2] == 4 else ("R", "G", "B")
+        channels.append(img)
+        names += [c if aov == "beauty" else f"{aov}.{c}" for c in chans]
+    stack = np.concatenate(channels, axis=2)
+    if not np.all(np.isfinite(stack)):
+        raise SkinpipeError(f"{name}: the render produced non-finite pixels")
+    exr = write_exr(out_dir / f"{name}.exr", stack, working, channel_names=tuple(names))
+    result: dict[str, Any] = {"exr": str(exr), "colorspace": working}
+    if "beauty" in images:
+        disp, info = display_image(images["beauty"], working, config_source)
+        alpha = images["beauty"][..., 3:4]
+        png = write_ldr(out_dir / f"{name}.png", np.concatenate([disp, alpha], axis=2), 8,
+                        {"oiio:ColorSpace": f"{info['display']} / {info['view']}"})
+        result.update({"png": str(png), **info})
+    return result
+
+
+def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
+                 frames: tuple[int, int] | None = None, ocio: str = "ocio://default",
+                 name: str | None = None, progress: Callable[[str], None] | None = None
+                 ) -> dict[str, Any]:
+    """Render ``scene_path`` into ``out_dir`` (one EXR + PNG per frame) and write
+    ``render.json``: per frame, each task's seconds, what was cached or skipped, and the
+    error measures."""
+    from .fileio import atomic_write_json
+    from .imageio import check_colorspace
+    from .usd_io import open_stage_guarded
+
+    start = time.perf_counter()
+    scene_path = Path(scene_path)
+    stage = open_stage_guarded(scene_path)
+    check_colorspace("lin_ap1_scene", ocio)
+    name = name or scene_path.stem
+    out_dir.mkdir(parents=True, exist_ok=True)
+    renderer = Renderer(stage, options, progress)
+    doc: dict[str, Any] = {"scene": str(scene_path), "options": _options_json(options),
+                           "ocio": ocio, "frames": []}
+    try:
+        times = [None] if frames is None else list(range(frames[0], frames[1] + 1))
+        for t in times:
+            t0 = time.perf_counter()
+            if progress and t is not None:
+                progress(f"frame {t}")
+            images, log = renderer.render(t)
+            working = renderer.delegate.working_colorspace
+            frame_name = name if t is None else f"{name}.{t:04d}"
+            outputs = write_outputs(out_dir, frame_name, images, working, ocio)
+            doc["frames"].append({"frame": t, "seconds": time.perf_counter() - t0,
+                                  "tasks": log.seconds, "cached": log.cached,
+                                  "skipped": log.skipped, "measures": log.measures,
+                                  "outputs": outputs})
+    finally:
+        renderer.close()
+    doc["total_seconds"] = time.perf_counter() - start
+    atomic_write_json(out_dir / "render.json", doc)
+    return doc
+
+
+def _options_json(options: RenderOptions) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(options).items()}
