@@ -482,7 +482,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .cli_render import demo_comparisons, ocio_source, render_options, run_chain
+    from .cli_render import ocio_source, render_options, run_chain
     from .fileio import atomic_write_json
     from .mesh import pymeshlab_face_scan
     from .simulate import read_truth
@@ -495,16 +495,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     options = render_options(args)
     report = run_chain(captures, pymeshlab_face_scan(), captures.parent / "face" /
                        "landmarks.json", out, args.k, True, True, options, ocio_source(args),
-                       truth=read_truth(captures / "truth.json"))
-    import time
-
-    t0 = time.perf_counter()
-    report["comparisons"] = demo_comparisons(out / "scene.usda", out / "render", options,
-                                             ocio_source(args))
-    report["stages"]["comparisons"] = {"seconds": time.perf_counter() - t0}
-    report["total_seconds"] += report["stages"]["comparisons"]["seconds"]
-    for key in ("figure7", "regions_vs_one"):
-        print(f"wrote {report['comparisons'][key]}")
+                       truth=read_truth(captures / "truth.json"), comparisons=True)
     atomic_write_json(out / "report.json", report)
     print(f"wrote {out / 'report.json'} ({report['total_seconds']:.1f} s)")
     return EXIT_OK if report["valid"] else EXIT_CHECK_FAILED

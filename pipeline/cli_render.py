@@ -232,14 +232,17 @@ def add_run(sub: argparse._SubParsersAction) -> None:
 
 def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
               prepare: bool, paint: bool, options: Any, ocio: str,
-              truth: dict[str, Any] | None = None) -> dict[str, Any]:
-    """ingest -> fit -> author -> (paint) -> shot -> render; returns the report."""
+              truth: dict[str, Any] | None = None, comparisons: bool = False
+              ) -> dict[str, Any]:
+    """ingest -> fit -> author -> (paint) -> shot -> render (-> the demo's comparison
+    renders, which reuse the render's texture-space work); returns the report."""
     from .cli import author_from_args
     from .fit import FitOptions, fit_sum_of_gaussians
     from .ingest import ingest_capture_set
     from .profile_io import read_profile_csv, write_fit_json
-    from .render import render_files
+    from .render import Renderer, render_files
     from .shot import author_shot
+    from .usd_io import open_stage_guarded
     from .validate import validate_file
 
     start = time.perf_counter()
@@ -286,11 +289,22 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
     print(f"asset: {paths.asset} ({'valid' if not check.problems else 'INVALID'})")
     scene = author_shot(paths.asset, out / "scene.usda")
     t0 = time.perf_counter()
-    doc = render_files(scene, out / "render", options, None, ocio, "Face", progress=_eprint)
-    report["stages"]["render"] = {"seconds": time.perf_counter() - t0,
-                                  "tasks": doc["frames"][0]["tasks"],
-                                  "render_json": str(out / "render" / "render.json")}
-    _print_render(doc)
+    renderer = Renderer(open_stage_guarded(scene), options, _eprint)
+    try:
+        doc = render_files(scene, out / "render", options, None, ocio, "Face",
+                           progress=_eprint, renderer=renderer)
+        report["stages"]["render"] = {"seconds": time.perf_counter() - t0,
+                                      "tasks": doc["frames"][0]["tasks"],
+                                      "render_json": str(out / "render" / "render.json")}
+        _print_render(doc)
+        if comparisons:
+            t0 = time.perf_counter()
+            report["comparisons"] = demo_comparisons(renderer, out / "render", ocio)
+            report["stages"]["comparisons"] = {"seconds": time.perf_counter() - t0}
+            for key in ("figure7", "regions_vs_one"):
+                print(f"wrote {report['comparisons'][key]}")
+    finally:
+        renderer.close()
     report["valid"] = not check.problems
     report["total_seconds"] = time.perf_counter() - start
     return report
@@ -335,30 +349,25 @@ def side_by_side(left: Path, right: Path, out: Path, labels: tuple[str, str]) ->
     return write_ldr(out, np.concatenate(tiles, axis=1), 8)
 
 
-def demo_comparisons(scene: Path, out: Path, options: Any, ocio: str) -> dict[str, Any]:
+def demo_comparisons(renderer: Any, out: Path, ocio: str) -> dict[str, Any]:
     """The paper's figure 7 (texture-mapped only vs with scattering) and per-region vs one
-    profile, rendered with one Renderer so irradiance is computed once."""
-    from .render import Renderer, write_outputs
-    from .usd_io import open_stage_guarded
+    profile, rendered with ``renderer`` (which has rendered the scene with scattering and
+    per-region profiles), so only diffusion and shading run again."""
+    from .render import write_outputs
 
-    renderer = Renderer(open_stage_guarded(scene), replace(options, aovs=("beauty",)),
-                        progress=_eprint)
+    base = replace(renderer.options, aovs=("beauty",), scattering=True, single_profile=None)
     result: dict[str, Any] = {}
-    try:
-        pngs = {}
-        for label, opts in (("scattering", {}), ("texture_only", {"scattering": False}),
-                            ("one_profile", {"single_profile": "mean"})):
-            renderer.options = replace(renderer.options, **{"scattering": True,
-                                                            "single_profile": None, **opts})
-            t0 = time.perf_counter()
-            images, log = renderer.render()
-            written = write_outputs(out, f"Face_{label}", images,
-                                    renderer.delegate.working_colorspace, ocio)
-            pngs[label] = Path(written["png"])
-            result[label] = {"seconds": time.perf_counter() - t0, "cached": log.cached,
-                             "png": written["png"]}
-    finally:
-        renderer.close()
+    pngs = {"scattering": out / "Face.png"}
+    for label, opts in (("texture_only", {"scattering": False}),
+                        ("one_profile", {"single_profile": "mean"})):
+        renderer.options = replace(base, **opts)
+        t0 = time.perf_counter()
+        images, log = renderer.render()
+        written = write_outputs(out, f"Face_{label}", images,
+                                renderer.delegate.working_colorspace, ocio)
+        pngs[label] = Path(written["png"])
+        result[label] = {"seconds": time.perf_counter() - t0, "cached": log.cached,
+                         "png": written["png"]}
     result["figure7"] = str(side_by_side(pngs["texture_only"], pngs["scattering"],
                                          out / "figure7_texture_vs_scattering.png",
                                          ("texture-mapped only", "with scattering")))

@@ -657,22 +657,25 @@ def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32
 
 def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
                  frames: tuple[int, int] | None = None, ocio: str = "ocio://default",
-                 name: str | None = None, progress: Callable[[str], None] | None = None
-                 ) -> dict[str, Any]:
+                 name: str | None = None, progress: Callable[[str], None] | None = None,
+                 renderer: Renderer | None = None) -> dict[str, Any]:
     """Render ``scene_path`` into ``out_dir`` (one EXR + PNG per frame) and write
     ``render.json``: per frame, each task's seconds, what was cached or skipped, and the
-    error measures."""
+    error measures. A ``renderer`` passed in is used (and left open) so that its caches
+    serve later renders of the same stage."""
     from .fileio import atomic_write_json
     from .imageio import check_colorspace
     from .usd_io import open_stage_guarded
 
     start = time.perf_counter()
     scene_path = Path(scene_path)
-    stage = open_stage_guarded(scene_path)
     check_colorspace("lin_ap1_scene", ocio)
     name = name or scene_path.stem
+    own = renderer is None
+    if renderer is None:
+        renderer = Renderer(open_stage_guarded(scene_path), options, progress)
+    renderer.options = options
     out_dir.mkdir(parents=True, exist_ok=True)
-    renderer = Renderer(stage, options, progress)
     doc: dict[str, Any] = {"scene": str(scene_path), "options": _options_json(options),
                            "ocio": ocio, "frames": []}
     try:
@@ -690,7 +693,8 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
                                   "skipped": log.skipped, "measures": log.measures,
                                   "outputs": outputs})
     finally:
-        renderer.close()
+        if own:
+            renderer.close()
     doc["total_seconds"] = time.perf_counter() - start
     atomic_write_json(out_dir / "render.json", doc)
     return doc

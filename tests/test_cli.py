@@ -73,8 +73,16 @@ def test_console_script_runs() -> None:
 
 def test_demo_on_sample_assets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "demo"
-    assert main(["demo", "-o", str(out)]) == 0
+    assert main(["demo", "-o", str(out), "--resolution", "256x256", "--texture-size", "512",
+                 "--light-samples", "4"]) == 0
     report = json.loads((out / "report.json").read_text())
+    render = json.loads((out / "render" / "render.json").read_text())["frames"][0]
+    assert len(render["measures"]["diffusion"]["grid_error_eq2c"]) == 6  # six profiles
+    assert abs(render["measures"]["diffusion"]["energy_ratio"] - 1) < 5e-3
+    for png in ("Face.png", "figure7_texture_vs_scattering.png",
+                "per_region_vs_one_profile.png"):
+        assert (out / "render" / png).is_file(), png
+    assert set(report["comparisons"]["one_profile"]["cached"]) >= {"irradiance"}
     assert sorted(report["regions"]) == sorted(
         ["forehead", "lips", "chin", "cheekbone", "cheek", "nose"])
     for name, entry in report["regions"].items():

@@ -1,0 +1,390 @@
+"""Render stage: analytic references (pencil light, energy, shadows, two regions), the
+scene delegate's change tracking and caches, and bad assets."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.diffusion import diffuse
+from pipeline.errors import InputError
+from pipeline.lighting import irradiance_texture, specular_albedo
+from pipeline.mesh import MeshData
+from pipeline.profiles import fit_error_eq2c, sum_of_gaussians
+from pipeline.raytrace import RayScene
+from pipeline.reference_data import DEON_2007_SKIN
+from pipeline.render import (
+    Renderer,
+    RenderOptions,
+    diffusion_terms,
+    push_pull,
+    render_files,
+)
+from pipeline.scene import Light
+from pipeline.texture_maps import rasterize
+from pipeline.unwrap import triangulate, unwrap
+from pipeline.usd_io import open_stage_guarded
+
+from .render_scenes import (
+    deon_fit,
+    distant_down,
+    exact_fit,
+    grid_patch,
+    patch_asset,
+    scene_over,
+    top_camera,
+)
+
+# ------------------------------------------------------------------ analytic references
+
+
+def _pencil_through_layout(uv_scale: tuple[float, float], offset: tuple[float, float],
+                           size: int, fits: list, region_weights_fn=None,
+                           lit_xy_mm: tuple[float, float] = (0.0, 0.0), patch_mm: float = 24.0):
+    """Rasterise a flat patch with scaled UVs, light the texel under ``lit_xy_mm`` and
+    diffuse; returns surface radii (mm) and the diffused profile per mm^2 there."""
+    pts, tris, uv = grid_patch(24, patch_mm)
+    uv = uv * uv_scale + offset
+    rw = None if region_weights_fn is None else region_weights_fn(pts)
+    maps = rasterize(pts, tris, uv, tris, size, 0.001, rw)
+    cov = maps.coverage
+    d = np.linalg.norm(maps.position[..., :2] - lit_xy_mm, axis=2) + (1 - cov) * 1e9
+    j, i = np.unravel_index(np.argmin(d), d.shape)
+    area = maps.mm_per_texel_u * maps.mm_per_texel_v
+    e = np.zeros((size, size, 3), np.float32)
+    e[j, i] = 1.0 / area[j, i]  # unit flux into one texel
+    terms = diffusion_terms(fits, grid=0)
+    out, _ = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, cov, terms.variances_mm2,
+                     terms.weights, maps.region_weights if rw is not None else None)
+    r = np.linalg.norm(maps.position - maps.position[j, i], axis=2)
+    sel = (cov > 0) & (r > 0.3) & (r < 3.5)
+    order = np.argsort(r[sel])
+    return r[sel][order], out[sel][order], area
+
+
+@pytest.mark.parametrize(("uv_scale", "offset"), [
+    ((0.5, 0.5), (0.25, 0.25)),   # 0.19 mm per texel: the sample face's density at 1024
+    ((0.9, 0.9), (0.05, 0.05)),   # denser
+    ((0.35, 0.7), (0.3, 0.15)),   # stretched: 0.27 x 0.13 mm per texel
+])
+def test_pencil_light_reproduces_the_profile_through_the_uv_layout(
+        uv_scale: tuple[float, float], offset: tuple[float, float]) -> None:
+    fit = deon_fit()
+    r, got, _ = _pencil_through_layout(uv_scale, offset, 256, [fit])
+    truth = sum_of_gaussians(fit.variances_mm2, fit.weights, r)
+    assert fit_error_eq2c(r, got, truth).max() < 0.02
+
+
+def test_energy_is_conserved_on_a_closed_mesh() -> None:
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.create_sphere(radius=20.0, subdiv=4)
+    m = ms.current_mesh()
+    faces = np.asarray(m.face_matrix(), np.int32)
+    mesh = MeshData(np.asarray(m.vertex_matrix(), np.float64), np.full(len(faces), 3, np.int32),
+                    faces.reshape(-1), 0.001)
+    layout = unwrap(mesh)
+    maps = rasterize(mesh.points, triangulate(mesh), layout.uv,
+                     layout.uv_indices.reshape(-1, 3), 512, 0.001)
+    cov = maps.coverage
+    # lit from +z (a hemisphere), with texture detail: flux crosses many chart borders
+    lit = np.clip(maps.normal[..., 2], 0, None)
+    rng = np.random.default_rng(0)
+    e = (lit[..., None] * rng.uniform(0.5, 1.5, (512, 512, 3)) * cov[..., None]).astype(
+        np.float32)
+    fit = deon_fit()
+    out, stats = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, cov, fit.variances_mm2,
+                         fit.weights)
+    area = (maps.mm_per_texel_u * maps.mm_per_texel_v * cov)[..., None]
+    ratio = (out * area).sum(axis=(0, 1)) / (e * area).sum(axis=(0, 1))
+    np.testing.assert_allclose(ratio, 1.0, atol=5e-3)
+    assert layout.charts > 10 and stats.passes >= 10
+
+
+def test_occluder_shadow_lands_where_geometry_says() -> None:
+    pts, tris, _ = grid_patch(20, 100.0)
+    occ_pts, occ_tris, _ = grid_patch(2, 20.0, z=10.0)
+    rays = RayScene([(pts, tris), (occ_pts, occ_tris)])
+    xs, ys = np.meshgrid(np.linspace(-45, 45, 91), np.linspace(-45, 45, 91))
+    pos = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    nrm = np.tile([0.0, 0.0, 1.0], (pos.shape[0], 1))
+    sun = Light("/Sun", "distant", np.array([2.0, 2.0, 2.0]), np.eye(4), angle_deg=0.0)
+    res = irradiance_texture(pos, nrm, [sun], rays, samples=1)
+    e = res.entering[:, 0]
+    inside = (np.abs(pos[:, 0]) < 9.5) & (np.abs(pos[:, 1]) < 9.5)
+    outside = (np.abs(pos[:, 0]) > 10.5) | (np.abs(pos[:, 1]) > 10.5)
+    assert np.all(e[inside] == 0)
+    expected = 2.0 * (1 - specular_albedo(1.0))  # what the surface does not reflect
+    np.testing.assert_allclose(e[outside], expected, rtol=1e-5)
+    # a light 45 degrees off moves the shadow by the occluder's height (10 mm) along x
+    tilt = np.eye(4)
+    c = math.sqrt(0.5)
+    tilt[2, :3] = [c, 0.0, c]  # local +Z -> emits towards -(c, 0, c)
+    res = irradiance_texture(pos, nrm, [Light("/Sun", "distant", np.ones(3), tilt, 0.0)], rays, 1)
+    moved = (np.abs(pos[:, 0] + 10) < 9.5) & (np.abs(pos[:, 1]) < 9.5)
+    assert np.all(res.entering[moved, 0] == 0)
+
+
+def test_embree_agrees_with_brute_force_on_the_cleaned_scan() -> None:
+    """Embree drops bad triangles silently (light leaks); on the cleaned scan every
+    shadow ray must agree with a brute-force ray/triangle test."""
+    from pipeline.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
+
+    mesh = prepare_scan(load_mesh(pymeshlab_face_scan()), 20000)
+    tris = triangulate(mesh)
+    rays = RayScene([(mesh.points, tris)])
+    rng = np.random.default_rng(3)
+    centre = mesh.points.mean(axis=0)
+    origins = centre + rng.normal(0, 40, (200, 3)) + [0, 0, 150]
+    dirs = centre + rng.normal(0, 30, (200, 3)) - origins
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    got = rays.occluded(origins, dirs)
+    p = mesh.points[tris]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    expected = []
+    for o, d in zip(origins, dirs, strict=True):  # Moller-Trumbore, all triangles at once
+        h = np.cross(d, e2)
+        a = (e1 * h).sum(axis=1)
+        ok = np.abs(a) > 1e-12
+        f = np.where(ok, 1 / np.where(ok, a, 1), 0)
+        s = o - p[:, 0]
+        u = f * (s * h).sum(axis=1)
+        q = np.cross(s, e1)
+        v = f * (q @ d)
+        t = f * (e2 * q).sum(axis=1)
+        expected.append(bool(np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-6))))
+    expected = np.array(expected)
+    assert 20 < expected.sum() < 190  # the rays test both hits and misses
+    assert np.mean(got == expected) >= 0.99  # grazing edge cases may differ
+
+
+def test_two_regions_each_match_their_profile_and_blend_at_the_border() -> None:
+    a = exact_fit("a", DEON_2007_SKIN.variances_mm2[:4], DEON_2007_SKIN.weights[:4])
+    b = exact_fit("b", DEON_2007_SKIN.variances_mm2[:4] * 3.0, DEON_2007_SKIN.weights[:4])
+
+    def weights(pts: np.ndarray) -> np.ndarray:
+        t = np.clip((pts[:, 0] + 1.0) / 2.0, 0, 1)  # a 2 mm ramp at x = 0
+        return np.stack([1 - t, t], axis=1)
+
+    for fit, x in ((a, -10.0), (b, 10.0)):
+        r, got, _ = _pencil_through_layout((0.9, 0.9), (0.05, 0.05), 256, [a, b], weights,
+                                           lit_xy_mm=(x, 0.0), patch_mm=40.0)
+        truth = sum_of_gaussians(fit.variances_mm2, fit.weights, r)
+        assert fit_error_eq2c(r, got, truth).max() < 0.02, fit.name
+    # across the border: uniform light stays uniform (each profile integrates to 1) and
+    # a light/dark edge along the border leaves no step larger than its neighbours'
+    pts, tris, uv = grid_patch(24, 40.0)
+    maps = rasterize(pts, tris, uv * 0.9 + 0.05, tris, 256, 0.001, weights(pts))
+    cov = maps.coverage
+    terms = diffusion_terms([a, b])
+    flat = (np.ones((256, 256, 3)) * cov[..., None]).astype(np.float32)
+    out, _ = diffuse(flat, maps.mm_per_texel_u, maps.mm_per_texel_v, cov, terms.variances_mm2,
+                     terms.weights, maps.region_weights)
+    inner = (cov > 0) & (np.abs(maps.position[..., 1]) < 12) & (np.abs(maps.position[..., 0]) < 12)
+    np.testing.assert_allclose(out[inner], 1.0, rtol=1e-4)
+    row = np.argmin(np.where(cov[:, 128] > 0, np.abs(maps.position[:, 128, 1]), np.inf))
+    w_row = maps.region_weights[row, :, 1][cov[row] > 0]
+    assert np.all(np.diff(w_row) >= -1e-6) and np.abs(np.diff(w_row)).max() < 0.1
+
+
+def test_shared_variance_grid_reports_its_error() -> None:
+    fits = [deon_fit("a"), deon_fit("b", 2.0)]
+    exact = diffusion_terms(fits, grid=0)
+    assert exact.variances_mm2.size == 12 and max(exact.error.values()) == 0
+    shared = diffusion_terms(fits, grid=10)
+    assert shared.variances_mm2.size <= 10
+    assert 0 < max(shared.error.values()) < 0.05
+    np.testing.assert_allclose(shared.weights.sum(axis=1), 1.0, rtol=1e-9)
+    same = diffusion_terms([deon_fit("a"), deon_fit("b")])
+    assert same.variances_mm2.size == 6 and "merged" in same.notes[0]
+    with pytest.raises(InputError, match="single profile"):
+        diffusion_terms(fits, single="nose")
+
+
+def test_push_pull_fills_holes_and_keeps_covered_texels() -> None:
+    rng = np.random.default_rng(1)
+    values = rng.random((33, 47, 3)).astype(np.float32)
+    cov = (rng.random((33, 47)) > 0.7).astype(np.float32)
+    out = push_pull(values, cov)
+    np.testing.assert_array_equal(out[cov > 0], values[cov > 0])
+    assert np.all(np.isfinite(out)) and out.min() >= values.min() and out.max() <= values.max()
+
+
+# ----------------------------------------------------------------- scenes through USD
+
+
+@pytest.fixture
+def lit_patch(tmp_path: Path) -> Path:
+    asset = patch_asset(tmp_path / "asset", [deon_fit()])
+
+    def build(stage) -> None:
+        top_camera(stage)
+        distant_down(stage, intensity=2.0)
+
+    return scene_over(asset, tmp_path / "scene.usda", build)
+
+
+SMALL = RenderOptions(resolution=(48, 48), texture_size=128, light_samples=1)
+
+
+def test_render_of_a_lit_patch_is_albedo_times_irradiance(lit_patch: Path) -> None:
+    renderer = Renderer(open_stage_guarded(lit_patch), SMALL)
+    images, log = renderer.render()
+    renderer.close()
+    alpha = images["beauty"][..., 3]
+    assert alpha[24, 24] == 1 and alpha[0, 0] == 0  # the patch fills the centre only
+    # uniform light on a flat patch: diffusion leaves it uniform; radiance = a E / pi
+    e_in = 2.0 * (1 - specular_albedo(1.0))
+    leave = 1 - specular_albedo(1.0)
+    albedo = np.array([0.62, 0.42, 0.33])  # the authored constant diffuseColor
+    np.testing.assert_allclose(images["diffuse"][24, 24], albedo * e_in / math.pi * leave,
+                               rtol=2e-3)
+    assert images["specular"][24, 24].max() > 0  # the sun reflects straight up
+    assert "unwrap" not in log.seconds  # the patch has usable st
+
+
+def test_camera_change_reuses_texture_space_work(lit_patch: Path) -> None:
+    from pxr import Gf, UsdGeom
+
+    stage = open_stage_guarded(lit_patch)
+    renderer = Renderer(stage, SMALL)
+    renderer.render()
+    cam = UsdGeom.Xformable(stage.GetPrimAtPath("/Cam"))
+    cam.GetOrderedXformOps()[0].Set(Gf.Vec3d(5, 0, 90))  # a USD edit: a notice marks it
+    _, log = renderer.render()
+    assert {"texture_maps", "irradiance", "diffusion"} <= set(log.cached)
+    stage.GetPrimAtPath("/Sun").GetAttribute("inputs:intensity").Set(4.0)
+    _, log = renderer.render()
+    assert "irradiance" in log.seconds and "texture_maps" in log.cached
+    renderer.close()
+
+
+def test_turntable_frames_compute_diffusion_once(tmp_path: Path) -> None:
+    from pxr import Gf, UsdGeom
+
+    asset = patch_asset(tmp_path / "asset", [deon_fit()])
+
+    def build(stage) -> None:
+        top_camera(stage)
+        distant_down(stage)
+        op = UsdGeom.Xformable(stage.GetPrimAtPath("/Cam")).GetOrderedXformOps()[0]
+        for f in (1, 2, 3):
+            op.Set(Gf.Vec3d(f, 0, 100), f)
+
+    scene = scene_over(asset, tmp_path / "scene.usda", build)
+    doc = render_files(scene, tmp_path / "out", SMALL, frames=(1, 3))
+    assert [f["frame"] for f in doc["frames"]] == [1, 2, 3]
+    for frame in doc["frames"][1:]:
+        assert "diffusion" in frame["cached"] and "diffusion" not in frame["tasks"]
+    assert (tmp_path / "out" / "scene.0003.exr").is_file()
+    saved = json.loads((tmp_path / "out" / "render.json").read_text())
+    assert saved["frames"][0]["measures"]["diffusion"]["blur_passes"] > 0
+
+
+def test_output_has_aov_layers_and_colour_space(lit_patch: Path, tmp_path: Path) -> None:
+    import OpenImageIO as oiio
+
+    out = tmp_path / "out"
+    assert main(["render", str(lit_patch), "--resolution", "32x24", "--texture-size", "128",
+                 "--aovs", "beauty,diffuse", "--light-samples", "1", "-o", str(out)]) == 0
+    spec = oiio.ImageInput.open(str(out / "scene.exr")).spec()
+    assert (spec.width, spec.height) == (32, 24)
+    assert spec.getattribute("oiio:ColorSpace") == "lin_ap1_scene"
+    assert set(spec.channelnames) == {"R", "G", "B", "A", "diffuse.R", "diffuse.G",
+                                      "diffuse.B"}
+    doc = json.loads((out / "render.json").read_text())
+    assert any("AOVs not asked for" in s for s in doc["frames"][0]["skipped"])
+    assert (out / "scene.png").is_file()
+
+
+def test_missing_uvs_are_unwrapped_and_written_back(tmp_path: Path) -> None:
+    from pxr import Usd, UsdGeom
+
+    asset = patch_asset(tmp_path / "asset", [deon_fit()], n=8, with_uv=False)
+
+    def build(stage) -> None:
+        top_camera(stage)
+        distant_down(stage)
+
+    scene = scene_over(asset, tmp_path / "scene.usda", build)
+    doc = render_files(scene, tmp_path / "out", SMALL)
+    assert doc["frames"][0]["measures"]["unwrap"]["written_to"].endswith("geo.usdc")
+    geo = Usd.Stage.Open(str(tmp_path / "asset" / "geo.usdc"))
+    st = UsdGeom.PrimvarsAPI(geo.GetPrimAtPath("/Patch/Geom/Mesh")).GetPrimvar("st")
+    assert st.GetInterpolation() == "faceVarying" and st.IsIndexed()
+    doc = render_files(scene, tmp_path / "out2", SMALL)  # the next run reuses them
+    assert "unwrap" not in doc["frames"][0]["measures"]
+
+
+# ----------------------------------------------------------------------- bad assets
+
+
+def _bad(tmp_path: Path, edit) -> Path:
+    asset = patch_asset(tmp_path / "asset", [deon_fit()], n=4)
+
+    def build(stage) -> None:
+        top_camera(stage)
+        distant_down(stage)
+        edit(stage)
+
+    return scene_over(asset, tmp_path / "scene.usda", build)
+
+
+def _points(stage, fn) -> None:
+    from pxr import UsdGeom, Vt
+
+    mesh = UsdGeom.Mesh(stage.OverridePrim("/Patch/Geom/Mesh"))
+    pts = grid_patch(4, 40.0)[0]  # what patch_asset(n=4) authored
+    mesh.CreatePointsAttr().Set(Vt.Vec3fArray.FromNumpy(fn(pts).astype(np.float32)))
+
+
+@pytest.mark.parametrize(("case", "message"), [
+    ("no_lights", "no UsdLux light"),
+    ("no_mesh", "no visible mesh"),
+    ("nan_points", "non-finite point"),
+    ("zero_area", "no area"),
+    ("missing_texture", "not found"),
+    ("no_camera", "no UsdGeomCamera"),
+])
+def test_bad_assets_give_clear_errors(tmp_path: Path, case: str, message: str,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from pxr import Sdf, UsdGeom
+
+    def edit(stage) -> None:
+        if case == "no_lights":
+            stage.RemovePrim("/Sun")
+        elif case == "no_camera":
+            stage.RemovePrim("/Cam")
+        elif case == "no_mesh":
+            UsdGeom.Imageable(stage.OverridePrim("/Patch/Geom/Mesh")).CreateVisibilityAttr(
+                "invisible")
+        elif case == "nan_points":
+            _points(stage, lambda p: np.where(np.arange(len(p))[:, None] == 3, np.nan, p))
+        elif case == "zero_area":
+            _points(stage, lambda p: p * [1.0, 0.0, 0.0])
+            UsdGeom.PrimvarsAPI(stage.OverridePrim("/Patch/Geom/Mesh")).CreatePrimvar(
+                "st", Sdf.ValueTypeNames.TexCoord2fArray, "vertex").Set([(0.0, 0.0)] * 25)
+        elif case == "missing_texture":
+            from pxr import UsdShade
+
+            mat = "/Patch/Looks/SkinMaterial"
+            tex = UsdShade.Shader.Define(stage, f"{mat}/Tex")
+            tex.CreateIdAttr("UsdUVTexture")
+            tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./nowhere.exr")
+            surf = UsdShade.Shader(stage.OverridePrim(f"{mat}/PreviewSurface"))
+            surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+                tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
+
+    scene = _bad(tmp_path, edit)
+    code = main(["render", str(scene), "--resolution", "16x16", "--texture-size", "64",
+                 "--light-samples", "1", "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert message in err
+    assert not (tmp_path / "out" / "scene.exr").exists()
