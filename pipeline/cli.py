@@ -514,13 +514,23 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
             "start, and GA+SLSQP (the paper's SQP), on the given profiles or, without any, "
             "on reference profiles (d'Eon et al. 2007 skin, Jensen et al. 2001 dipoles). "
             "'ingest': simulated captures with 1, 3, 5, 7 brackets and ring widths 0.5-4 px, "
-            "profile error against the simulator's truth beside ingest time."
+            "profile error against the simulator's truth beside ingest time. "
+            "'render SCENE': texture sizes (--sizes) x variance grids (--grids), the "
+            "diffused radiance against a brute-force convolution on the surface with the "
+            "exact per-region profiles, beside texture-map + irradiance + diffusion time."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("stage", choices=["fit", "ingest"], help="which stage to measure")
-    p.add_argument("profiles", nargs="*", type=Path, metavar="PROFILE.csv",
-                   help="profiles to fit (default: built-in reference profiles)")
+    p.add_argument("stage", choices=["fit", "ingest", "render"], help="which stage to measure")
+    p.add_argument("profiles", nargs="*", type=Path, metavar="PROFILE.csv|SCENE",
+                   help="fit: profiles to fit (default: built-in reference profiles); "
+                        "render: the scene (e.g. demo_out/scene.usda)")
+    p.add_argument("--sizes", type=lambda t: [int(x) for x in t.split(",")],
+                   default=[512, 1024, 2048], metavar="N,N",
+                   help="render: texture sizes (4096 works, needs minutes and ~6 GiB)")
+    p.add_argument("--grids", type=lambda t: [int(x) for x in t.split(",")],
+                   default=[0, 8, 12], metavar="N,N",
+                   help="render: variance grids (0 = each region's own variances)")
     p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
                    help="range of k to try, inclusive")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
@@ -542,6 +552,22 @@ def cmd_report(args: argparse.Namespace) -> int:
     from .profile_io import read_profile_csv
     from .report import fit_tradeoff, ingest_tradeoff, write_fit_report, write_ingest_report
 
+    if args.stage == "render":
+        from .report import render_tradeoff, write_render_report
+
+        if len(args.profiles) != 1:
+            raise InputError("report render needs exactly one SCENE")
+        rows = render_tradeoff(args.profiles[0], args.sizes, args.grids, progress=_eprint)
+        doc = write_render_report(rows, args.output)
+        print(f"{'texture':>7} {'grid':>4} {'mm/texel':>8} {'passes':>6} {'seconds':>8} "
+              f"{'error':>9}  pareto")
+        for r in doc["rows"]:
+            print(f"{r['texture_size']:>7} {r['variance_grid']:>4} {r['mm_per_texel']:>8.3f} "
+                  f"{r['blur_passes']:>6} {r['seconds']:>8.2f} {r['error_max']:>9.2e}  "
+                  f"{'*' if r['pareto'] else ''}")
+        print(f"wrote {args.output / 'render_tradeoff.json'} and "
+              f"{args.output / 'render_tradeoff.png'}")
+        return EXIT_OK
     if args.stage == "ingest":
         import tempfile
 

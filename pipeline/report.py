@@ -69,7 +69,8 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
 
 
 def _plot_tradeoff(
-    points: Sequence[tuple[str, float, float, str]], path: Path, xlabel: str, title: str
+    points: Sequence[tuple[str, float, float, str]], path: Path, xlabel: str, title: str,
+    ylabel: str = "eq. 2c error (max over R, G, B)",
 ) -> None:
     """Error (log) against seconds (log), one line per series; points labelled."""
     import matplotlib
@@ -87,7 +88,7 @@ def _plot_tradeoff(
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel(xlabel)
-    ax.set_ylabel("eq. 2c error (max over R, G, B)")
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.legend(fontsize=6)
     ax.grid(True, which="both", alpha=0.3)
@@ -167,4 +168,136 @@ def write_ingest_report(rows: Sequence[dict[str, Any]], out_dir: Path) -> dict:
                f"{r['brackets']}b") for r in rows]
     _plot_tradeoff(points, out_dir / "ingest_tradeoff.png", "ingest seconds per region",
                    "Ingest: error against run time (labels: brackets)")
+    return doc
+
+
+# ------------------------------------------------------------------------------ render
+
+
+def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
+                    grids: Sequence[int] = (0, 8, 12), light_samples: int = 8,
+                    points: int = 400, seed: int = 0, progress: Any = None
+                    ) -> list[dict[str, Any]]:
+    """Texture-space diffusion error against its time, per texture size and variance grid.
+
+    The reference is a brute-force convolution on the surface: at ``points`` random
+    surface points p, sum_j E_j A_j R_p(|p - p_j|) over every texel j of the finest
+    irradiance map (E after the albedo split, A_j its area in mm^2, R_p each region's
+    exact fitted profile blended by p's region weights, distances in 3D mm). Each row's
+    diffused radiance is looked up at p's texture coordinates. Error: RMS over points
+    of the relative difference, max over channels. Seconds: texture maps + irradiance +
+    diffusion at that size.
+    """
+    import math
+
+    from scipy.spatial import cKDTree
+
+    from .errors import InputError
+    from .raytrace import RayScene
+    from .render import Renderer, RenderOptions, TaskLog, bilinear
+    from .unwrap import triangulate
+    from .usd_io import open_stage_guarded
+
+    stage = open_stage_guarded(scene)
+    finest: dict[str, Any] = {}
+    results = []
+    for size in sorted(sizes, reverse=True):
+        for grid in grids:
+            opts = RenderOptions(texture_size=size, light_samples=light_samples,
+                                 variance_grid=grid, resolution=(8, 8))
+            renderer = Renderer(stage, opts)
+            try:
+                sc = renderer.delegate.sync()
+                if not sc.skin or not sc.lights:
+                    raise InputError("the scene needs a skin mesh and lights", scene)
+                log = TaskLog()
+                rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
+                mesh = sc.skin[0]
+                tex = renderer._textures(log, sc, mesh)
+                renderer._irradiance(log, sc, tex, rays, {})
+                t0 = time.perf_counter()
+                renderer._diffusion(log, tex)
+                seconds = (log.seconds.get("texture_maps", 0) + log.seconds.get("irradiance", 0)
+                           + time.perf_counter() - t0)
+            finally:
+                renderer.close()
+            if not finest:
+                covered = tex.maps.triangle >= 0
+                a = opts.albedo_split
+                finest = {
+                    "pos": tex.maps.position[covered].astype(np.float64) * sc.meters_per_unit
+                    * 1000.0,
+                    "area": (tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered].astype(
+                        np.float64),
+                    "flux": (tex.irradiance * np.power(tex.albedo, a))[covered] * (
+                        tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered][:, None],
+                }
+                rng = np.random.default_rng(seed)
+                tris = tex.tris
+                pick = rng.integers(0, tris.shape[0], points)
+                b = rng.dirichlet([1, 1, 1], points)[:, :, None]
+                p_mm = (mesh.mesh.points[tris[pick]] * b).sum(axis=1) * sc.meters_per_unit * 1e3
+                uv = (tex.uv[tex.uv_tris[pick]] * b).sum(axis=1)
+                rw = (mesh.region_weights[tris[pick]] * b).sum(axis=1)
+                tree = cKDTree(finest["pos"])
+                ref = np.zeros((points, 3))
+                vmax = max(float(f.variances_mm2.max()) for f in mesh.fits)
+                for n in range(points):
+                    idx = np.asarray(tree.query_ball_point(p_mm[n], 4.0 * math.sqrt(vmax)))
+                    d = np.linalg.norm(finest["pos"][idx] - p_mm[n], axis=1)
+                    # each texel is a small square source: its footprint (variance
+                    # area / 12 per axis) widens every term, or sub-texel terms would
+                    # be point-sampled to nothing
+                    foot = finest["area"][idx] / 12.0
+                    prof = np.zeros((idx.size, 3))
+                    for r, fit in enumerate(mesh.fits):
+                        if rw[n, r] > 0:
+                            w = fit.weights / fit.weights.sum(axis=0, keepdims=True)
+                            for v, wk in zip(fit.variances_mm2, w, strict=True):
+                                vv = v + foot
+                                g = np.exp(-d * d / (2 * vv)) / (2 * math.pi * vv)
+                                prof += rw[n, r] * g[:, None] * wk
+                    ref[n] = (finest["flux"][idx] * prof).sum(axis=0)
+                albedo_at = bilinear(tex.albedo, uv)
+                ref *= np.power(albedo_at, 1.0 - a) / math.pi
+                finest.update(uv=uv, ref=ref)
+            got = bilinear(tex.radiance, finest["uv"]).astype(np.float64)
+            ref = finest["ref"]
+            rel = np.sqrt(((got - ref) ** 2).mean(axis=0)) / np.maximum(ref.mean(axis=0), 1e-30)
+            point_rel = np.abs(got - ref).max(axis=1) / np.maximum(ref.max(axis=1), 1e-30)
+            diff = log.measures["diffusion"]
+            results.append({"texture_size": size, "variance_grid": grid, "seconds": seconds,
+                            "diffusion_seconds": log.seconds.get("diffusion", 0.0),
+                            "error_max": float(rel.max()), "error": rel.tolist(),
+                            "error_median_point": float(np.median(point_rel)),
+                            "error_p90_point": float(np.percentile(point_rel, 90)),
+                            "blur_passes": diff["blur_passes"],
+                            "mm_per_texel": diff["mm_per_texel_median"],
+                            "energy_ratio": diff["energy_ratio"]})
+            if progress:
+                progress(f"texture {size} grid {grid}: error {rel.max():.2e}, {seconds:.1f} s")
+    rows = sorted(results, key=lambda r: (r["texture_size"], r["variance_grid"]))
+    return rows
+
+
+def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
+                        default: tuple[int, int] = (1024, 12)) -> dict[str, Any]:
+    """render_tradeoff.json and render_tradeoff.png in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
+    doc = {
+        "stage": "render",
+        "error_measure": "RMS relative difference to a brute-force surface convolution, max "
+                         "over R, G, B",
+        "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
+        "default": {"texture_size": default[0], "variance_grid": default[1],
+                    "on_pareto_front": [i in front for i, r in enumerate(rows)
+                                        if (r["texture_size"], r["variance_grid"]) == default]},
+    }
+    atomic_write_json(out_dir / "render_tradeoff.json", doc)
+    _plot_tradeoff([(f"grid {r['variance_grid'] or 'per-region'}", r["seconds"], r["error_max"],
+                     str(r["texture_size"])) for r in rows], out_dir / "render_tradeoff.png",
+                   "texture maps + irradiance + diffusion (s)",
+                   "Render: error against run time (labels: texture size)",
+                   "RMS relative error vs brute-force convolution")
     return doc
