@@ -146,7 +146,7 @@ def _load_usd_mesh(path: Path, prim_path: str | None, meters_per_unit: float | N
                     path)
 
 
-def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int = 60,
+def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int = 300,
                  min_component_fraction: float = 0.01) -> MeshData:
     """Clean a raw range scan with pymeshlab: merge duplicates, drop small floating
     pieces and degenerate faces, close small holes, decimate to ``target_faces``
@@ -164,7 +164,12 @@ def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int 
     ms.meshing_remove_connected_component_by_diameter(
         mincomponentdiag=pymeshlab.PercentageValue(100 * min_component_fraction * 10))
     ms.meshing_remove_unreferenced_vertices()
-    ms.meshing_repair_non_manifold_edges()
+    # hole closing skips holes that touch a non-manifold vertex: repair those first
+    # (on the face scan this takes the interior gaps from "not closable" to closed)
+    for _ in range(3):
+        ms.meshing_repair_non_manifold_edges()
+        ms.meshing_repair_non_manifold_vertices()
+    ms.meshing_remove_unreferenced_vertices()
     ms.meshing_close_holes(maxholesize=max_hole_edges)
     # A selection left by an earlier filter makes quadric decimation a silent no-op.
     ms.set_selection_none()
