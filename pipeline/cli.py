@@ -14,13 +14,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from . import __version__, cli_render
+from .cli_render import _eprint
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, InputError, SkinpipeError
 
 Handler = Callable[[argparse.Namespace], int]
-
-
-def _eprint(*args: object) -> None:
-    print(*args, file=sys.stderr, flush=True)
 
 
 def _float_list(text: str) -> tuple[float, ...]:
