@@ -146,10 +146,10 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     """Paint the sample albedo for the first skin mesh of ``asset`` (unwrapping it first
     when it has no usable UVs) and bind it; returns the texture's path."""
     from .imageio import write_exr
-    from .render import usable_uvs, uv_triangles, write_uvs_back
+    from .render import push_pull, unwrap_and_write_back, usable_uvs, uv_triangles
     from .scene import SceneDelegate
     from .texture_maps import rasterize
-    from .unwrap import triangulate, unwrap
+    from .unwrap import triangulate
     from .usd_io import open_stage_guarded
     from .usd_schema import WORKING_COLORSPACE
 
@@ -162,14 +162,12 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     if not scene.skin:
         raise InputError("no skin mesh (SkinProfileRegionsAPI) to paint", asset)
     mesh = scene.skin[0]
-    if usable_uvs(mesh) is None:
+    why = usable_uvs(mesh)
+    if why is None:
         uv, uv_tris = mesh.uv, uv_triangles(mesh)
     else:
-        if progress:
-            progress(f"unwrap {mesh.path} with xatlas")
-        layout = unwrap(mesh.mesh)
-        uv, uv_tris = layout.uv, layout.uv_indices.reshape(-1, 3)
-        if write_uvs_back(stage, mesh, uv, layout.uv_indices) is None:
+        uv, uv_tris, measures = unwrap_and_write_back(stage, mesh, why, True, progress)
+        if measures.get("written_to") is None:
             raise InputError(f"cannot write UVs into the layer holding {mesh.path}", asset)
     assert uv is not None and uv_tris is not None
     maps = rasterize(mesh.mesh.points, triangulate(mesh.mesh), uv, uv_tris, size,
@@ -177,8 +175,6 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     if progress:
         progress(f"paint albedo {size}x{size}")
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
-    from .render import push_pull
-
     image = push_pull(albedo, maps.coverage)[::-1]  # image row 0 is v = 1
     texture = Path(asset).resolve().parent / "albedo.exr"
     write_exr(texture, image, WORKING_COLORSPACE)

@@ -169,6 +169,54 @@ class IrradianceResult:
     seconds: float = 0.0
 
 
+def emitting_area(light: Light) -> float:
+    """The area of a sphere or rect light in scene units^2 (0 for distant and dome)."""
+    if light.kind == "sphere":
+        return 4 * math.pi * max(light.radius, 1e-9) ** 2
+    if light.kind == "rect":
+        m = light.matrix
+        return abs(light.width * light.height) * float(
+            np.linalg.norm(np.cross(m[0, :3], m[1, :3])))
+    return 0.0
+
+
+def surface_radiance(light: Light) -> NDArray[np.float64]:
+    """The radiance leaving the light's surface: UsdLux ``normalize`` divides it by the
+    light's area, so that power does not change with size."""
+    area = emitting_area(light)
+    return light.radiance / max(area, 1e-12) if light.normalize and area > 0 else light.radiance
+
+
+def sphere_cone(light: Light, points: NDArray[Any]
+                ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
+    """Distance from ``points`` to a sphere light's centre, the unit axis towards it and
+    the cosine of the cone the sphere subtends."""
+    to_c = light.position - points
+    dist = np.linalg.norm(to_c, axis=1)
+    axis = to_c / np.maximum(dist, 1e-12)[:, None]
+    r = max(light.radius, 1e-9)
+    cos_max = np.sqrt(1 - np.clip((r / np.maximum(dist, r * 1.0001)) ** 2, 0, 1))
+    return dist, axis, cos_max
+
+
+def light_direction(light: Light, pos: NDArray[Any]) -> tuple[NDArray[Any], NDArray[Any]]:
+    """Unit directions from points to a light's centre, and the irradiance it gives a
+    surface facing it (L x solid angle, or L x area x cos / d^2): for the specular lobe
+    and for occluders, which see each light from its centre."""
+    if light.kind == "distant":
+        return (np.broadcast_to(-light.axis, pos.shape),
+                np.broadcast_to(light.radiance, pos.shape))
+    radiance = surface_radiance(light)
+    if light.kind == "sphere":
+        _, axis, cos_max = sphere_cone(light, pos)
+        return axis, (2 * math.pi * (1 - cos_max))[:, None] * radiance
+    to = light.position - pos
+    d = np.linalg.norm(to, axis=1, keepdims=True)
+    l_dir = to / np.maximum(d, 1e-12)
+    cos_l = np.maximum(-(l_dir @ light.axis), 0)[:, None]
+    return l_dir, radiance * emitting_area(light) * cos_l / np.maximum(d * d, 1e-12)
+
+
 class LightSampler:
     """Stratified samples of one light as seen from surface points: ``sample(k)`` gives
     unit directions towards the light, the distance to it (for the shadow ray), and the
@@ -185,29 +233,20 @@ class LightSampler:
         self.grid = stratified_unit_square(samples, rng)
         self.count = self.grid.shape[0]
         self.texture = dome_texture
-        self.colour = light.radiance.astype(np.float32)
+        # a textured dome's colour varies per direction and is carried by the weights
+        self.colour = np.ones(3, np.float32) if light.kind == "dome" and dome_texture is not \
+            None else surface_radiance(light).astype(np.float32)
         n = origins.shape[0]
         if light.kind == "distant":
             self.half = math.radians(max(light.angle_deg, 0.0)) / 2
             self.frame = _frame(-light.axis)
         elif light.kind == "sphere":
-            to_c = light.position - origins
-            self.dist = np.linalg.norm(to_c, axis=1)
-            axis = to_c / np.maximum(self.dist, 1e-12)[:, None]
-            r = max(light.radius, 1e-9)
-            sin2 = np.clip((r / np.maximum(self.dist, r * 1.0001)) ** 2, 0, 1)
-            self.cos_max = np.sqrt(1 - sin2)
+            self.dist, axis, self.cos_max = sphere_cone(light, origins)
             self.solid = 2 * math.pi * (1 - self.cos_max)
             self.frame = _frame(axis).astype(np.float32)
-            if light.normalize:
-                self.colour = (light.radiance / (4 * math.pi * r * r)).astype(np.float32)
-            self.far = np.maximum(self.dist - r, 0.0).astype(np.float32)
+            self.far = np.maximum(self.dist - max(light.radius, 1e-9), 0.0).astype(np.float32)
         elif light.kind == "rect":
-            m = light.matrix
-            self.area = abs(light.width * light.height) * float(
-                np.linalg.norm(np.cross(m[0, :3], m[1, :3])))
-            if light.normalize:
-                self.colour = (light.radiance / max(self.area, 1e-12)).astype(np.float32)
+            self.area = emitting_area(light)
         elif light.kind == "dome":
             self.frame = _frame(normals).astype(np.float32)
         else:
@@ -239,8 +278,7 @@ class LightSampler:
         d = cosine_direction(None, float(u), float(v), self.frame).astype(np.float32)
         w = np.full(nrm.shape[0], math.pi / self.count, np.float32)
         if self.texture is not None:
-            return d, self.inf, w[:, None] * dome_radiance(light, d, self.texture) / \
-                np.maximum(self.colour, 1e-30)
+            return d, self.inf, w[:, None] * dome_radiance(light, d, self.texture)
         return d, self.inf, w
 
 

@@ -29,6 +29,7 @@ from .lighting import (
     DEFAULT_RHO_S,
     DEFAULT_ROUGHNESS,
     irradiance_texture,
+    light_direction,
     specular_albedo,
     torrance_sparrow,
 )
@@ -269,6 +270,23 @@ def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: ND
     return str(layer.realPath)
 
 
+def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
+                          progress: Callable[[str], None] | None = None
+                          ) -> tuple[NDArray[np.float64], NDArray[np.int32], dict[str, Any]]:
+    """xatlas UVs for a mesh whose ``st`` is unusable (``reason``), rounded to float32 as
+    USD stores them, and written back into the mesh's layer when ``write`` (triangle
+    meshes only: a polygon split across charts has no faceVarying form)."""
+    if progress:
+        progress(f"unwrap {mesh.path} with xatlas ({reason})")
+    layout = unwrap(mesh.mesh)
+    uv = layout.uv.astype(np.float32).astype(np.float64)
+    measures: dict[str, Any] = {"charts": layout.charts, "utilization": layout.utilization,
+                                "seconds": layout.seconds, "reason": reason}
+    if write and np.all(mesh.mesh.face_counts == 3):
+        measures["written_to"] = write_uvs_back(stage, mesh, uv, layout.uv_indices)
+    return uv, layout.uv_indices.reshape(-1, 3), measures
+
+
 def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:
     """The albedo in texture space (S, S, 3), linear in the working space, and what it
     came from."""
@@ -311,6 +329,7 @@ class SkinTextures:
     maps: TextureMaps
     albedo: NDArray[np.float32]
     irradiance: NDArray[np.float32] | None = None
+    irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
 
@@ -350,15 +369,9 @@ class Renderer:
             return mesh.uv, uv_triangles(mesh)  # type: ignore[return-value]
 
         def compute() -> tuple[NDArray[Any], NDArray[np.int32]]:
-            self.progress(f"unwrap {mesh.path} with xatlas ({why})")
-            layout = unwrap(mesh.mesh)
-            uv = layout.uv.astype(np.float32).astype(np.float64)
-            uv_tris = layout.uv_indices.reshape(-1, 3)
-            log.measures["unwrap"] = {"charts": layout.charts, "utilization": layout.utilization,
-                                      "seconds": layout.seconds, "reason": why}
-            if self.options.write_uvs and np.all(mesh.mesh.face_counts == 3):
-                written = write_uvs_back(self.stage, mesh, uv, layout.uv_indices)
-                log.measures["unwrap"]["written_to"] = written
+            uv, uv_tris, measures = unwrap_and_write_back(
+                self.stage, mesh, why, self.options.write_uvs, self.progress)
+            log.measures["unwrap"] = measures
             return uv, uv_tris
 
         return self._cached(log, "unwrap", mesh.geometry_key(), compute)
@@ -399,10 +412,10 @@ class Renderer:
                 full = np.zeros(covered.shape, np.float32)
                 full[covered] = v
                 vis[path] = push_pull(full, maps.coverage)
-            return e, vis, res
+            return e, push_pull(e, maps.coverage), vis, res
 
-        e, vis, res = self._cached(log, "irradiance", key, compute)
-        tex.irradiance, tex.visibility = e, vis
+        e, filled, vis, res = self._cached(log, "irradiance", key, compute)
+        tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
         log.skipped += [s for s in res.skipped if s not in log.skipped]
         log.measures["irradiance"] = {"rays": res.rays, "seconds": res.seconds,
                                       "mrays_per_s": res.rays / max(res.seconds, 1e-9) / 1e6}
@@ -510,7 +523,8 @@ class Renderer:
             tris = triangulate(mesh.mesh)
             b = np.stack([1 - bu[sel] - bv[sel], bu[sel], bv[sel]], axis=1)[:, :, None]
             pos = origins[sel] + dirs[sel] * dist[sel, None]
-            normals = vertex_normals(mesh.mesh.points, tris)
+            normals = self._cached(log, f"normals:{mesh.path}", mesh.geometry_key(),
+                                   lambda m=mesh, t=tris: vertex_normals(m.mesh.points, t))
             n = (normals[tris[tri_idx]] * b).sum(axis=1)
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
             view = -dirs[sel]
@@ -524,10 +538,10 @@ class Renderer:
             uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
             n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
             leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
-            assert tex.radiance is not None and tex.irradiance is not None
+            assert tex.radiance is not None and tex.irradiance_filled is not None
             out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
             out["albedo"][sel] = bilinear(tex.albedo, uv)
-            out["irradiance"][sel] = bilinear(push_pull(tex.irradiance, tex.maps.coverage), uv)
+            out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
             if "specular" in opts.aovs or "beauty" in opts.aovs:
                 out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
         out["beauty"] = out["diffuse"] + out["specular"]
@@ -582,27 +596,6 @@ class Renderer:
         out["diffuse"][sel] = albedo * e / math.pi
         out["albedo"][sel] = albedo
         out["irradiance"][sel] = e
-
-
-def light_direction(light: Any, pos: NDArray[Any]) -> tuple[NDArray[Any], NDArray[Any]]:
-    """Unit directions from points to a light's centre, and the irradiance it gives a
-    surface facing it (L x solid angle, or L x area x cos / d^2)."""
-    if light.kind == "distant":
-        return np.broadcast_to(-light.axis, pos.shape), np.broadcast_to(light.radiance,
-                                                                        pos.shape)
-    to = light.position - pos
-    d = np.linalg.norm(to, axis=1, keepdims=True)
-    l_dir = to / np.maximum(d, 1e-12)
-    if light.kind == "sphere":
-        r = max(light.radius, 1e-9)
-        cos_max = np.sqrt(1 - np.clip((r / np.maximum(d, r * 1.0001)) ** 2, 0, 1))
-        radiance = light.radiance / (4 * math.pi * r * r) if light.normalize else light.radiance
-        return l_dir, 2 * math.pi * (1 - cos_max) * radiance
-    m = light.matrix
-    area = abs(light.width * light.height) * np.linalg.norm(np.cross(m[0, :3], m[1, :3]))
-    radiance = light.radiance / max(area, 1e-12) if light.normalize else light.radiance
-    cos_l = np.maximum(-(l_dir @ light.axis), 0)[:, None]
-    return l_dir, radiance * area * cos_l / np.maximum(d * d, 1e-12)
 
 
 def scene_geometry_key(scene: SceneData) -> str:
