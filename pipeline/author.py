@@ -187,6 +187,22 @@ def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: floa
     return path
 
 
+def _author_seal(stage: Any, path: str, seal: MeshData) -> None:
+    from pxr import Gf, UsdGeom, Vt
+
+    umesh = UsdGeom.Mesh.Define(stage, path)
+    pts = np.asarray(seal.points, dtype=np.float32)
+    umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+    umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(seal.face_counts))
+    umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(seal.face_indices))
+    umesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    umesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])))
+    umesh.CreateDisplayColorAttr([Gf.Vec3f(0.2, 0.2, 0.2)])
+    umesh.GetPrim().SetDocumentation(
+        "Closes the scan's open rim (surface the scanner never saw) so that no light or "
+        "camera ray passes through the face; not skin, no texture space.")
+
+
 def author_asset(
     fits: Sequence[FitResult],
     mesh: MeshData,
@@ -196,8 +212,12 @@ def author_asset(
     measured: dict[str, MeasuredProfile] | None = None,
     up_axis: str = "Y",
     albedo: tuple[float, float, float] = DEFAULT_ALBEDO,
+    seal: MeshData | None = None,
 ) -> AssetPaths:
-    """Write asset.usda, geo.usdc and look.usda for ``fits`` on ``mesh`` into ``out_dir``."""
+    """Write asset.usda, geo.usdc and look.usda for ``fits`` on ``mesh`` into ``out_dir``.
+
+    ``seal`` (from :func:`pipeline.mesh.seal_scan`) becomes ``Geom/Seal``: geometry the
+    scanner never saw, there to stop light, without skin profiles or texture space."""
     from pxr import Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
 
     from .usd_schema import require_schema
@@ -263,6 +283,8 @@ def author_asset(
                                         SUBSET_FAMILY, UsdGeom.Tokens.partition)
     UsdShade.MaterialBindingAPI.Apply(prim).GetDirectBindingRel().SetTargets(
         [Sdf.Path(material_path)])
+    if seal is not None:
+        _author_seal(geo, f"{root}/Geom/Seal", seal)
 
     # asset.usda: the interface
     asset_layer = Sdf.Layer.CreateAnonymous("asset.usda")  # held here, outlives the stage

@@ -240,8 +240,9 @@ def _add_author(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--meters-per-unit", type=float, default=None,
                    help="scene unit of a PLY/OBJ mesh (default 0.001: millimetres)")
     p.add_argument("--prepare-scan", action="store_true",
-                   help="clean a raw range scan first (pymeshlab: merge, drop small pieces, "
-                        "close small holes, decimate to --target-faces)")
+                   help="clean a raw range scan first (pymeshlab: merge, keep the largest "
+                        "piece, close the holes inside it, decimate to --target-faces) "
+                        "and seal its open rim with a Geom/Seal occluder")
     p.add_argument("--target-faces", type=int, default=60000, help="with --prepare-scan")
     p.add_argument("--name", default="Face", help="asset (and default prim) name")
     p.add_argument("-o", "--output", type=Path, required=True, help="asset directory")
@@ -277,14 +278,16 @@ def author_from_args(fits_paths: list[Path], mesh_path: Path, out: Path, *,
         author_asset,
         read_landmarks,
     )
-    from .mesh import load_mesh, prepare_scan
+    from .mesh import load_mesh, prepare_scan, seal_scan
     from .profile_io import read_fit_inputs
 
     fits = read_fit_inputs(fits_paths)
     mesh = load_mesh(mesh_path, meters_per_unit, mesh_prim)
+    seal = None
     if prepare:
         _eprint(f"preparing the scan ({mesh.n_faces} faces -> {target_faces})")
         mesh = prepare_scan(mesh, target_faces)
+        seal = seal_scan(mesh)
     if landmarks is not None:
         regions = assign_regions_from_landmarks(mesh, read_landmarks(landmarks), blend_mm)
     elif region_primvar is not None:
@@ -309,7 +312,7 @@ def author_from_args(fits_paths: list[Path], mesh_path: Path, out: Path, *,
     else:
         raise InputError("give --landmarks or --region-primvar to place the regions")
     return author_asset(fits, mesh, regions, out, name=name,
-                        measured=_measured_for(fits, profiles_dir))
+                        measured=_measured_for(fits, profiles_dir), seal=seal)
 
 
 def cmd_author(args: argparse.Namespace) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -148,9 +149,10 @@ def _load_usd_mesh(path: Path, prim_path: str | None, meters_per_unit: float | N
 
 def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int = 300,
                  min_component_fraction: float = 0.01) -> MeshData:
-    """Clean a raw range scan with pymeshlab: merge duplicates, drop small floating
-    pieces and degenerate faces, close small holes, decimate to ``target_faces``
-    (quadric edge collapse), recompute a consistent orientation."""
+    """Clean a raw range scan with pymeshlab: merge duplicates, drop degenerate faces and
+    every piece but the largest, close the holes inside the scan (up to
+    ``max_hole_edges`` boundary edges), decimate to ``target_faces`` (quadric edge
+    collapse). The scan's outer rim stays open: :func:`seal_scan` closes it."""
     import pymeshlab
 
     if np.any(mesh.face_counts != 3):
@@ -170,18 +172,69 @@ def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int 
         ms.meshing_repair_non_manifold_edges()
         ms.meshing_repair_non_manifold_vertices()
     ms.meshing_remove_unreferenced_vertices()
-    ms.meshing_close_holes(maxholesize=max_hole_edges)
+    # a detached piece (the face scan has a strip of the side of the head 10 mm off the
+    # face) leaves a slit that no hole filling closes: keep the largest piece only
+    ms.meshing_remove_connected_component_by_face_number(
+        mincomponentsize=_largest_component_faces(ms.current_mesh().face_matrix()))
+    ms.meshing_remove_unreferenced_vertices()
+    # the self-intersection check refuses the wide gaps a range scan leaves (cap, side of
+    # the head): they would stay open and let light through, so it is off
+    ms.meshing_close_holes(maxholesize=max_hole_edges, selfintersection=False)
     # A selection left by an earlier filter makes quadric decimation a silent no-op.
     ms.set_selection_none()
     if ms.current_mesh().face_number() > target_faces:
-        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=target_faces,
-                                                    preservenormal=True, planarquadric=True)
+        ms.meshing_decimation_quadric_edge_collapse(
+            targetfacenum=target_faces, preservenormal=True, planarquadric=True,
+            preserveboundary=True, preservetopology=True)
     ms.meshing_remove_unreferenced_vertices()
     m = ms.current_mesh()
     faces = np.asarray(m.face_matrix(), dtype=np.int32)
     return validate_mesh(replace(mesh, points=np.asarray(m.vertex_matrix(), dtype=np.float64),
                                  face_counts=np.full(faces.shape[0], 3, np.int32),
                                  face_indices=faces.reshape(-1), st=None))
+
+
+def _largest_component_faces(faces: NDArray[Any]) -> int:
+    """Face count of the largest edge-connected piece of a triangle mesh."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = int(faces.max()) + 1
+    adj = sp.coo_matrix((np.ones(faces.size), (np.repeat(faces[:, 0], 3), faces.reshape(-1))),
+                        shape=(n, n))
+    _, label = connected_components(adj, directed=False)
+    return int(np.bincount(label[faces[:, 0]]).max())
+
+
+def seal_scan(mesh: MeshData) -> MeshData | None:
+    """The faces that close every boundary left in ``mesh`` (a range scan's open rim:
+    the back of the head the scanner never saw), over ``mesh``'s points, compacted.
+
+    The skin keeps its texture space; the seal is a separate occluder so that no shadow
+    or camera ray passes through the scan. ``None`` when the mesh is already closed."""
+    import pymeshlab
+
+    faces = mesh.face_indices.reshape(-1, 3)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = int(np.count_nonzero(counts == 1))
+    if boundary == 0:
+        return None
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=mesh.points, face_matrix=faces))
+    ms.set_selection_none()
+    ms.meshing_close_holes(maxholesize=boundary + 1, selfintersection=False,
+                           newfaceselected=True)
+    m = ms.current_mesh()
+    if m.vertex_number() != mesh.points.shape[0]:
+        raise InputError("sealing the scan moved its vertices", mesh.source)
+    new = np.asarray(m.face_matrix(), dtype=np.int64)[np.asarray(m.face_selection_array(), bool)]
+    if new.shape[0] == 0:
+        raise InputError(f"could not seal the scan's {boundary} boundary edges", mesh.source)
+    used, tris = np.unique(new, return_inverse=True)
+    return validate_mesh(replace(mesh, points=mesh.points[used],
+                                 face_counts=np.full(new.shape[0], 3, np.int32),
+                                 face_indices=tris.reshape(-1).astype(np.int32), st=None))
 
 
 def pymeshlab_face_scan() -> Path:
