@@ -13,7 +13,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from . import __version__, cli_render
+from . import __version__, cli_batch, cli_render
 from .cli_render import _eprint
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, InputError, SkinpipeError
 
@@ -636,6 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
 _VERBS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_demo, _add_ingest, _add_fit, _add_author, _add_validate, _add_inspect,
     cli_render.add_paint_albedo, cli_render.add_shot, cli_render.add_render, cli_render.add_run,
+    cli_batch.add_batch,
     _add_report, _add_simulate, _add_env,
 ]
 

@@ -55,3 +55,31 @@ def atomic_write_text(target: str | Path, text: str) -> Path:
 def atomic_write_json(target: str | Path, data: Any) -> Path:
     """Write ``data`` as indented JSON atomically (NaN is refused: JSON has none)."""
     return atomic_write_text(target, json.dumps(data, indent=2, allow_nan=False) + "\n")
+
+
+@contextlib.contextmanager
+def atomic_directory(target: str | Path) -> Iterator[Path]:
+    """Yield a temporary directory beside ``target``; on success it replaces ``target``.
+
+    A directory of outputs (a batch stage's) appears whole or not at all: a killed
+    process leaves only a ``.name.tmp-*`` sibling, which no reader trusts. An existing
+    ``target`` is moved aside first and removed after the new one is in place.
+    """
+    import shutil
+
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o755)  # mkdtemp's 0700 would hide the outputs from other users
+        old = None
+        if target.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, old / target.name)
+        os.replace(tmp, target)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)

@@ -91,8 +91,22 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
         tmp.name, float(area.sum() / charts_per_mesh) if charts_per_mesh else 0.0, resolution,
         padding, queue), daemon=True)
     result = None
+    if mp.current_process().daemon:
+        # a daemonic process (a Dask worker by default) may not have children: run here;
+        # the worker process is then what a crash takes down, and its nanny restarts it
+        import queue as queue_mod
+
+        local: queue_mod.Queue[Any] = queue_mod.Queue()
+        try:
+            _run_xatlas(tmp.name, float(area.sum() / charts_per_mesh) if charts_per_mesh
+                        else 0.0, resolution, padding, local)
+        finally:
+            os.unlink(tmp.name)
+        result = local.get_nowait()
+        proc = None
     try:
-        proc.start()
+        if proc is not None:
+            proc.start()
         while result is None:
             try:
                 result = queue.get(timeout=0.2)
@@ -103,11 +117,12 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
                     raise SkinpipeError(f"xatlas did not finish in {timeout_s:.0f} s; decimate "
                                         "the mesh or raise charts_per_mesh") from None
     finally:
-        if proc.pid is not None:
-            proc.join(timeout=5)
-            if proc.is_alive():
-                proc.kill()
-        os.unlink(tmp.name)
+        if proc is not None:
+            if proc.pid is not None:
+                proc.join(timeout=5)
+                if proc.is_alive():
+                    proc.kill()
+            os.unlink(tmp.name)
     vmapping, indices, uvs, charts, util = result
     seconds = time.perf_counter() - start
     uvs = np.asarray(uvs, dtype=np.float64)

@@ -1,0 +1,148 @@
+"""Batch runs on a real distributed.LocalCluster (2 worker processes): idempotent
+hash-keyed tasks, a worker killed mid-batch, a corrupt subject, atomic outputs."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.batch import read_batch
+from pipeline.cli import main
+from pipeline.errors import InputError
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
+
+
+def _write_batch(root: Path, names: list[str], **defaults: object) -> Path:
+    doc = {"defaults": {"k": 4, **defaults},
+           "subjects": [{"name": n, "captures": f"captures_{n}"} for n in names]}
+    path = root / "batch.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _copy_captures(root: Path, name: str) -> Path:
+    return Path(shutil.copytree(SAMPLE / "captures", root / f"captures_{name}"))
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as c:
+        yield c
+
+
+def _statuses(out: Path) -> dict[tuple[str, str, str], str]:
+    doc = json.loads((out / "batch.json").read_text())
+    got = {}
+    for subject, row in doc["subjects"].items():
+        for stage, entry in row.items():
+            for t in (entry.values() if stage == "fit" else [entry]):
+                got[(subject, stage, t["unit"])] = t["status"]
+    return got
+
+
+def test_batch_survives_a_killed_worker_and_a_corrupt_subject_and_is_idempotent(
+        cluster, tmp_path: Path) -> None:
+    for name in ("a", "b", "c"):
+        _copy_captures(tmp_path, name)
+    bad = tmp_path / "captures_c" / "lips" / "e2.tif"
+    bad.write_bytes(bad.read_bytes()[:1000])  # truncated: unreadable image
+    batch = _write_batch(tmp_path, ["a", "b", "c"])
+    out = tmp_path / "out"
+    args = ["batch", str(batch), "--scheduler", cluster.scheduler_address,
+            "--stages", "ingest,fit", "-o", str(out)]
+
+    codes: list[int] = []
+    runner = threading.Thread(target=lambda: codes.append(main(args)))
+    runner.start()
+    deadline = time.monotonic() + 60
+    busy: list = []
+    while not busy and time.monotonic() < deadline:  # the scheduler lives in this process
+        busy = [ws for ws in cluster.scheduler.workers.values() if ws.processing]
+        time.sleep(0.02)
+    assert busy, "no task started"
+    os.kill(busy[0].pid, signal.SIGKILL)  # a worker dies mid-task
+    runner.join(timeout=300)
+    assert codes == [1]  # subject c failed
+    first = _statuses(out)
+    assert first[("c", "ingest", "ingest")] == "failed"
+    assert all(first[("c", "fit", r)] == "skipped" for r in ("lips", "nose"))
+    ok = {k: v for k, v in first.items() if k[0] != "c"}
+    assert len(ok) == 2 * 7 and set(ok.values()) == {"done"}
+    doc = json.loads((out / "batch.json").read_text())
+    assert "e2.tif" in doc["subjects"]["c"]["ingest"]["error"]
+    for subject in ("a", "b"):  # every finished directory is whole
+        assert (out / subject / "ingest" / "done.json").is_file()
+        for region in ("forehead", "lips", "chin", "cheekbone", "cheek", "nose"):
+            fit_dir = out / subject / "fit" / region
+            assert json.loads((fit_dir / "done.json").read_text())["status"] == "done"
+            assert (fit_dir / f"{region}.json").stat().st_size > 0
+            assert doc["subjects"][subject]["fit"][region]["measures"]["fit_error_eq2c"]
+
+    # a re-run does no work
+    assert main(args) == 1
+    again = _statuses(out)
+    assert {v for k, v in again.items() if k[0] != "c"} == {"cached"}
+
+    # changing one subject's capture re-runs that subject only
+    cap = tmp_path / "captures_b" / "capture.json"
+    cap.write_text(cap.read_text() + "\n")
+    assert main(args) == 1
+    third = _statuses(out)
+    assert {v for k, v in third.items() if k[0] == "a"} == {"cached"}
+    assert {v for k, v in third.items() if k[0] == "b"} == {"done"}
+
+
+def test_batch_runs_author_and_render_for_a_subject(cluster, tmp_path: Path) -> None:
+    _copy_captures(tmp_path, "face")
+    batch = _write_batch(
+        tmp_path, ["face"], mesh="pymeshlab:rangemaps/face000.ply",
+        landmarks=str(SAMPLE / "face" / "landmarks.json"),
+        render={"resolution": [96, 96], "texture_size": 256, "light_samples": 2})
+    out = tmp_path / "out"
+    assert main(["batch", str(batch), "--scheduler", cluster.scheduler_address,
+                 "-o", str(out)]) == 0
+    status = _statuses(out)
+    assert status[("face", "author", "author")] == "done"
+    assert status[("face", "render", "render")] == "done"
+    doc = json.loads((out / "batch.json").read_text())
+    render = doc["subjects"]["face"]["render"]
+    assert 0.99 < render["measures"]["diffusion"]["energy_ratio"] < 1.01
+    assert any(p.endswith("face.exr") and Path(p).is_file() for p in render["outputs"])
+    assert (out / "face" / "asset" / "albedo.exr").is_file()
+    # the render did not write into the author stage's asset: its key still matches
+    assert main(["batch", str(batch), "--scheduler", cluster.scheduler_address,
+                 "-o", str(out)]) == 0
+    assert set(_statuses(out).values()) == {"cached"}
+
+
+@pytest.mark.parametrize(("subjects", "message"), [
+    ([{"name": "a", "captures": "nowhere"}], "does not exist"),
+    ([{"name": "a", "captures": "."}, {"name": "a", "captures": "."}], "unique"),
+    ([{"name": "a", "captures": ".", "colour": 1}], "unknown key"),
+    ([{"name": "a b", "captures": "."}], "identifier"),
+    ([], "non-empty"),
+    ([{"name": "a", "captures": ".", "k": 0}], "k must be"),
+])
+def test_read_batch_rejects_bad_files(tmp_path: Path, subjects: list, message: str) -> None:
+    path = tmp_path / "batch.json"
+    path.write_text(json.dumps({"subjects": subjects}))
+    with pytest.raises(InputError, match=message):
+        read_batch(path)
+
+
+def test_batch_cli_reports_a_bad_batch_file(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "batch.json"
+    path.write_text("{not json")
+    assert main(["batch", str(path), "-o", str(tmp_path / "out")]) == 2
+    assert "batch.json" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
