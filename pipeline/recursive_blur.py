@@ -1,0 +1,275 @@
+"""Recursive (IIR) Gaussian blur in OpenCL whose cost does not grow with sigma.
+
+Deriche (1993), "Recursively implementing the Gaussian and its derivatives", INRIA
+RR-1893: the Gaussian as a 4th-order causal plus a 4th-order anticausal recursive
+filter (run as two second-order sections each way, for float32), 16 multiply-adds
+per sample and channel whatever sigma is. Measured here
+against the exact sampled Gaussian: 3.5e-4 of the peak at most for sigma 0.5-64
+texels (1D). Its variance is 0.45% short of sigma^2 (in the tails); the sigma parameter
+is solved for the exact variance below 0.8 texel (closed form of the second moment from
+the poles), where sampling makes any short filter narrower than sigma^2.
+
+Coefficients vary per texel (sigma from the stretch map), looked up in a table over
+log2(sigma) with linear interpolation (64 entries per octave). Chart borders are
+handled by normalised convolution: alpha carries the coverage, RGB the irradiance
+times coverage, and a term is RGB / alpha after the blur, so uncovered texels give
+nothing and take nothing.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import InputError
+
+# Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
+# sum over the pairs of (a cos(w x) + b sin(w x)) exp(-lam x)
+DERICHE_1993 = ((1.6797292232361107, 3.7348298269103593, 1.7831906604375575, 0.6318113174569493),
+                (-0.6802783501655264, -0.2598300478959625, 1.7228297663338028,
+                 1.9969276058886463))
+TABLE_MIN_SIGMA = 0.25
+TABLE_OCTAVES = 13  # up to 0.25 * 2^13 = 2048 texels
+TABLE_STEPS_PER_OCTAVE = 64
+
+
+def _poles(sigma: float) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """Residues c_k and poles p_k with h(n) = sum_k c_k p_k^n for n >= 0."""
+    cs, ps = [], []
+    for a, b, lam, w in DERICHE_1993:
+        c = complex(a, -b) / 2
+        p = np.exp(complex(-lam, w) / sigma)
+        cs += [c, np.conj(c)]
+        ps += [p, np.conj(p)]
+    return np.array(cs), np.array(ps)
+
+
+def deriche_variance(sigma: float) -> float:
+    """Variance (texels^2) of the sampled Deriche filter with parameter ``sigma``:
+    sum n^2 p^n = p (1 + p) / (1 - p)^3 over each pole, both halves."""
+    c, p = _poles(sigma)
+    h0 = c.sum().real
+    mass = (2 * (c / (1 - p)).sum() - h0).real
+    second = (2 * (c * p * (1 + p) / (1 - p) ** 3).sum()).real
+    return float(second / mass)
+
+
+def deriche_coefficients(sigma: float) -> NDArray[np.float64]:
+    """Two second-order sections in parallel, one per conjugate pole pair: for each,
+    (b0, b1, m1, m2, a1, a2) of y+[i] = b0 x[i] + b1 x[i-1] - a1 y+[i-1] - a2 y+[i-2]
+    and y-[i] = m1 x[i+1] + m2 x[i+2] - a1 y-[i+1] - a2 y-[i+2]; y = sum of all four,
+    normalised to unit sum. (The direct 4th-order form loses 5e-3 of the peak to
+    float32 rounding of its coefficients; the parallel form keeps 1e-4.)"""
+    c, p = _poles(sigma)
+    rows = []
+    for k in (0, 2):
+        ck, pk = c[k], p[k]
+        rows.append([2 * ck.real, -2 * (ck * np.conj(pk)).real, 2 * (ck * pk).real,
+                     -2 * abs(pk) ** 2 * ck.real, -2 * pk.real, abs(pk) ** 2])
+    co = np.array(rows)
+    total = sum((r[0] + r[1] + r[2] + r[3]) / (1 + r[4] + r[5]) for r in co)
+    co[:, :4] /= total
+    return co.reshape(-1)
+
+
+@lru_cache(maxsize=1)
+def coefficient_table() -> NDArray[np.float32]:
+    """(entries, 12) section coefficients for sigma = TABLE_MIN_SIGMA * 2^(i / steps)."""
+    n = TABLE_OCTAVES * TABLE_STEPS_PER_OCTAVE + 1
+    targets = TABLE_MIN_SIGMA * 2.0 ** (np.arange(n) / TABLE_STEPS_PER_OCTAVE)
+    # variance of the filter against its parameter, on a finer grid, inverted
+    params = TABLE_MIN_SIGMA * 0.5 * 2.0 ** (
+        np.arange(4 * (n + 2 * TABLE_STEPS_PER_OCTAVE)) / (4 * TABLE_STEPS_PER_OCTAVE))
+    # below a quarter texel the filter is a near-delta whose variance rounds to <= 0
+    sd = np.maximum.accumulate(np.sqrt(np.maximum([deriche_variance(s) for s in params], 0)))
+    matched = np.interp(targets, sd, params)
+    # Deriche's shape follows the Gaussian near the peak and is 0.45% short in variance
+    # (its tails); matching the variance would cost 2e-3 at the peak. Below 0.8 texel
+    # the sampled filter is far narrower than sigma^2 (0.21 vs 0.25 at 0.5): there the
+    # variance is matched, as the gather kernel's parameter is (blend 0.5 - 0.8).
+    t = np.clip((targets - 0.5) / 0.3, 0.0, 1.0)
+    fitted = (1 - t) * matched + t * targets
+    return np.array([deriche_coefficients(s) for s in fitted], dtype=np.float32)
+
+
+def table_position(sigma: NDArray[Any]) -> NDArray[np.float64]:
+    """Fractional table index of each sigma (texels), clamped to the table."""
+    s = np.clip(np.asarray(sigma, np.float64), TABLE_MIN_SIGMA,
+                TABLE_MIN_SIGMA * 2.0 ** TABLE_OCTAVES)
+    return np.log2(s / TABLE_MIN_SIGMA) * TABLE_STEPS_PER_OCTAVE
+
+
+def _coefficients_at(sigma: NDArray[Any]) -> NDArray[np.float64]:
+    table = coefficient_table().astype(np.float64)
+    t = table_position(sigma)
+    i = np.minimum(np.floor(t).astype(np.int64), table.shape[0] - 2)
+    f = (t - i)[..., None]
+    return table[i] * (1 - f) + table[i + 1] * f
+
+
+def recursive_reference(image: NDArray[Any], sigma_u: NDArray[Any], sigma_v: NDArray[Any]
+                        ) -> NDArray[np.float64]:
+    """float64 numpy version of :class:`RecursiveBlur` (u pass, then v pass), per-texel
+    coefficients interpolated from the same table. For tests and small images."""
+    out = np.asarray(image, np.float64)
+    for axis, sigma in ((1, sigma_u), (0, sigma_v)):
+        x = np.moveaxis(out, axis, 0)           # lines along axis 0
+        co = np.moveaxis(_coefficients_at(sigma), axis, 0)[..., None]
+        n = x.shape[0]
+        total = np.zeros_like(x)
+        for sec in (0, 6):
+            b0, b1, m1, m2, a1, a2 = (co[..., sec + j, :] for j in range(6))
+            y = np.zeros_like(x)
+            for i in range(n):
+                y[i] = b0[i] * x[i]
+                if i >= 1:
+                    y[i] += b1[i] * x[i - 1] - a1[i] * y[i - 1]
+                if i >= 2:
+                    y[i] -= a2[i] * y[i - 2]
+            total += y
+            y = np.zeros_like(x)
+            for i in range(n - 1, -1, -1):
+                if i + 1 < n:
+                    y[i] = m1[i] * x[i + 1] - a1[i] * y[i + 1]
+                if i + 2 < n:
+                    y[i] += m2[i] * x[i + 2] - a2[i] * y[i + 2]
+            total += y
+        out = np.moveaxis(total, 0, axis)
+    return out
+
+
+_KERNEL = r"""
+// One recursive Gaussian pass along a line of n texels (Deriche 1993, 4th order).
+// Line L starts at L * line_stride, its texels are elem_stride apart. Coefficients
+// come from a table over log2(sigma); uniform >= 0 uses that sigma for every texel.
+inline void coeffs(__global const float *table, const float pos, const int entries,
+                   float *c)
+{
+    const float t = clamp(pos, 0.0f, (float)(entries - 1) - 1e-3f);
+    const int i = (int)t;
+    const float f = t - (float)i;
+    __global const float *a = table + i * 12;
+    for (int k = 0; k < 12; ++k) c[k] = a[k] + f * (a[k + 12] - a[k]);
+}
+
+// A pass along rows that writes its result transposed: run twice, it blurs u then v
+// and leaves the image as it was, and every read walks memory in order (a pass down
+// columns reads 16 bytes of each 64-byte line and is 7x slower on a CPU). The causal
+// half goes to `scratch` (this row, still in cache for the anticausal half).
+__kernel void iir_rows_transposed(__global const float4 *src, __global float4 *dst,
+                                  __global float4 *scratch,
+                                  __global const float *pos_map,
+                                  __global const float *table, const int entries,
+                                  const float uniform_pos, const int n, const int lines)
+{
+    const int L = get_global_id(0);
+    if (L >= lines) return;
+    const size_t base = (size_t)L * (size_t)n;
+    float c[12];
+    const int per_texel = uniform_pos < 0.0f;
+    if (!per_texel) coeffs(table, uniform_pos, entries, c);
+    float4 x1 = 0.0f, p1 = 0.0f, p2 = 0.0f, q1 = 0.0f, q2 = 0.0f;
+    for (int i = 0; i < n; ++i) {
+        if (per_texel) coeffs(table, pos_map[base + i], entries, c);
+        const float4 x = src[base + i];
+        const float4 p = c[0] * x + c[1] * x1 - c[4] * p1 - c[5] * p2;
+        const float4 q = c[6] * x + c[7] * x1 - c[10] * q1 - c[11] * q2;
+        scratch[base + i] = p + q;
+        x1 = x; p2 = p1; p1 = p; q2 = q1; q1 = q;
+    }
+    float4 a1 = 0.0f, a2 = 0.0f;
+    p1 = 0.0f; p2 = 0.0f; q1 = 0.0f; q2 = 0.0f;
+    for (int i = n - 1; i >= 0; --i) {
+        if (per_texel) coeffs(table, pos_map[base + i], entries, c);
+        const float4 p = c[2] * a1 + c[3] * a2 - c[4] * p1 - c[5] * p2;
+        const float4 q = c[8] * a1 + c[9] * a2 - c[10] * q1 - c[11] * q2;
+        const float4 x = src[base + i];
+        dst[(size_t)i * (size_t)lines + (size_t)L] = scratch[base + i] + p + q;
+        a2 = a1; a1 = x; p2 = p1; p1 = p; q2 = q1; q1 = q;
+    }
+}
+"""
+
+
+@lru_cache(maxsize=1)
+def _program() -> tuple[Any, Any, Any]:
+    import pyopencl as cl
+
+    from .diffusion import _cl_state
+
+    ctx, queue, _ = _cl_state()
+    return ctx, queue, cl.Program(ctx, _KERNEL).build()
+
+
+class RecursiveBlur:
+    """Separable recursive Gaussian blurs of an RGBA float32 texture on the device.
+
+    ``blur_in_place(sigma_u, sigma_v)`` takes per-texel maps or scalars (texels); a
+    scalar runs the uniform-coefficient path. Cost per texel is the same for any sigma.
+    """
+
+    def __init__(self, height: int, width: int) -> None:
+        import pyopencl as cl
+
+        self.ctx, self.queue, self.program = _program()
+        self.rows_t = cl.Kernel(self.program, "iir_rows_transposed")
+        self.height, self.width = height, width
+        mf = cl.mem_flags
+        table = coefficient_table()
+        self.entries = table.shape[0]
+        self.table = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                               hostbuf=np.ascontiguousarray(table.reshape(-1)))
+        nbytes = height * width * 16
+        self.buf_a = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
+        self.buf_b = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
+        self.scratch = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
+        self.pos_u = cl.Buffer(self.ctx, mf.READ_ONLY, height * width * 4)
+        self.pos_v = cl.Buffer(self.ctx, mf.READ_ONLY, height * width * 4)
+
+    def upload(self, image: NDArray[Any]) -> None:
+        import pyopencl as cl
+
+        rgba = np.ascontiguousarray(image, dtype=np.float32)
+        if rgba.shape != (self.height, self.width, 4):
+            raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
+        cl.enqueue_copy(self.queue, self.buf_a, rgba)
+
+    def download(self) -> NDArray[np.float32]:
+        import pyopencl as cl
+
+        out = np.empty((self.height, self.width, 4), dtype=np.float32)
+        cl.enqueue_copy(self.queue, out, self.buf_a)
+        return out
+
+    def _position(self, sigma: Any, buf: Any, transposed: bool) -> float:
+        import pyopencl as cl
+
+        if np.ndim(sigma) == 0:
+            return float(table_position(float(sigma)))
+        pos = table_position(sigma).astype(np.float32)
+        if pos.shape != (self.height, self.width):
+            raise InputError(f"sigma map must be ({self.height}, {self.width}), got {pos.shape}")
+        if transposed:
+            pos = pos.T
+        cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(pos))
+        return -1.0
+
+    def blur_in_place(self, sigma_u: Any, sigma_v: Any) -> None:
+        h, w = self.height, self.width
+        # u pass over the rows (written transposed), then v pass over the transposed rows
+        for sigma, pos, n, lines, transposed in ((sigma_u, self.pos_u, w, h, False),
+                                                 (sigma_v, self.pos_v, h, w, True)):
+            uniform = self._position(sigma, pos, transposed)
+            self.rows_t(self.queue, (lines,), None, self.buf_a, self.buf_b, self.scratch, pos,
+                        self.table, np.int32(self.entries), np.float32(uniform), np.int32(n),
+                        np.int32(lines))
+            self.buf_a, self.buf_b = self.buf_b, self.buf_a
+        self.queue.finish()
+
+    def blur(self, image: NDArray[Any], sigma_u: Any, sigma_v: Any) -> NDArray[np.float32]:
+        self.upload(image)
+        self.blur_in_place(sigma_u, sigma_v)
+        return self.download()
