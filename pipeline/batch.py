@@ -189,7 +189,8 @@ def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
     temporary directory that replaces ``spec.out_dir`` once ``done.json`` is in it."""
     from .fileio import atomic_directory, atomic_write_json
 
-    base = {"stage": spec.stage, "subject": spec.subject, "unit": spec.unit, "key": spec.key}
+    base = {"stage": spec.stage, "subject": spec.subject, "unit": spec.unit, "key": spec.key,
+            "dir": str(spec.out_dir)}
     failed = [u for u in upstream if u["status"] in ("failed", "skipped")]
     if failed:
         return {**base, "status": "skipped", "seconds": 0.0,
@@ -349,12 +350,14 @@ def regions_of(captures: Path) -> list[str]:
 
 
 def submit_batch(client: Any, subjects: list[Subject], out_root: Path,
-                 stages: tuple[str, ...]) -> list[Any]:
-    """Submit every subject's tasks up to the last stage asked for; returns futures.
+                 stages: tuple[str, ...]) -> tuple[list[Any], dict[str, tuple[str, str, str]]]:
+    """Submit every subject's tasks up to the last stage asked for; returns the futures
+    and, per task key, (stage, subject, unit) to report a task whose worker kept dying.
 
     A stage before the last one asked for runs too (a no-op when its output is there)."""
     last = max(STAGES.index(s) for s in stages)
     futures = []
+    meta: dict[str, tuple[str, str, str]] = {}
     for subject in subjects:
         try:
             plan = plan_subject(subject, out_root, regions_of(subject.captures))
@@ -363,7 +366,7 @@ def submit_batch(client: Any, subjects: list[Subject], out_root: Path,
                                          key=f"plan-{subject.name}-{time.time_ns()}"))
             continue
         ing = plan["ingest"]
-        _remember(plan, subject.name)
+        meta.update(_task_names(plan, subject.name))
         f_ing = client.submit(ingest_task, ing, subject, key=f"ingest-{subject.name}-{ing.key}")
         futures.append(f_ing)
         if last < 1:
@@ -385,18 +388,16 @@ def submit_batch(client: Any, subjects: list[Subject], out_root: Path,
         ren = plan["render"]
         futures.append(client.submit(render_task, ren, subject, f_aut, aut.out_dir,
                                      key=f"render-{subject.name}-{ren.key}"))
-    return futures
+    return futures, meta
 
 
-_KEY_META: dict[str, tuple[str, str, str]] = {}
-
-
-def _remember(plan: dict[str, Any], subject: str) -> None:
-    """Task key -> (stage, subject, unit), to report a task whose worker kept dying."""
-    for stage in ("ingest", "author", "render"):
-        _KEY_META[f"{stage}-{subject}-{plan[stage].key}"] = (stage, subject, stage)
+def _task_names(plan: dict[str, Any], subject: str) -> dict[str, tuple[str, str, str]]:
+    """Dask key -> (stage, subject, unit) for one subject's tasks."""
+    names = {f"{stage}-{subject}-{plan[stage].key}": (stage, subject, stage)
+             for stage in ("ingest", "author", "render")}
     for region, spec in plan["fit"].items():
-        _KEY_META[f"fit-{subject}-{region}-{spec.key}"] = ("fit", subject, region)
+        names[f"fit-{subject}-{region}-{spec.key}"] = ("fit", subject, region)
+    return names
 
 
 def _failed_plan(subject: str, error: str) -> dict[str, Any]:
@@ -436,13 +437,13 @@ def run_batch(client: Any, subjects: list[Subject], out_root: Path,
     start = time.perf_counter()
     out_root.mkdir(parents=True, exist_ok=True)
     client.register_plugin(_import_native_libraries())
-    futures = submit_batch(client, subjects, out_root, stages)
+    futures, meta = submit_batch(client, subjects, out_root, stages)
     results = []
     for n, fut in enumerate(as_completed(futures), start=1):
         try:
             res = fut.result()
         except Exception as exc:  # e.g. KilledWorker after repeated worker deaths
-            stage, subject, unit = _KEY_META.get(fut.key, ("?", "?", fut.key))
+            stage, subject, unit = meta.get(fut.key, ("?", "?", fut.key))
             res = {"stage": stage, "subject": subject, "unit": unit,
                    "status": "failed", "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"}
         results.append(res)
@@ -488,10 +489,7 @@ def batch_document(result: BatchResult, out_root: Path, stages: tuple[str, ...]
             items = value.values() if stage == "fit" else [value]
             for t in items:
                 if "outputs" in t:
-                    spec_dir = out_root / subject / {"author": "asset"}.get(stage, stage)
-                    if stage == "fit":
-                        spec_dir = spec_dir / t["unit"]
-                    t = {**t, "outputs": [str(spec_dir / o) for o in t["outputs"]]}
+                    t = {**t, "outputs": [str(Path(t["dir"]) / o) for o in t["outputs"]]}
                 if stage == "fit":
                     entry.setdefault("fit", {})[t["unit"]] = t
                 else:
