@@ -146,30 +146,12 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     """Paint the sample albedo for the first skin mesh of ``asset`` (unwrapping it first
     when it has no usable UVs) and bind it; returns the texture's path."""
     from .imageio import write_exr
-    from .render import push_pull, unwrap_and_write_back, usable_uvs, uv_triangles
-    from .scene import SceneDelegate
+    from .render import ensure_skin_uvs, push_pull
     from .texture_maps import rasterize
     from .unwrap import triangulate
-    from .usd_io import open_stage_guarded
     from .usd_schema import WORKING_COLORSPACE
 
-    stage = open_stage_guarded(asset)
-    delegate = SceneDelegate(stage)
-    try:
-        scene = delegate.sync()
-    finally:
-        delegate.close()
-    if not scene.skin:
-        raise InputError("no skin mesh (SkinProfileRegionsAPI) to paint", asset)
-    mesh = scene.skin[0]
-    why = usable_uvs(mesh)
-    if why is None:
-        uv, uv_tris = mesh.uv, uv_triangles(mesh)
-    else:
-        uv, uv_tris, measures = unwrap_and_write_back(stage, mesh, why, True, progress)
-        if measures.get("written_to") is None:
-            raise InputError(f"cannot write UVs into the layer holding {mesh.path}", asset)
-    assert uv is not None and uv_tris is not None
+    stage, scene, mesh, uv, uv_tris, _ = ensure_skin_uvs(asset, progress)
     maps = rasterize(mesh.mesh.points, triangulate(mesh.mesh), uv, uv_tris, size,
                      scene.meters_per_unit, mesh.region_weights)
     if progress:

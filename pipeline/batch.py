@@ -266,7 +266,10 @@ def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
 
             bake_sample_albedo(paths.asset, int(subject.render.get("texture_size", 1024)))
         else:
-            measures["uvs"] = _ensure_uvs(paths.asset)
+            from .render import ensure_skin_uvs
+
+            # unwrap here, so that a render never writes into a finished asset
+            measures["uvs"] = ensure_skin_uvs(paths.asset).note
         check = validate_file(paths.asset)
         if check.problems:
             raise InputError("the authored asset is invalid: " +
@@ -274,26 +277,6 @@ def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
         return {"measures": measures, "outputs": ["asset.usda", "geo.usdc", "look.usda"]}
 
     return _run_task(spec, fits, work)
-
-
-def _ensure_uvs(asset: Path) -> str:
-    """Unwrap inside the author task, so that a render never writes into the asset."""
-    from .render import unwrap_and_write_back, usable_uvs
-    from .scene import SceneDelegate
-    from .usd_io import open_stage_guarded
-
-    stage = open_stage_guarded(asset)
-    delegate = SceneDelegate(stage)
-    try:
-        scene = delegate.sync()
-    finally:
-        delegate.close()
-    for mesh in scene.skin:
-        why = usable_uvs(mesh)
-        if why is not None:
-            unwrap_and_write_back(stage, mesh, why, True, None)
-            return f"unwrapped ({why})"
-    return "kept"
 
 
 def render_task(spec: TaskSpec, subject: Subject, author: dict[str, Any],

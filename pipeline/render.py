@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -285,6 +285,41 @@ def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
     if write and np.all(mesh.mesh.face_counts == 3):
         measures["written_to"] = write_uvs_back(stage, mesh, uv, layout.uv_indices)
     return uv, layout.uv_indices.reshape(-1, 3), measures
+
+
+class SkinUVs(NamedTuple):
+    stage: Any
+    scene: SceneData
+    mesh: SceneMesh
+    uv: NDArray[np.float64]
+    uv_triangles: NDArray[np.int32]
+    note: str  # "kept" or "unwrapped (why)"
+
+
+def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) -> SkinUVs:
+    """The first skin mesh of ``asset`` with usable UVs: xatlas and written back into the
+    asset's layer when it has none."""
+    from .scene import SceneDelegate
+    from .usd_io import open_stage_guarded
+
+    stage = open_stage_guarded(asset)
+    delegate = SceneDelegate(stage)
+    try:
+        scene = delegate.sync()
+    finally:
+        delegate.close()
+    if not scene.skin:
+        raise InputError("no skin mesh (SkinProfileRegionsAPI)", asset)
+    mesh = scene.skin[0]
+    why = usable_uvs(mesh)
+    if why is None:
+        uv, uv_tris = mesh.uv, uv_triangles(mesh)
+        assert uv is not None and uv_tris is not None
+        return SkinUVs(stage, scene, mesh, uv, uv_tris, "kept")
+    uv, uv_tris, measures = unwrap_and_write_back(stage, mesh, why, True, progress)
+    if measures.get("written_to") is None:
+        raise InputError(f"cannot write UVs into the layer holding {mesh.path}", asset)
+    return SkinUVs(stage, scene, mesh, uv, uv_tris, f"unwrapped ({why})")
 
 
 def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:

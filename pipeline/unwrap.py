@@ -68,6 +68,33 @@ def _run_xatlas(npz: str, chart_area: float, resolution: int, padding: int, queu
                int(atlas.chart_count), float(np.mean(atlas.utilization))))
 
 
+def _xatlas_in_child(npz: str, chart_area: float, resolution: int, padding: int,
+                     timeout_s: float, start: float) -> Any:
+    """Run :func:`_run_xatlas` in a spawned child: a crash there is an error here."""
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_run_xatlas, args=(npz, chart_area, resolution, padding, queue),
+                       daemon=True)
+    result = None
+    try:
+        proc.start()
+        while result is None:
+            try:
+                result = queue.get(timeout=0.2)
+            except Empty:
+                if not proc.is_alive() and queue.empty():
+                    raise SkinpipeError(f"xatlas crashed (exit code {proc.exitcode})") from None
+                if time.perf_counter() - start > timeout_s:
+                    raise SkinpipeError(f"xatlas did not finish in {timeout_s:.0f} s; decimate "
+                                        "the mesh or raise charts_per_mesh") from None
+    finally:
+        if proc.pid is not None:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.kill()
+    return result
+
+
 def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
            charts_per_mesh: int = 100, timeout_s: float = 300.0) -> UVLayout:
     """Unwrap with xatlas in a child process. ``charts_per_mesh`` caps each chart's area
@@ -80,49 +107,26 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
     if not area.sum() > 0:
         raise InputError("the mesh has no area (every face is degenerate)", mesh.source)
     start = time.perf_counter()
-    ctx = mp.get_context("spawn")
-    queue = ctx.Queue()
+    chart_area = float(area.sum() / charts_per_mesh) if charts_per_mesh else 0.0
     # The mesh goes through a file: spawn pickles arguments into a pipe that blocks the
     # parent for good if the child dies before reading them.
     tmp = tempfile.NamedTemporaryFile(suffix=".npz", delete=False)
     tmp.close()
     np.savez(tmp.name, points=mesh.points.astype(np.float32), tris=tris.astype(np.uint32))
-    proc = ctx.Process(target=_run_xatlas, args=(
-        tmp.name, float(area.sum() / charts_per_mesh) if charts_per_mesh else 0.0, resolution,
-        padding, queue), daemon=True)
-    result = None
-    if mp.current_process().daemon:
-        # a daemonic process (a Dask worker by default) may not have children: run here;
-        # the worker process is then what a crash takes down, and its nanny restarts it
-        import queue as queue_mod
-
-        local: queue_mod.Queue[Any] = queue_mod.Queue()
-        try:
-            _run_xatlas(tmp.name, float(area.sum() / charts_per_mesh) if charts_per_mesh
-                        else 0.0, resolution, padding, local)
-        finally:
-            os.unlink(tmp.name)
-        result = local.get_nowait()
-        proc = None
     try:
-        if proc is not None:
-            proc.start()
-        while result is None:
-            try:
-                result = queue.get(timeout=0.2)
-            except Empty:
-                if not proc.is_alive() and queue.empty():
-                    raise SkinpipeError(f"xatlas crashed (exit code {proc.exitcode})") from None
-                if time.perf_counter() - start > timeout_s:
-                    raise SkinpipeError(f"xatlas did not finish in {timeout_s:.0f} s; decimate "
-                                        "the mesh or raise charts_per_mesh") from None
+        if mp.current_process().daemon:
+            # a daemonic process (a Dask worker by default) may not have children: run
+            # here; a crash then takes down the worker, which its nanny restarts
+            import queue as queue_mod
+
+            local: queue_mod.Queue[Any] = queue_mod.Queue()
+            _run_xatlas(tmp.name, chart_area, resolution, padding, local)
+            result = local.get_nowait()
+        else:
+            result = _xatlas_in_child(tmp.name, chart_area, resolution, padding, timeout_s,
+                                      start)
     finally:
-        if proc is not None:
-            if proc.pid is not None:
-                proc.join(timeout=5)
-                if proc.is_alive():
-                    proc.kill()
-            os.unlink(tmp.name)
+        os.unlink(tmp.name)
     vmapping, indices, uvs, charts, util = result
     seconds = time.perf_counter() - start
     uvs = np.asarray(uvs, dtype=np.float64)
