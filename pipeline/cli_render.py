@@ -43,7 +43,7 @@ def _aovs(text: str) -> tuple[str, ...]:
 
 def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024",
                        texture_size: int = 1024) -> None:
-    from .render import AOVS
+    from .render import AOVS, BLURS
 
     p.add_argument("--camera", default=None, metavar="PRIM",
                    help="UsdGeomCamera prim path (default: the first camera on the stage)")
@@ -58,6 +58,9 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--variance-grid", type=int, default=12, metavar="N",
                    help="re-express all regions' profiles on N shared variances (fewer "
                         "blurs; the error is in render.json); 0 = each region's own")
+    p.add_argument("--blur", choices=BLURS, default="recursive",
+                   help="diffusion blur: recursive Gaussian on a pyramid (cost independent "
+                        "of width) or the per-tap gather kernel (cost grows with width)")
     p.add_argument("--no-scattering", action="store_true",
                    help="texture-mapped irradiance only (no subsurface diffusion)")
     p.add_argument("--single-profile", default=None, metavar="mean|REGION",
@@ -80,7 +83,7 @@ def render_options(args: argparse.Namespace) -> Any:
         resolution=args.resolution, texture_size=args.texture_size, aovs=args.aovs,
         light_samples=args.light_samples, roughness=args.roughness, rho_s=args.rho_s,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
-        scattering=not args.no_scattering, single_profile=args.single_profile,
+        scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs)
 
 

@@ -1,15 +1,16 @@
-"""Texture-space diffusion: separable Gaussian blurs in OpenCL (PoCL on the CPU).
+"""Texture-space diffusion: Gaussian blurs of the irradiance in OpenCL (PoCL on the CPU).
 
 d'Eon, Luebke, Enderton 2007 (after Borshukov & Lewis 2003): the diffused irradiance is
 sum_i w_i (G(v_i) * E), each 2D Gaussian applied as a horizontal then a vertical 1D
-pass. The blur is a gather in texture space whose width at each texel comes from the
-stretch map (mm per texel along u and v), so the blur is right in mm whatever the UV
-layout. Taps outside the chart (coverage 0) are left out and the remaining weights
-renormalised, so chart borders neither darken nor leak. Variances are visited in
-ascending order and each blur starts from the previous one (G(a) * G(b) = G(a + b)).
+pass whose width at each texel comes from the stretch map (mm per texel along u and
+v), so the blur is right in mm whatever the UV layout.
 
-The reference implementation in float64 numpy (:func:`blur_reference`) has the same
-semantics; the OpenCL kernel must agree with it to 1e-5 relative.
+:func:`diffuse` (the renderer's) blurs every term from the irradiance with the
+recursive Gaussian of :mod:`.recursive_blur` (cost independent of the width), as a
+normalised convolution of (E coverage, coverage) so chart borders neither darken nor
+leak, and runs wide terms on a coarser level of a pyramid. :func:`diffuse_gather` is
+the first implementation, a per-tap gather whose cost grows with the width, kept for
+comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
 """
 
 from __future__ import annotations
@@ -151,6 +152,10 @@ class BlurStats:
 
     passes: int = 0
     skipped: list[str] = field(default_factory=list)
+    levels: list[int] = field(default_factory=list)
+    """Pyramid level each blurred term ran on (0: full resolution)."""
+    full_blurs: float = 0.0
+    """Texels blurred, in full-resolution 2D blurs."""
 
 
 class OpenCLBlur:
@@ -212,26 +217,21 @@ class OpenCLBlur:
         return self.download()
 
 
-def diffuse(
-    irradiance: NDArray[Any],
-    mm_per_texel_u: NDArray[Any],
-    mm_per_texel_v: NDArray[Any],
-    coverage: NDArray[Any],
-    variances_mm2: NDArray[Any],
-    term_weights: NDArray[Any],
-    region_weights: NDArray[Any] | None = None,
-) -> tuple[NDArray[np.float32], BlurStats]:
-    """Diffused irradiance sum_i w_i(texel) (G(v_i) * E) for RGB irradiance (H, W, 3).
-
-    ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
-    each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
-    each region a texel is (None: one region everywhere). A texel's weights are the
-    region-blended ones, so borders between regions blend smoothly. Terms whose weight
-    is zero on every texel are skipped, equal variances share a pass, and a term
-    narrower than MIN_SIGMA_TEXELS everywhere is folded into the unblurred irradiance.
-    """
+def _diffusion_inputs(
+    irradiance: NDArray[Any], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
+    region_weights: NDArray[Any] | None,
+) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float32],
+           NDArray[np.float32] | None, NDArray[np.bool_], BlurStats]:
+    """Checked arrays (E, v, term weights (R, K, 3), region weights or None), which
+    terms any present region uses, and stats noting the regions no texel uses."""
     e = np.asarray(irradiance, dtype=np.float32)
+    if e.ndim != 3 or e.shape[2] != 3:
+        raise InputError(f"irradiance must be (H, W, 3), got {e.shape}")
     h, w, _ = e.shape
+    bad = ~np.isfinite(e)
+    if bad.any():
+        y, x, c = np.argwhere(bad)[0]
+        raise InputError(f"irradiance must be finite; texel ({x}, {y}) channel {c} is {e[y, x, c]}")
     v = np.asarray(variances_mm2, dtype=np.float64)
     tw = np.asarray(term_weights, dtype=np.float32)
     if tw.ndim == 2:
@@ -247,10 +247,9 @@ def diffuse(
         rw = np.asarray(region_weights, dtype=np.float32)
         if rw.shape != (h, w, n_regions):
             raise InputError(f"region weights must be ({h}, {w}, {n_regions}), got {rw.shape}")
-    if np.any(np.diff(v) < 0) or np.any(v <= 0):
-        raise InputError(f"variances must be > 0 and ascending, got {v.tolist()}")
+    if np.any(np.diff(v) < 0) or np.any(v <= 0) or not np.all(np.isfinite(v)):
+        raise InputError(f"variances must be finite, > 0 and ascending, got {v.tolist()}")
     stats = BlurStats()
-    out = np.zeros((h, w, 3), dtype=np.float32)
     if rw is not None:
         present = rw.reshape(-1, n_regions).max(axis=0) > 0
         for r in np.flatnonzero(~present):
@@ -258,6 +257,30 @@ def diffuse(
         used = (tw[present].max(axis=(0, 2)) > 0) if present.any() else np.zeros(v.size, bool)
     else:
         used = tw[0].max(axis=1) > 0
+    return e, v, tw, rw, used, stats
+
+
+def diffuse_gather(
+    irradiance: NDArray[Any],
+    mm_per_texel_u: NDArray[Any],
+    mm_per_texel_v: NDArray[Any],
+    coverage: NDArray[Any],
+    variances_mm2: NDArray[Any],
+    term_weights: NDArray[Any],
+    region_weights: NDArray[Any] | None = None,
+) -> tuple[NDArray[np.float32], BlurStats]:
+    """The first diffusion: the gather kernel, each term blurred from the previous one.
+
+    Same arguments as :func:`diffuse`. Its cost grows with the blur width; it is kept
+    as the comparison for the benchmarks and the render report (``--blur gather``), and
+    :func:`blur_reference` checks its kernel. Each pass renormalises over the covered
+    taps of its own axis (the recursive path normalises in 2D). Equal variances share
+    a pass; a term narrower than MIN_SIGMA_TEXELS everywhere is the unblurred irradiance.
+    """
+    e, v, tw, rw, used, stats = _diffusion_inputs(irradiance, variances_mm2, term_weights,
+                                                  region_weights)
+    h, w, _ = e.shape
+    out = np.zeros((h, w, 3), dtype=np.float32)
     mm_u = np.asarray(mm_per_texel_u, dtype=np.float64)
     mm_v = np.asarray(mm_per_texel_v, dtype=np.float64)
     cov = np.asarray(coverage, dtype=np.float32)
@@ -295,3 +318,268 @@ def diffuse(
         weight = tw[0, i] if rw is None else rw @ tw[:, i, :]
         out += weight * current
     return out, stats
+
+
+# ----------------------------------------------------------- recursive, on a pyramid
+
+LEVEL_MIN_SIGMA_TEXELS = 4.0
+"""A term is blurred on the coarsest pyramid level where its narrowest blur is still
+this many of that level's texels: bilinear reads of a Gaussian that wide are within
+about h^2 |G''| / 8 = 1 / (8 * 16) of its peak, and each level down quarters the work."""
+MAX_LEVELS = 6
+
+_PYRAMID_KERNEL = r"""
+// Coarser level: weights (1, 3, 3, 1) / 8 over finer texels 2x-1 .. 2x+2 on each axis,
+// so a texel's mass lands around its own position (a 2x2 box would move it by up to
+// half a texel). Texels outside the finer image count as zero (no coverage); the 1/8
+// an edge texel would give to a coarse texel outside goes to the edge one instead,
+// so every finer texel hands on exactly its mass.
+__kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
+                              const int sw, const int sh, const int dw, const int dh)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= dw || y >= dh) return;
+    float wx[4] = {0.125f, 0.375f, 0.375f, 0.125f};
+    float wy[4] = {0.125f, 0.375f, 0.375f, 0.125f};
+    if (x == 0) wx[1] += 0.125f;
+    if (x == dw - 1 && sw == 2 * dw) wx[2] += 0.125f;
+    if (y == 0) wy[1] += 0.125f;
+    if (y == dh - 1 && sh == 2 * dh) wy[2] += 0.125f;
+    float4 acc = 0.0f;
+    for (int j = 0; j < 4; ++j) {
+        const int sy = 2 * y + j - 1;
+        if (sy < 0 || sy >= sh) continue;
+        for (int i = 0; i < 4; ++i) {
+            const int sx = 2 * x + i - 1;
+            if (sx >= 0 && sx < sw) acc += (wx[i] * wy[j]) * src[sy * sw + sx];
+        }
+    }
+    dst[y * dw + x] = acc;
+}
+
+// acc += (sum_r rw[r] tw[term, r]) * rgb / alpha of a blurred (E cov, cov) texture read
+// at this texel (bilinearly from a level `scale` = 2^-k as large): normalised
+// convolution, so texels off the charts give nothing and take nothing.
+__kernel void accumulate_term(__global const float4 *level, __global float4 *acc,
+                              __global const float *cover, __global const float *rw,
+                              __global const float4 *tw, const int regions, const int term,
+                              const int w, const int h, const int lw, const int lh,
+                              const float scale)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= w || y >= h) return;
+    const int i = y * w + x;
+    if (!(cover[i] > 0.0f)) return;
+    float4 t;
+    if (lw == w && lh == h) {
+        t = level[i];
+    } else {
+        const float fx = clamp(((float)x + 0.5f) * scale - 0.5f, 0.0f, (float)(lw - 1));
+        const float fy = clamp(((float)y + 0.5f) * scale - 0.5f, 0.0f, (float)(lh - 1));
+        const int x0 = min((int)fx, lw - 2 < 0 ? 0 : lw - 2);
+        const int y0 = min((int)fy, lh - 2 < 0 ? 0 : lh - 2);
+        const int x1 = min(x0 + 1, lw - 1), y1 = min(y0 + 1, lh - 1);
+        const float ax = fx - (float)x0, ay = fy - (float)y0;
+        t = (1.0f - ay) * ((1.0f - ax) * level[y0 * lw + x0] + ax * level[y0 * lw + x1])
+            + ay * ((1.0f - ax) * level[y1 * lw + x0] + ax * level[y1 * lw + x1]);
+    }
+    if (!(t.w > 1e-7f)) return;
+    float4 wgt;
+    if (regions == 0) {
+        wgt = tw[term];
+    } else {
+        wgt = 0.0f;
+        for (int r = 0; r < regions; ++r)
+            wgt += rw[(size_t)i * regions + r] * tw[term * regions + r];
+    }
+    acc[i] += wgt * (t / t.w);
+}
+"""
+
+
+@lru_cache(maxsize=1)
+def _pyramid_kernels() -> tuple[Any, Any]:
+    """(downsample_tent, accumulate_term), built once per process."""
+    import pyopencl as cl
+
+    ctx, _, _ = _cl_state()
+    program = cl.Program(ctx, _PYRAMID_KERNEL).build()
+    return cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_term")
+
+
+def _added_variance_texels2(level: int) -> float:
+    """Variance (finest texels^2, per axis) that reaching pyramid ``level`` and reading
+    it back adds: each (1, 3, 3, 1) / 8 step down 3/4 of its finer texel^2, the bilinear
+    read at the finest texels' centres t (1 - t) 4^level averaged over their phases t."""
+    if level == 0:
+        return 0.0
+    n = 4.0**level
+    return (n - 1.0) / 4.0 + n / 6.0 + 1.0 / 12.0
+
+
+def _box_down(a: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Mean over 2x2 blocks (an odd last row/column averages with itself)."""
+    h, w = a.shape
+    p = np.pad(a, ((0, h % 2), (0, w % 2)), mode="edge")
+    return 0.25 * (p[0::2, 0::2] + p[1::2, 0::2] + p[0::2, 1::2] + p[1::2, 1::2])
+
+
+def diffuse(
+    irradiance: NDArray[Any],
+    mm_per_texel_u: NDArray[Any],
+    mm_per_texel_v: NDArray[Any],
+    coverage: NDArray[Any],
+    variances_mm2: NDArray[Any],
+    term_weights: NDArray[Any],
+    region_weights: NDArray[Any] | None = None,
+) -> tuple[NDArray[np.float32], BlurStats]:
+    """Diffused irradiance sum_i w_i(texel) (G(v_i) * E) for RGB irradiance (H, W, 3).
+
+    ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
+    each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
+    each region a texel is (None: one region everywhere). A texel's weights are the
+    region-blended ones, so borders between regions blend smoothly.
+
+    Each term is blurred from the irradiance by the recursive Gaussian of
+    :mod:`.recursive_blur` (cost independent of its width), with per-texel sigma from
+    the stretch maps, as a normalised convolution of (E cov, cov) (chart borders
+    neither darken nor leak), on the coarsest level of a (1, 3, 3, 1) pyramid where it is
+    still LEVEL_MIN_SIGMA_TEXELS wide (the variance the pyramid and bilinear read add is
+    taken off the blur). All of it stays on the device: one upload, one download.
+    Terms with zero weight on every texel are skipped; one narrower than a quarter
+    texel everywhere is the unblurred irradiance.
+    """
+    import pyopencl as cl
+
+    from .recursive_blur import TABLE_MIN_SIGMA, TABLE_STEPS_PER_OCTAVE, iir_kernels
+
+    e, v, tw, rw, used, stats = _diffusion_inputs(irradiance, variances_mm2, term_weights,
+                                                  region_weights)
+    h, w, _ = e.shape
+    cov = np.asarray(coverage, dtype=np.float32)
+    mm = [np.asarray(m, dtype=np.float32) for m in (mm_per_texel_u, mm_per_texel_v)]
+    if cov.shape != (h, w) or any(m.shape != (h, w) for m in mm):
+        raise InputError(f"coverage and mm-per-texel maps must be ({h}, {w})")
+    covered = cov > 0
+    if not covered.any() or not used.any():
+        if not covered.any():
+            stats.skipped.append("diffusion: no covered texel")
+        return np.zeros((h, w, 3), np.float32), stats
+    on_chart = [m[covered] for m in mm]
+    for name, m, mc in zip("uv", mm, on_chart, strict=True):
+        if not (np.isfinite(mc).all() and mc.min() > 0):
+            y, x = np.argwhere(covered & ~(np.isfinite(m) & (m > 0)))[0]
+            raise InputError(f"mm per texel ({name}) must be finite and > 0 on covered texels;"
+                             f" texel ({x}, {y}) has {m[y, x]}")
+    typical = [float(np.median(mc)) for mc in on_chart]
+    uniform = all(float(mc.max() - mc.min()) <= 1e-6 * float(mc.max()) for mc in on_chart)
+    # the level is chosen for the narrowest blur but for the 1% smallest texels
+    coarse_mm = max(float(np.percentile(mc, 99.0)) for mc in on_chart)
+    finest_mm = min(float(mc.min()) for mc in on_chart)
+    del on_chart
+    # texels off the charts carry nothing, but the recursion runs through them: give
+    # them a typical size so their coefficients stay in range
+    mm = [np.where(covered, m, np.float32(t)) for m, t in zip(mm, typical, strict=True)]
+
+    iir = iir_kernels()
+    ctx, queue = iir.ctx, iir.queue
+    downsample, accumulate = _pyramid_kernels()
+    mf = cl.mem_flags
+    n_levels = 1
+    while n_levels < MAX_LEVELS and min(h, w) >> n_levels >= 8:
+        n_levels += 1
+    shapes = [(h, w)]
+    for _ in range(1, n_levels):
+        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+
+    def term_level(variance: float) -> int:
+        sigma = math.sqrt(variance) / coarse_mm  # narrowest blur, finest texels
+        k = 0
+        while k + 1 < n_levels and sigma / 2 ** (k + 1) >= LEVEL_MIN_SIGMA_TEXELS:
+            k += 1
+        return k
+
+    levels = [term_level(float(x)) for x in v]
+    need = max(lv for lv, u in zip(levels, used, strict=True) if u)
+    rgba = np.empty((h, w, 4), np.float32)
+    rgba[..., :3] = e * cov[..., None]
+    rgba[..., 3] = cov
+    pyramid = [cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=rgba)]
+    del rgba
+    for k in range(1, need + 1):
+        (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
+        pyramid.append(cl.Buffer(ctx, mf.READ_WRITE, dh * dw * 16))
+        downsample(queue, (dw, dh), None, pyramid[k - 1], pyramid[k], np.int32(sw),
+                   np.int32(sh), np.int32(dw), np.int32(dh))
+    # 64 log2(mm per level-k texel) per level, u in rows, v transposed (see the kernel)
+    bases: list[tuple[Any, Any]] = []
+    mm_k = mm
+    for k in range(need + 1):
+        if k > 0:
+            mm_k = [_box_down(m) for m in mm_k]
+        if uniform:
+            bases.append((None, None))
+            continue
+        # on 1/16 of a table step (sigma within 0.07%), so neighbours share coefficients
+        bu, bv = (np.round(16 * TABLE_STEPS_PER_OCTAVE * np.log2(m * 2.0**k)) / 16
+                  for m in mm_k)
+        bu = bu.astype(np.float32)
+        bv = np.ascontiguousarray(bv.T, dtype=np.float32)
+        bases.append(tuple(cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=b)
+                           for b in (bu, bv)))
+    nbytes = h * w * 16
+    work, tmp, scratch = (cl.Buffer(ctx, mf.READ_WRITE, nbytes) for _ in range(3))
+    acc = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
+    cl.enqueue_fill_buffer(queue, acc, np.float32(0.0), 0, nbytes)
+    cover_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cov)
+    n_regions = 0 if rw is None else tw.shape[0]
+    rw_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                       hostbuf=np.ascontiguousarray(rw) if rw is not None
+                       else np.zeros(1, np.float32))
+    tw4 = np.zeros((v.size, tw.shape[0], 4), np.float32)
+    tw4[..., :3] = np.transpose(tw, (1, 0, 2))
+    tw_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
+    blurred_texels = 0.0
+    last: tuple[float, int] | None = None
+    for i in range(v.size):
+        if not used[i]:
+            stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): zero weight everywhere")
+            continue
+        k = levels[i]
+        lh, lw = shapes[k]
+        widest = math.sqrt(v[i]) / finest_mm
+        if widest < TABLE_MIN_SIGMA:
+            stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): narrower than a quarter "
+                                 "texel, the unblurred irradiance")
+            source = pyramid[0]
+        elif last == (float(v[i]), k):
+            stats.skipped.append(f"term {i}: same variance as term {i - 1}, pass shared")
+            source = work
+        else:
+            offsets = []
+            for axis in (0, 1):
+                added = _added_variance_texels2(k) * typical[axis] ** 2 if k else 0.0
+                v_eff = max(float(v[i]) - added, 1e-30)
+                offsets.append(TABLE_STEPS_PER_OCTAVE * (0.5 * math.log2(v_eff)
+                                                         - math.log2(TABLE_MIN_SIGMA)))
+            if uniform:
+                offsets = [o - TABLE_STEPS_PER_OCTAVE * math.log2(typical[a] * 2.0**k)
+                           for a, o in enumerate(offsets)]
+            iir.blur(pyramid[k], tmp, work, scratch, lh, lw, offsets[0], offsets[1],
+                     bases[k][0], bases[k][1])
+            stats.passes += 2
+            stats.levels.append(k)
+            blurred_texels += lh * lw
+            last = (float(v[i]), k)
+            source = work
+        src_k = 0 if source is pyramid[0] else k
+        src_h, src_w = shapes[src_k]
+        # level k's texel j covers finest texels [j 2^k, (j + 1) 2^k)
+        accumulate(queue, (w, h), None, source, acc, cover_buf, rw_buf, tw_buf,
+                   np.int32(n_regions), np.int32(i), np.int32(w), np.int32(h),
+                   np.int32(src_w), np.int32(src_h), np.float32(0.5**src_k))
+    out = np.empty((h, w, 4), np.float32)
+    cl.enqueue_copy(queue, out, acc)
+    queue.finish()
+    stats.full_blurs = blurred_texels / (h * w)
+    return out[..., :3], stats

@@ -143,16 +143,21 @@ def recursive_reference(image: NDArray[Any], sigma_u: NDArray[Any], sigma_v: NDA
 
 _KERNEL = r"""
 // One recursive Gaussian pass along a line of n texels (Deriche 1993, 4th order).
-// Line L starts at L * line_stride, its texels are elem_stride apart. Coefficients
-// come from a table over log2(sigma); uniform >= 0 uses that sigma for every texel.
-inline void coeffs(__global const float *table, const float pos, const int entries,
+// Line L starts at L * n. Coefficients come from a table over log2(sigma) at position
+// pos_offset - base[texel] (PER_TEXEL) or pos_offset (one sigma for every texel): the
+// diffusion keeps 64 log2(mm per texel) in `base`, so a term's positions are one
+// subtraction and no map has to be uploaded per term.
+inline void coeffs(__global const float4 *table, const float pos, const int entries,
                    float *c)
 {
     const float t = clamp(pos, 0.0f, (float)(entries - 1) - 1e-3f);
     const int i = (int)t;
     const float f = t - (float)i;
-    __global const float *a = table + i * 12;
-    for (int k = 0; k < 12; ++k) c[k] = a[k] + f * (a[k + 12] - a[k]);
+    __global const float4 *a = table + i * 3;  // 12 floats per entry: 3 float4
+    const float4 r0 = mix(a[0], a[3], f), r1 = mix(a[1], a[4], f), r2 = mix(a[2], a[5], f);
+    c[0] = r0.x; c[1] = r0.y; c[2] = r0.z; c[3] = r0.w;
+    c[4] = r1.x; c[5] = r1.y; c[6] = r1.z; c[7] = r1.w;
+    c[8] = r2.x; c[9] = r2.y; c[10] = r2.z; c[11] = r2.w;
 }
 
 // A pass along rows that writes its result transposed: run twice, it blurs u then v
@@ -160,74 +165,114 @@ inline void coeffs(__global const float *table, const float pos, const int entri
 // columns reads 16 bytes of each 64-byte line and is 7x slower on a CPU). The causal
 // half goes to `scratch` (this row, still in cache for the anticausal half).
 __kernel void iir_rows_transposed(__global const float4 *src, __global float4 *dst,
-                                  __global float4 *scratch,
-                                  __global const float *pos_map,
-                                  __global const float *table, const int entries,
-                                  const float uniform_pos, const int n, const int lines)
+                                  __global float4 *scratch, __global const float *base,
+                                  __global const float4 *table, const int entries,
+                                  const float pos_offset, const int n, const int lines)
 {
     const int L = get_global_id(0);
     if (L >= lines) return;
-    const size_t base = (size_t)L * (size_t)n;
+    const size_t row = (size_t)L * (size_t)n;
     float c[12];
-    const int per_texel = uniform_pos < 0.0f;
-    if (!per_texel) coeffs(table, uniform_pos, entries, c);
+    float last = NAN;  // base of the texel the coefficients were made for
+#if !PER_TEXEL
+    coeffs(table, pos_offset, entries, c);
+#endif
     float4 x1 = 0.0f, p1 = 0.0f, p2 = 0.0f, q1 = 0.0f, q2 = 0.0f;
     for (int i = 0; i < n; ++i) {
-        if (per_texel) coeffs(table, pos_map[base + i], entries, c);
-        const float4 x = src[base + i];
+#if PER_TEXEL
+        // texel sizes come per triangle: most neighbours share the last coefficients
+        if (base[row + i] != last) {
+            last = base[row + i];
+            coeffs(table, pos_offset - last, entries, c);
+        }
+#endif
+        const float4 x = src[row + i];
         const float4 p = c[0] * x + c[1] * x1 - c[4] * p1 - c[5] * p2;
         const float4 q = c[6] * x + c[7] * x1 - c[10] * q1 - c[11] * q2;
-        scratch[base + i] = p + q;
+        scratch[row + i] = p + q;
         x1 = x; p2 = p1; p1 = p; q2 = q1; q1 = q;
     }
     float4 a1 = 0.0f, a2 = 0.0f;
     p1 = 0.0f; p2 = 0.0f; q1 = 0.0f; q2 = 0.0f;
+    last = NAN;
     for (int i = n - 1; i >= 0; --i) {
-        if (per_texel) coeffs(table, pos_map[base + i], entries, c);
+#if PER_TEXEL
+        // texel sizes come per triangle: most neighbours share the last coefficients
+        if (base[row + i] != last) {
+            last = base[row + i];
+            coeffs(table, pos_offset - last, entries, c);
+        }
+#endif
         const float4 p = c[2] * a1 + c[3] * a2 - c[4] * p1 - c[5] * p2;
         const float4 q = c[8] * a1 + c[9] * a2 - c[10] * q1 - c[11] * q2;
-        const float4 x = src[base + i];
-        dst[(size_t)i * (size_t)lines + (size_t)L] = scratch[base + i] + p + q;
+        const float4 x = src[row + i];
+        dst[(size_t)i * (size_t)lines + (size_t)L] = scratch[row + i] + p + q;
         a2 = a1; a1 = x; p2 = p1; p1 = p; q2 = q1; q1 = q;
     }
 }
 """
 
 
+class IIRKernels:
+    """The built recursive-pass kernels (one sigma, per texel) and the coefficient table
+    on the device; one per process (:func:`iir_kernels`)."""
+
+    def __init__(self) -> None:
+        import pyopencl as cl
+
+        from .diffusion import _cl_state
+
+        self.ctx, self.queue, _ = _cl_state()
+        self.kernels = {
+            per_texel: cl.Kernel(cl.Program(self.ctx, _KERNEL).build(
+                options=[f"-DPER_TEXEL={int(per_texel)}"]), "iir_rows_transposed")
+            for per_texel in (False, True)}
+        table = coefficient_table()
+        self.entries = np.int32(table.shape[0])
+        self.table = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                               hostbuf=np.ascontiguousarray(table.reshape(-1)))
+
+    def blur(self, src: Any, tmp: Any, dst: Any, scratch: Any, height: int, width: int,
+             offset_u: float, offset_v: float, base_u: Any = None, base_v_t: Any = None
+             ) -> None:
+        """Enqueue one 2D blur of the (height, width) float4 image ``src`` into ``dst``
+        (``tmp`` holds it transposed between the passes; src may be dst). Table position
+        per texel: offset - base (base_u in row layout, base_v_t transposed), or the
+        offset alone where the base is None."""
+        for s, d, offset, base, n, lines in ((src, tmp, offset_u, base_u, width, height),
+                                             (tmp, dst, offset_v, base_v_t, height, width)):
+            self.kernels[base is not None](
+                self.queue, (lines,), None, s, d, scratch, base if base is not None else
+                self.table, self.table, self.entries, np.float32(offset), np.int32(n),
+                np.int32(lines))
+
+
 @lru_cache(maxsize=1)
-def _program() -> tuple[Any, Any, Any]:
-    import pyopencl as cl
-
-    from .diffusion import _cl_state
-
-    ctx, queue, _ = _cl_state()
-    return ctx, queue, cl.Program(ctx, _KERNEL).build()
+def iir_kernels() -> IIRKernels:
+    return IIRKernels()
 
 
 class RecursiveBlur:
     """Separable recursive Gaussian blurs of an RGBA float32 texture on the device.
 
     ``blur_in_place(sigma_u, sigma_v)`` takes per-texel maps or scalars (texels); a
-    scalar runs the uniform-coefficient path. Cost per texel is the same for any sigma.
+    scalar runs the one-sigma kernel. Cost per texel is the same for any sigma.
     """
 
     def __init__(self, height: int, width: int) -> None:
         import pyopencl as cl
 
-        self.ctx, self.queue, self.program = _program()
-        self.rows_t = cl.Kernel(self.program, "iir_rows_transposed")
+        self.iir = iir_kernels()
+        self.queue = self.iir.queue
         self.height, self.width = height, width
         mf = cl.mem_flags
-        table = coefficient_table()
-        self.entries = table.shape[0]
-        self.table = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                               hostbuf=np.ascontiguousarray(table.reshape(-1)))
         nbytes = height * width * 16
-        self.buf_a = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
-        self.buf_b = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
-        self.scratch = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
-        self.pos_u = cl.Buffer(self.ctx, mf.READ_ONLY, height * width * 4)
-        self.pos_v = cl.Buffer(self.ctx, mf.READ_ONLY, height * width * 4)
+        ctx = self.iir.ctx
+        self.buf_a = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
+        self.buf_t = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
+        self.scratch = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
+        self.base_u = cl.Buffer(ctx, mf.READ_ONLY, height * width * 4)
+        self.base_v = cl.Buffer(ctx, mf.READ_ONLY, height * width * 4)
 
     def upload(self, image: NDArray[Any]) -> None:
         import pyopencl as cl
@@ -244,29 +289,23 @@ class RecursiveBlur:
         cl.enqueue_copy(self.queue, out, self.buf_a)
         return out
 
-    def _position(self, sigma: Any, buf: Any, transposed: bool) -> float:
+    def _base(self, sigma: Any, buf: Any, transposed: bool) -> tuple[float, Any]:
+        """(offset, base buffer or None) for a scalar sigma or a per-texel map."""
         import pyopencl as cl
 
         if np.ndim(sigma) == 0:
-            return float(table_position(float(sigma)))
+            return float(table_position(float(sigma))), None
         pos = table_position(sigma).astype(np.float32)
         if pos.shape != (self.height, self.width):
             raise InputError(f"sigma map must be ({self.height}, {self.width}), got {pos.shape}")
-        if transposed:
-            pos = pos.T
-        cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(pos))
-        return -1.0
+        cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(-(pos.T if transposed else pos)))
+        return 0.0, buf
 
     def blur_in_place(self, sigma_u: Any, sigma_v: Any) -> None:
-        h, w = self.height, self.width
-        # u pass over the rows (written transposed), then v pass over the transposed rows
-        for sigma, pos, n, lines, transposed in ((sigma_u, self.pos_u, w, h, False),
-                                                 (sigma_v, self.pos_v, h, w, True)):
-            uniform = self._position(sigma, pos, transposed)
-            self.rows_t(self.queue, (lines,), None, self.buf_a, self.buf_b, self.scratch, pos,
-                        self.table, np.int32(self.entries), np.float32(uniform), np.int32(n),
-                        np.int32(lines))
-            self.buf_a, self.buf_b = self.buf_b, self.buf_a
+        off_u, base_u = self._base(sigma_u, self.base_u, False)
+        off_v, base_v = self._base(sigma_v, self.base_v, True)
+        self.iir.blur(self.buf_a, self.buf_t, self.buf_a, self.scratch, self.height,
+                      self.width, off_u, off_v, base_u, base_v)
         self.queue.finish()
 
     def blur(self, image: NDArray[Any], sigma_u: Any, sigma_v: Any) -> NDArray[np.float32]:

@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from .diffusion import diffuse
+from .diffusion import diffuse, diffuse_gather
 from .errors import InputError, SkinpipeError
 from .fit import FitResult
 from .lighting import (
@@ -39,6 +39,7 @@ from .texture_maps import TextureMaps, rasterize, vertex_normals
 from .unwrap import triangulate, unwrap
 
 AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
+BLURS = ("recursive", "gather")
 MERGE_RELATIVE = 1e-3
 """Variances closer than this (relative) share one blur."""
 
@@ -59,6 +60,9 @@ class RenderOptions:
     """0: every region's own variances (merged where equal); N > 0: all regions
     re-expressed on N shared variances (fewer blurs; the error is reported)."""
     scattering: bool = True
+    blur: str = "recursive"
+    """'recursive': Deriche IIR on a pyramid (cost independent of width); 'gather': the
+    first per-tap kernel (cost grows with width), kept to compare against."""
     single_profile: str | None = None
     """None: each region its own profile; 'mean' or a region name: one for the face."""
     camera: str | None = None
@@ -76,6 +80,8 @@ class RenderOptions:
             raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
         if not 0.0 <= self.albedo_split <= 1.0:
             raise InputError(f"albedo split must be in [0, 1], got {self.albedo_split}")
+        if self.blur not in BLURS:
+            raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
         if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
             raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")
 
@@ -465,7 +471,7 @@ class Renderer:
         terms = diffusion_terms(tex.mesh.fits, opts.variance_grid, opts.single_profile,
                                 floor_mm2=(0.5 * texel_mm) ** 2)
         key = content_hash(tex.irradiance, tex.albedo, terms.variances_mm2, terms.weights,
-                           opts.albedo_split, opts.scattering)
+                           opts.albedo_split, opts.scattering, opts.blur)
 
         def compute() -> Any:
             a = opts.albedo_split
@@ -473,11 +479,14 @@ class Renderer:
             cov = maps.coverage
             skipped: list[str] = []
             if opts.scattering:
-                out, stats = diffuse(pre, maps.mm_per_texel_u, maps.mm_per_texel_v, cov,
-                                     terms.variances_mm2, terms.weights, maps.region_weights)
+                run = diffuse if opts.blur == "recursive" else diffuse_gather
+                out, stats = run(pre, maps.mm_per_texel_u, maps.mm_per_texel_v, cov,
+                                 terms.variances_mm2, terms.weights, maps.region_weights)
                 skipped, passes = stats.skipped, stats.passes
+                work = {"pyramid_levels": stats.levels, "full_resolution_blurs":
+                        stats.full_blurs if opts.blur == "recursive" else passes / 2}
             else:
-                out, passes = pre, 0
+                out, passes, work = pre, 0, {}
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             # the blur moves flux, it must not create or lose it (chart borders included)
             area = maps.mm_per_texel_u * maps.mm_per_texel_v * cov
@@ -485,14 +494,16 @@ class Renderer:
             energy = float((out.sum(axis=2) * area).sum()) / flux_in if flux_in > 0 else 1.0
             out = out * np.power(tex.albedo, 1.0 - a)
             radiance = push_pull(out / math.pi, cov)
-            return radiance, skipped, passes, energy
+            return radiance, skipped, passes, energy, work
 
-        radiance, skipped, passes, energy = self._cached(log, "diffusion", key, compute)
+        radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)
         tex.radiance = radiance
         log.skipped += [f"{tex.mesh.path}: {s}" for s in terms.notes + skipped]
         log.measures["diffusion"] = {
             "variances_mm2": terms.variances_mm2.tolist(),
+            "blur": opts.blur,
             "blur_passes": passes,
+            **work,
             "energy_ratio": energy,
             "grid_error_eq2c": terms.error,
             "mm_per_texel_median": texel_mm,

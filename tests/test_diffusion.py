@@ -1,11 +1,21 @@
-"""Diffusion: OpenCL blur vs float64 reference; the profile reproduced in mm."""
+"""Diffusion: the gather blur vs its float64 reference; the recursive pyramid diffusion
+against exact normalised convolutions; the profile reproduced in mm; bad input."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
 
-from pipeline.diffusion import OpenCLBlur, blur_reference, diffuse
+from pipeline.diffusion import (
+    OpenCLBlur,
+    _added_variance_texels2,
+    blur_reference,
+    diffuse,
+    diffuse_gather,
+)
+from pipeline.errors import InputError
 from pipeline.profiles import fit_error_eq2c, sum_of_gaussians
 from pipeline.reference_data import DEON_2007_SKIN
 
@@ -60,10 +70,11 @@ def test_pencil_light_reproduces_the_profile_in_mm(mm_u: float, mm_v: float) -> 
 def test_energy_is_conserved_away_from_borders() -> None:
     v = np.array([0.05, 0.5])
     w = np.array([[0.4, 0.5, 0.6], [0.6, 0.5, 0.4]])
-    _, got, stats = _pencil(121, 0.05, 0.05, v, w)
+    _, got, stats = _pencil(401, 0.05, 0.05, v, w)
     total = got.sum(axis=0) * 0.05 * 0.05
-    np.testing.assert_allclose(total, 1.0, rtol=5e-3)
+    np.testing.assert_allclose(total, 1.0, rtol=2e-4)
     assert stats.passes == 4
+    assert stats.levels == [0, 1]  # the wide term (sigma 14 texels) runs at half size
 
 
 def test_zero_weight_terms_are_skipped() -> None:
@@ -71,4 +82,135 @@ def test_zero_weight_terms_are_skipped() -> None:
     w = np.array([[0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [0.5, 0.5, 0.5]])
     _, _, stats = _pencil(41, 0.1, 0.1, v, w)
     assert any("zero weight" in s for s in stats.skipped)
-    assert any("narrower than a texel" in s for s in stats.skipped)
+    assert any("narrower than a quarter texel" in s for s in stats.skipped)
+
+
+def _normalised_convolution(e: np.ndarray, cov: np.ndarray, sigma_texels: float) -> np.ndarray:
+    """Exact float64 sum G * (E cov) / G * cov (untruncated Gaussian, zero outside)."""
+    from scipy.ndimage import gaussian_filter
+
+    def g(x: np.ndarray) -> np.ndarray:
+        return gaussian_filter(x, sigma_texels, mode="constant", truncate=12.0)
+
+    a = g(cov.astype(np.float64))
+    return np.stack([g(e[..., c] * cov) for c in range(3)], axis=-1) / a[..., None]
+
+
+@pytest.mark.parametrize("sigma_texels", [0.8, 3.0, 12.0, 40.0])
+def test_one_term_matches_the_exact_normalised_convolution(sigma_texels: float) -> None:
+    # smooth irradiance on a disc-shaped chart with a hole: pyramid levels 0-3
+    n = 160
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:n, 0:n]
+    cov = ((np.hypot(xx - 80, yy - 75) < 70) & (np.hypot(xx - 100, yy - 90) > 12)).astype(
+        np.float32)
+    from scipy.ndimage import gaussian_filter
+    e = np.stack([gaussian_filter(rng.random((n, n)), 3.0) for _ in range(3)], -1)
+    e = e.astype(np.float32)
+    mm = 0.1
+    v = np.array([(sigma_texels * mm) ** 2])
+    got, stats = diffuse(e, np.full((n, n), mm), np.full((n, n), mm), cov, v, np.ones((1, 3)))
+    ref = _normalised_convolution(e, cov, sigma_texels)
+    sel = cov > 0
+    err = np.abs(got[sel] - ref[sel]).max() / np.abs(ref[sel]).max()
+    assert err < 5e-3, (stats.levels, err)
+    assert not np.any(got[~sel])  # texels off the chart take nothing
+
+
+@pytest.mark.parametrize("level", [1, 2, 3])
+def test_a_term_on_a_pyramid_level_keeps_its_centre_and_variance(
+        level: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the pyramid's own spread is taken off the blur: through level k an impulse
+    # comes back centred where it was, with variance v (averaged over its 2^k phases)
+    import pipeline.diffusion as d
+
+    assert _added_variance_texels2(0) == 0.0
+    n = 96
+    sigma = 0.6 * 2**level  # 0.6 of a level texel: the table matches variance there
+    v = sigma**2 + _added_variance_texels2(level)
+    monkeypatch.setattr(d, "LEVEL_MIN_SIGMA_TEXELS", 0.999 * math.sqrt(v) / 2**level)
+    spread = []
+    for phase in range(2**level):
+        e = np.zeros((n, n, 3), np.float32)
+        c = 40 + phase
+        e[c, c] = 1.0
+        got, stats = diffuse(e, np.ones((n, n)), np.ones((n, n)), np.ones((n, n), np.float32),
+                             np.array([v]), np.ones((1, 3)))
+        assert stats.levels == [level]
+        row = got[..., 0].sum(axis=0)
+        x = np.arange(n)
+        mean = (row * x).sum() / row.sum()
+        assert mean == pytest.approx(c, abs=1e-3)
+        spread.append(((x - mean) ** 2 * row).sum() / row.sum())
+    assert np.mean(spread) == pytest.approx(v, rel=0.01)
+
+
+def test_pencil_on_a_stretched_patch_follows_the_local_texel_size() -> None:
+    # mm per texel grows 0.04 -> 0.08 across u: the profile in mm holds at both ends
+    v, w = DEON_2007_SKIN.variances_mm2[:4], DEON_2007_SKIN.weights[:4]
+    w = w / w.sum(axis=0)
+    n = 301
+    mm_u = np.tile(np.linspace(0.04, 0.08, n), (n, 1))
+    mm_v = np.full((n, n), 0.05)
+    for cx in (90, 210):
+        e = np.zeros((n, n, 3), np.float32)
+        e[150, cx] = 1.0
+        out, _ = diffuse(e, mm_u, mm_v, np.ones((n, n), np.float32), v, w)
+        # distances in mm along u: integrate the local texel size
+        x_mm = np.concatenate([[0.0], np.cumsum(0.5 * (mm_u[0, 1:] + mm_u[0, :-1]))])
+        r = np.abs(x_mm - x_mm[cx])
+        sel = np.flatnonzero((r > 0.15) & (r < 1.0))
+        sel = sel[np.argsort(r[sel])]
+        got = out[150, sel] / (mm_u[150, sel, None] * 0.05)
+        # the line through the light: sum_i w_i G_2D(v_i) at (x, 0)
+        truth = sum_of_gaussians(v, w, r[sel])
+        assert fit_error_eq2c(r[sel], got, truth).max() < 0.03
+
+
+def test_recursive_and_gather_diffusion_agree_on_a_smooth_field() -> None:
+    rng = np.random.default_rng(3)
+    n = 96
+    from scipy.ndimage import gaussian_filter
+    e = np.stack([gaussian_filter(rng.random((n, n)), 4.0) for _ in range(3)], -1)
+    mm = np.full((n, n), 0.1)
+    v, w = DEON_2007_SKIN.variances_mm2[:5], DEON_2007_SKIN.weights[:5]
+    cov = np.ones((n, n), np.float32)
+    ours, _ = diffuse(e, mm, mm, cov, v, w)
+    gather, _ = diffuse_gather(e, mm, mm, cov, v, w)
+    inner = slice(20, -20)
+    assert np.abs(ours[inner, inner] - gather[inner, inner]).max() < 2e-3 * gather.max()
+
+
+@pytest.mark.parametrize(("case", "message"), [
+    ("nan_irradiance", "irradiance"),
+    ("zero_mm", "mm per texel"),
+    ("descending", "ascending"),
+    ("weights_shape", "term weights"),
+])
+def test_bad_input_is_refused_with_the_offending_value(case: str, message: str) -> None:
+    n = 16
+    e = np.ones((n, n, 3), np.float32)
+    mm = np.full((n, n), 0.1)
+    cov = np.ones((n, n), np.float32)
+    v = np.array([0.01, 0.1])
+    w = np.full((2, 3), 0.5)
+    if case == "nan_irradiance":
+        e[3, 5, 1] = np.nan
+    elif case == "zero_mm":
+        mm = mm.copy()
+        mm[2, 7] = 0.0
+    elif case == "descending":
+        v = v[::-1].copy()
+    else:
+        w = np.full((3, 3), 0.5)
+    with pytest.raises(InputError, match=message):
+        diffuse(e, mm, mm, cov, v, w)
+
+
+def test_extreme_variances_keep_energy() -> None:
+    # a term far narrower than a texel and one as wide as the texture
+    v = np.array([1e-8, 1e4])
+    w = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
+    _, got, _ = _pencil(65, 0.1, 0.1, v, w)
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got.sum(axis=0) * 0.01, 1.0, rtol=1e-3)
