@@ -176,9 +176,10 @@ def write_ingest_report(rows: Sequence[dict[str, Any]], out_dir: Path) -> dict:
 
 def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                     grids: Sequence[int] = (0, 8, 12), light_samples: int = 8,
-                    points: int = 400, seed: int = 0, progress: Any = None
-                    ) -> list[dict[str, Any]]:
-    """Texture-space diffusion error against its time, per texture size and variance grid.
+                    points: int = 400, seed: int = 0, progress: Any = None,
+                    blurs: Sequence[str] = ("recursive",)) -> list[dict[str, Any]]:
+    """Texture-space diffusion error against its time, per texture size, variance grid
+    and blur (recursive pyramid or gather).
 
     The reference is a brute-force convolution on the surface: at ``points`` random
     surface points p, sum_j E_j A_j R_p(|p - p_j|) over every texel j of the finest
@@ -201,10 +202,11 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
     stage = open_stage_guarded(scene)
     finest: dict[str, Any] = {}
     results = []
+    cases = [(g, b) for g in grids for b in blurs]
     for size in sorted(sizes, reverse=True):
-        for grid in grids:
+        for grid, blur in cases:
             opts = RenderOptions(texture_size=size, light_samples=light_samples,
-                                 variance_grid=grid, resolution=(8, 8))
+                                 variance_grid=grid, resolution=(8, 8), blur=blur)
             renderer = Renderer(stage, opts)
             try:
                 sc = renderer.delegate.sync()
@@ -264,9 +266,14 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
             got = bilinear(tex.radiance, finest["uv"]).astype(np.float64)
             ref = finest["ref"]
             rel = np.sqrt(((got - ref) ** 2).mean(axis=0)) / np.maximum(ref.mean(axis=0), 1e-30)
-            point_rel = np.abs(got - ref).max(axis=1) / np.maximum(ref.max(axis=1), 1e-30)
+            # per point, relative to its own value but at least 1e-3 of the brightest
+            # point's: deep in a shadow the reference falls to 1e-30 while any blur
+            # (float32, or a recursive filter's exponential tail) leaves ~1e-7
+            point_rel = np.abs(got - ref).max(axis=1) / np.maximum(
+                ref.max(axis=1), 1e-3 * float(ref.max()))
             diff = log.measures["diffusion"]
-            results.append({"texture_size": size, "variance_grid": grid, "seconds": seconds,
+            results.append({"texture_size": size, "variance_grid": grid, "blur": blur,
+                            "seconds": seconds,
                             "diffusion_seconds": log.seconds.get("diffusion", 0.0),
                             "error_max": float(rel.max()), "error": rel.tolist(),
                             "error_median_point": float(np.median(point_rel)),
@@ -275,13 +282,15 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                             "mm_per_texel": diff["mm_per_texel_median"],
                             "energy_ratio": diff["energy_ratio"]})
             if progress:
-                progress(f"texture {size} grid {grid}: error {rel.max():.2e}, {seconds:.1f} s")
-    rows = sorted(results, key=lambda r: (r["texture_size"], r["variance_grid"]))
+                progress(f"texture {size} grid {grid} {blur}: error {rel.max():.2e}, "
+                         f"{seconds:.1f} s")
+    rows = sorted(results, key=lambda r: (r["texture_size"], r["variance_grid"], r["blur"]))
     return rows
 
 
 def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
-                        default: tuple[int, int] = (1024, 12)) -> dict[str, Any]:
+                        default: tuple[int, int, str] = (1024, 12, "recursive")
+                        ) -> dict[str, Any]:
     """render_tradeoff.json and render_tradeoff.png in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
@@ -291,13 +300,109 @@ def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
                          "over R, G, B",
         "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
         "default": {"texture_size": default[0], "variance_grid": default[1],
+                    "blur": default[2],
                     "on_pareto_front": [i in front for i, r in enumerate(rows)
-                                        if (r["texture_size"], r["variance_grid"]) == default]},
+                                        if (r["texture_size"], r["variance_grid"],
+                                            r.get("blur", "recursive")) == default]},
     }
     atomic_write_json(out_dir / "render_tradeoff.json", doc)
-    _plot_tradeoff([(f"grid {r['variance_grid'] or 'per-region'}", r["seconds"], r["error_max"],
+    _plot_tradeoff([(f"{r.get('blur', 'recursive')}, grid {r['variance_grid'] or 'per-region'}",
+                     r["seconds"], r["error_max"],
                      str(r["texture_size"])) for r in rows], out_dir / "render_tradeoff.png",
                    "texture maps + irradiance + diffusion (s)",
                    "Render: error against run time (labels: texture size)",
                    "RMS relative error vs brute-force convolution")
     return doc
+
+
+# --------------------------------------------------------------------- one page
+
+
+def _default_sentence(doc: dict[str, Any], what: str) -> str:
+    flags = doc.get("default", {}).get("on_pareto_front", [])
+    if not flags:
+        return f"The default ({what}) was not among the measured rows."
+    on = sum(bool(f) for f in flags)
+    if on == len(flags):
+        return f"The default ({what}) is on the Pareto front."
+    return (f"The default ({what}) is on the Pareto front for {on} of {len(flags)} "
+            "measured profiles; see the table for where it is not.")
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return out
+
+
+def write_report_page(out_dir: Path) -> Path:
+    """report.md in ``out_dir``: every stage's trade-off found there (fit_tradeoff.json,
+    ingest_tradeoff.json, render_tradeoff.json) with its plot, its table, the Pareto
+    front marked (*) and whether the default sits on it."""
+    import json
+
+    lines = ["# skinpipe: error against run time", "",
+             "Each stage measured in one run; pick an operating point from the plots. "
+             "Rows marked * are on the Pareto front (no other row is both faster and more "
+             "accurate).", ""]
+    found = False
+    fit_path = out_dir / "fit_tradeoff.json"
+    if fit_path.is_file():
+        found = True
+        doc = json.loads(fit_path.read_text())
+        d = doc["default"]
+        lines += ["## Fit", "", f"Error: {doc['error_measure']}. Seconds: wall time per fit.",
+                  "", "![fit](fit_tradeoff.png)", "",
+                  _default_sentence(doc, f"{d['method']}, k = {d['k']}"), ""]
+        lines += _table(["profile", "method", "k", "seconds", "error", ""],
+                        [(r["profile"], r["method"], r["k"], f"{r['seconds']:.2f}",
+                          f"{r['error_max']:.2e}", "*" if r["pareto"] else "")
+                         for r in doc["rows"]])
+        lines.append("")
+    ingest_path = out_dir / "ingest_tradeoff.json"
+    if ingest_path.is_file():
+        found = True
+        doc = json.loads(ingest_path.read_text())
+        rows = doc["rows"]
+        front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
+        d = doc["default"]
+        default_rows = [i for i, r in enumerate(rows) if r["brackets"] == d["brackets"]
+                        and r["ring_width_px"] == d["ring_width_px"]]
+        doc["default"]["on_pareto_front"] = [i in front for i in default_rows]
+        lines += ["## Ingest", "", f"Error: {doc['error_measure']}. Seconds: ingest per region.",
+                  "", "![ingest](ingest_tradeoff.png)", "",
+                  _default_sentence(doc, f"{d['brackets']} brackets, ring "
+                                    f"{d['ring_width_px']:g} px") + " (front over all regions "
+                  "together)", ""]
+        lines += _table(["region", "brackets", "ring px", "seconds", "error", ""],
+                        [(r["region"], r["brackets"], f"{r['ring_width_px']:g}",
+                          f"{r['seconds']:.3f}", f"{r['error_max']:.2e}",
+                          "*" if i in front else "") for i, r in enumerate(rows)])
+        lines.append("")
+    render_path = out_dir / "render_tradeoff.json"
+    if render_path.is_file():
+        found = True
+        doc = json.loads(render_path.read_text())
+        d = doc["default"]
+        lines += ["## Render", "", f"Error: {doc['error_measure']}. Seconds: texture maps + "
+                  "irradiance + diffusion; diffusion alone beside it.", "",
+                  "![render](render_tradeoff.png)", "",
+                  _default_sentence(doc, f"texture {d['texture_size']}, grid "
+                                    f"{d['variance_grid']}, {d.get('blur', 'recursive')}"), ""]
+        lines += _table(["texture", "grid", "blur", "mm/texel", "seconds", "diffusion s",
+                         "RMS error", "median point", ""],
+                        [(r["texture_size"], r["variance_grid"] or "per-region",
+                          r.get("blur", "recursive"), f"{r['mm_per_texel']:.3f}",
+                          f"{r['seconds']:.2f}", f"{r['diffusion_seconds']:.2f}",
+                          f"{r['error_max']:.2e}", f"{r['error_median_point']:.2e}",
+                          "*" if r["pareto"] else "") for r in doc["rows"]])
+        lines.append("")
+    if not found:
+        from .errors import InputError
+
+        raise InputError("no *_tradeoff.json to gather: run 'skinpipe report fit|ingest|"
+                         "render' into this directory first", out_dir)
+    page = out_dir / "report.md"
+    with atomic_path(page) as tmp:
+        tmp.write_text("\n".join(lines))
+    return page
