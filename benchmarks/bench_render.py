@@ -25,6 +25,7 @@ import json
 import platform
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -57,11 +58,79 @@ def naive_diffusion(pre: np.ndarray, maps: Any, fits: Any) -> np.ndarray:
     return out
 
 
-def main() -> None:
+def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[str, Any]:
+    """Texture maps and irradiance at ``size``, then every diffusion timed on them."""
     from pipeline.diffusion import diffuse, diffuse_gather
     from pipeline.raytrace import RayScene
     from pipeline.render import Renderer, RenderOptions, TaskLog, diffusion_terms
     from pipeline.unwrap import triangulate
+
+    renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8)))
+    try:
+        sc = renderer.delegate.sync()
+        mesh = sc.skin[0]
+        log = TaskLog()
+        rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
+        tex = renderer._textures(log, sc, mesh)
+        renderer._irradiance(log, sc, tex, rays, {})
+    finally:
+        renderer.close()
+    maps = tex.maps
+    covered = maps.coverage > 0
+    pre = tex.irradiance * np.power(tex.albedo, 0.5)
+    texel_mm = float(np.median(np.sqrt(maps.mm_per_texel_u * maps.mm_per_texel_v)[covered]))
+    irr = log.measures["irradiance"]
+    row: dict[str, Any] = {"texture_size": size, "covered_texels": int(covered.sum()),
+                           "mm_per_texel": texel_mm, "regions": len(mesh.fits),
+                           "irradiance_rays": irr["rays"], "irradiance_s": irr["seconds"],
+                           "irradiance_mrays_per_s": irr["mrays_per_s"], "diffusion": {}}
+    print(f"texture {size}: {covered.sum()} covered texels, {texel_mm:.3f} mm/texel; "
+          f"irradiance {irr['rays'] / 1e6:.1f} M rays, {irr['mrays_per_s']:.2f} Mrays/s",
+          flush=True)
+
+    def run(name: str, fn: Callable[[], Any], repeats: int) -> Any:
+        fn()  # warm-up: kernels compile on first use
+        seconds, result = best_of(fn, repeats)
+        out, stats = result if isinstance(result, tuple) else (result, None)
+        entry = {"seconds": seconds}
+        if stats is not None:
+            entry |= {"blur_passes": stats.passes,
+                      "full_resolution_blurs": stats.full_blurs or stats.passes / 2}
+        row["diffusion"][name] = entry
+        print(f"  {name:<22} {seconds:8.2f} s", flush=True)
+        return out
+
+    def ours(terms: Any) -> Any:
+        return diffuse(pre, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                       terms.variances_mm2, terms.weights, maps.region_weights)
+
+    floor = (0.5 * texel_mm) ** 2
+    grids = {g: diffusion_terms(mesh.fits, g, None, floor_mm2=floor) for g in (12, 6)}
+    outs = {f"ours grid {g}": run(f"ours grid {g}", partial(ours, t), repeats)
+            for g, t in grids.items()}
+    own = diffusion_terms(mesh.fits, 0, None, floor_mm2=floor)
+    outs["ours own variances"] = run("ours own variances", partial(ours, own), repeats)
+    if not with_naive:
+        return row
+    outs["gather grid 12"] = run("gather grid 12", lambda: diffuse_gather(
+        pre, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+        grids[12].variances_mm2, grids[12].weights, maps.region_weights), 1)
+    naive = run("naive per region/term", lambda: naive_diffusion(pre, maps, mesh.fits), 1)
+    peak = float(np.abs(naive[covered]).max())
+    naive_s = row["diffusion"]["naive per region/term"]["seconds"]
+    for name, out in outs.items():
+        diff = np.abs(np.asarray(out)[covered] - naive[covered]).max(axis=1) / peak
+        entry = row["diffusion"][name]
+        entry |= {"max_diff_vs_naive": float(diff.max()),
+                  "p99_diff_vs_naive": float(np.percentile(diff, 99)),
+                  "speedup_vs_naive": naive_s / entry["seconds"]}
+        print(f"  {name:<22} vs naive: max {diff.max():.2e}, p99 "
+              f"{np.percentile(diff, 99):.2e} of the peak, "
+              f"{entry['speedup_vs_naive']:.1f}x faster", flush=True)
+    return row
+
+
+def main() -> None:
     from pipeline.usd_io import open_stage_guarded
 
     ap = argparse.ArgumentParser(description=__doc__,
@@ -76,72 +145,8 @@ def main() -> None:
     args = ap.parse_args()
     naive_sizes = {int(s) for s in args.naive_sizes.split(",") if s}
     stage = open_stage_guarded(args.scene)
-    rows = []
-    for size in (int(s) for s in args.sizes.split(",")):
-        renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8)))
-        try:
-            sc = renderer.delegate.sync()
-            mesh = sc.skin[0]
-            log = TaskLog()
-            rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
-            tex = renderer._textures(log, sc, mesh)
-            renderer._irradiance(log, sc, tex, rays, {})
-        finally:
-            renderer.close()
-        maps = tex.maps
-        covered = maps.coverage > 0
-        pre = tex.irradiance * np.power(tex.albedo, 0.5)
-        texel_mm = float(np.median(np.sqrt(maps.mm_per_texel_u * maps.mm_per_texel_v)[covered]))
-        floor = (0.5 * texel_mm) ** 2
-        irr = log.measures["irradiance"]
-        row: dict[str, Any] = {"texture_size": size, "covered_texels": int(covered.sum()),
-                               "mm_per_texel": texel_mm, "regions": len(mesh.fits),
-                               "irradiance_rays": irr["rays"],
-                               "irradiance_s": irr["seconds"],
-                               "irradiance_mrays_per_s": irr["mrays_per_s"], "diffusion": {}}
-        print(f"texture {size}: {covered.sum()} covered texels, {texel_mm:.3f} mm/texel; "
-              f"irradiance {irr['rays'] / 1e6:.1f} M rays, {irr['mrays_per_s']:.2f} Mrays/s",
-              flush=True)
-
-        def run(name: str, fn: Callable[[], Any], repeats: int, row: dict = row) -> Any:
-            fn()  # warm-up: kernels compile on first use
-            seconds, result = best_of(fn, repeats)
-            out, stats = result if isinstance(result, tuple) else (result, None)
-            entry = {"seconds": seconds}
-            if stats is not None:
-                entry |= {"blur_passes": stats.passes,
-                          "full_resolution_blurs": stats.full_blurs or stats.passes / 2}
-            row["diffusion"][name] = entry
-            print(f"  {name:<22} {seconds:8.2f} s", flush=True)
-            return out
-
-        grids = {g: diffusion_terms(mesh.fits, g, None, floor_mm2=floor) for g in (12, 6)}
-        own = diffusion_terms(mesh.fits, 0, None, floor_mm2=floor)
-        outs = {}
-        for g, terms in grids.items():
-            outs[f"ours grid {g}"] = run(f"ours grid {g}", lambda t=terms: diffuse(
-                pre, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                t.variances_mm2, t.weights, maps.region_weights), args.repeats)
-        outs["ours own variances"] = run("ours own variances", lambda: diffuse(
-            pre, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage, own.variances_mm2,
-            own.weights, maps.region_weights), args.repeats)
-        if size in naive_sizes:
-            outs["gather grid 12"] = run("gather grid 12", lambda: diffuse_gather(
-                pre, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                grids[12].variances_mm2, grids[12].weights, maps.region_weights), 1)
-            naive = run("naive per region/term", lambda: naive_diffusion(pre, maps, mesh.fits), 1)
-            peak = float(np.abs(naive[covered]).max())
-            for name, out in outs.items():
-                diff = np.abs(np.asarray(out)[covered] - naive[covered]).max(axis=1) / peak
-                row["diffusion"][name] |= {
-                    "max_diff_vs_naive": float(diff.max()),
-                    "p99_diff_vs_naive": float(np.percentile(diff, 99)),
-                    "speedup_vs_naive": row["diffusion"]["naive per region/term"]["seconds"]
-                    / row["diffusion"][name]["seconds"]}
-                print(f"  {name:<22} vs naive: max {diff.max():.2e}, p99 "
-                      f"{np.percentile(diff, 99):.2e} of the peak, "
-                      f"{row['diffusion'][name]['speedup_vs_naive']:.1f}x faster", flush=True)
-        rows.append(row)
+    rows = [bench_size(stage, size, size in naive_sizes, args.repeats)
+            for size in (int(s) for s in args.sizes.split(","))]
     doc = {"benchmark": "render", "scene": str(args.scene), "machine": platform.platform(),
            "rows": rows}
     args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -424,6 +424,34 @@ def _box_down(a: NDArray[np.float32]) -> NDArray[np.float32]:
     return 0.25 * (p[0::2, 0::2] + p[1::2, 0::2] + p[0::2, 1::2] + p[1::2, 1::2])
 
 
+def _level_shapes(h: int, w: int) -> list[tuple[int, int]]:
+    """(height, width) of each pyramid level, halving (rounded up) while 8 texels remain."""
+    shapes = [(h, w)]
+    while len(shapes) < MAX_LEVELS and min(h, w) >> len(shapes) >= 8:
+        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+    return shapes
+
+
+def _table_bases(ctx: Any, mm: list[NDArray[np.float32]], levels: int) -> list[tuple[Any, Any]]:
+    """Device maps of 64 log2(mm per level-k texel) for k = 0..levels, u in row layout,
+    v transposed (the recursive kernel's second pass walks the transposed image); on
+    1/16 of a table step (sigma within 0.07%) so neighbouring texels share coefficients."""
+    import pyopencl as cl
+
+    from .recursive_blur import TABLE_STEPS_PER_OCTAVE
+
+    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+    out = []
+    mm_k = mm
+    for k in range(levels + 1):
+        if k > 0:
+            mm_k = [_box_down(m) for m in mm_k]
+        bu, bv = (np.round(16 * TABLE_STEPS_PER_OCTAVE * np.log2(m * 2.0**k)) / 16 for m in mm_k)
+        out.append((cl.Buffer(ctx, flags, hostbuf=bu.astype(np.float32)),
+                    cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(bv.T, np.float32))))
+    return out
+
+
 def diffuse(
     irradiance: NDArray[Any],
     mm_per_texel_u: NDArray[Any],
@@ -485,12 +513,8 @@ def diffuse(
     ctx, queue = iir.ctx, iir.queue
     downsample, accumulate = _pyramid_kernels()
     mf = cl.mem_flags
-    n_levels = 1
-    while n_levels < MAX_LEVELS and min(h, w) >> n_levels >= 8:
-        n_levels += 1
-    shapes = [(h, w)]
-    for _ in range(1, n_levels):
-        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+    shapes = _level_shapes(h, w)
+    n_levels = len(shapes)
 
     def term_level(variance: float) -> int:
         sigma = math.sqrt(variance) / coarse_mm  # narrowest blur, finest texels
@@ -511,22 +535,7 @@ def diffuse(
         pyramid.append(cl.Buffer(ctx, mf.READ_WRITE, dh * dw * 16))
         downsample(queue, (dw, dh), None, pyramid[k - 1], pyramid[k], np.int32(sw),
                    np.int32(sh), np.int32(dw), np.int32(dh))
-    # 64 log2(mm per level-k texel) per level, u in rows, v transposed (see the kernel)
-    bases: list[tuple[Any, Any]] = []
-    mm_k = mm
-    for k in range(need + 1):
-        if k > 0:
-            mm_k = [_box_down(m) for m in mm_k]
-        if uniform:
-            bases.append((None, None))
-            continue
-        # on 1/16 of a table step (sigma within 0.07%), so neighbours share coefficients
-        bu, bv = (np.round(16 * TABLE_STEPS_PER_OCTAVE * np.log2(m * 2.0**k)) / 16
-                  for m in mm_k)
-        bu = bu.astype(np.float32)
-        bv = np.ascontiguousarray(bv.T, dtype=np.float32)
-        bases.append(tuple(cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=b)
-                           for b in (bu, bv)))
+    bases = [(None, None)] * (need + 1) if uniform else _table_bases(ctx, mm, need)
     nbytes = h * w * 16
     work, tmp, scratch = (cl.Buffer(ctx, mf.READ_WRITE, nbytes) for _ in range(3))
     acc = cl.Buffer(ctx, mf.READ_WRITE, nbytes)

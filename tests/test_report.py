@@ -73,7 +73,7 @@ def test_render_tradeoff_rows_and_page(half_shadowed_patch: Path, tmp_path: Path
 
 
 def test_report_page_needs_a_measured_stage(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match="no \\*_tradeoff.json"):
+    with pytest.raises(InputError, match=r"no \*_tradeoff\.json"):
         write_report_page(tmp_path)
     assert not (tmp_path / "report.md").exists()
 
