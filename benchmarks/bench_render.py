@@ -95,7 +95,7 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
         entry = {"seconds": seconds}
         if stats is not None:
             entry |= {"blur_passes": stats.passes,
-                      "full_resolution_blurs": stats.full_blurs or stats.passes / 2}
+                      "full_resolution_blurs": stats.full_blurs}
         row["diffusion"][name] = entry
         print(f"  {name:<22} {seconds:8.2f} s", flush=True)
         return out

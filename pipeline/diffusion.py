@@ -311,6 +311,7 @@ def diffuse_gather(
             else:
                 blur.blur_in_place(sig_u, sig_v)
                 stats.passes += 2
+                stats.full_blurs += 1.0
                 current = blur.download()[..., :3]
                 previous_v = v[i]
         elif i > 0:

@@ -173,19 +173,18 @@ __kernel void iir_rows_transposed(__global const float4 *src, __global float4 *d
     if (L >= lines) return;
     const size_t row = (size_t)L * (size_t)n;
     float c[12];
+#if PER_TEXEL
     float last = NAN;  // base of the texel the coefficients were made for
-#if !PER_TEXEL
+    // texel sizes come per triangle: most neighbours share the last coefficients
+#define REFRESH(t) \
+    if (base[t] != last) { last = base[t]; coeffs(table, pos_offset - last, entries, c); }
+#else
+#define REFRESH(t)
     coeffs(table, pos_offset, entries, c);
 #endif
     float4 x1 = 0.0f, p1 = 0.0f, p2 = 0.0f, q1 = 0.0f, q2 = 0.0f;
     for (int i = 0; i < n; ++i) {
-#if PER_TEXEL
-        // texel sizes come per triangle: most neighbours share the last coefficients
-        if (base[row + i] != last) {
-            last = base[row + i];
-            coeffs(table, pos_offset - last, entries, c);
-        }
-#endif
+        REFRESH(row + i)
         const float4 x = src[row + i];
         const float4 p = c[0] * x + c[1] * x1 - c[4] * p1 - c[5] * p2;
         const float4 q = c[6] * x + c[7] * x1 - c[10] * q1 - c[11] * q2;
@@ -194,15 +193,11 @@ __kernel void iir_rows_transposed(__global const float4 *src, __global float4 *d
     }
     float4 a1 = 0.0f, a2 = 0.0f;
     p1 = 0.0f; p2 = 0.0f; q1 = 0.0f; q2 = 0.0f;
-    last = NAN;
-    for (int i = n - 1; i >= 0; --i) {
 #if PER_TEXEL
-        // texel sizes come per triangle: most neighbours share the last coefficients
-        if (base[row + i] != last) {
-            last = base[row + i];
-            coeffs(table, pos_offset - last, entries, c);
-        }
+    last = NAN;
 #endif
+    for (int i = n - 1; i >= 0; --i) {
+        REFRESH(row + i)
         const float4 p = c[2] * a1 + c[3] * a2 - c[4] * p1 - c[5] * p2;
         const float4 q = c[8] * a1 + c[9] * a2 - c[10] * q1 - c[11] * q2;
         const float4 x = src[row + i];
@@ -241,10 +236,10 @@ class IIRKernels:
         offset alone where the base is None."""
         for s, d, offset, base, n, lines in ((src, tmp, offset_u, base_u, width, height),
                                              (tmp, dst, offset_v, base_v_t, height, width)):
+            # the one-sigma kernel never reads `base`: any buffer fills the argument
             self.kernels[base is not None](
-                self.queue, (lines,), None, s, d, scratch, base if base is not None else
-                self.table, self.table, self.entries, np.float32(offset), np.int32(n),
-                np.int32(lines))
+                self.queue, (lines,), None, s, d, scratch, self.table if base is None else base,
+                self.table, self.entries, np.float32(offset), np.int32(n), np.int32(lines))
 
 
 @lru_cache(maxsize=1)

@@ -483,8 +483,8 @@ class Renderer:
                 out, stats = run(pre, maps.mm_per_texel_u, maps.mm_per_texel_v, cov,
                                  terms.variances_mm2, terms.weights, maps.region_weights)
                 skipped, passes = stats.skipped, stats.passes
-                work = {"pyramid_levels": stats.levels, "full_resolution_blurs":
-                        stats.full_blurs if opts.blur == "recursive" else passes / 2}
+                work = {"pyramid_levels": stats.levels,
+                        "full_resolution_blurs": stats.full_blurs}
             else:
                 out, passes, work = pre, 0, {}
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]

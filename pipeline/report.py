@@ -159,10 +159,15 @@ def ingest_tradeoff(
 def write_ingest_report(rows: Sequence[dict[str, Any]], out_dir: Path) -> dict:
     """ingest_tradeoff.json and ingest_tradeoff.png in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    default = {"brackets": 5, "ring_width_px": 1.0}
+    front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
     doc = {"stage": "ingest",
            "error_measure": "max over channels of eq. 2c, measured profile vs the simulator's "
                             "truth normalised over the measured disk, 0.05-4 mm",
-           "default": {"brackets": 5, "ring_width_px": 1.0}, "rows": list(rows)}
+           "default": default | {"on_pareto_front": [
+               i in front for i, r in enumerate(rows) if r["brackets"] == default["brackets"]
+               and r["ring_width_px"] == default["ring_width_px"]]},
+           "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)]}
     atomic_write_json(out_dir / "ingest_tradeoff.json", doc)
     points = [(f"{r['region']} ring {r['ring_width_px']:g} px", r["seconds"], r["error_max"],
                f"{r['brackets']}b") for r in rows]
@@ -363,12 +368,7 @@ def write_report_page(out_dir: Path) -> Path:
     if ingest_path.is_file():
         found = True
         doc = json.loads(ingest_path.read_text())
-        rows = doc["rows"]
-        front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
         d = doc["default"]
-        default_rows = [i for i, r in enumerate(rows) if r["brackets"] == d["brackets"]
-                        and r["ring_width_px"] == d["ring_width_px"]]
-        doc["default"]["on_pareto_front"] = [i in front for i in default_rows]
         lines += ["## Ingest", "", f"Error: {doc['error_measure']}. Seconds: ingest per region.",
                   "", "![ingest](ingest_tradeoff.png)", "",
                   _default_sentence(doc, f"{d['brackets']} brackets, ring "
@@ -377,7 +377,7 @@ def write_report_page(out_dir: Path) -> Path:
         lines += _table(["region", "brackets", "ring px", "seconds", "error", ""],
                         [(r["region"], r["brackets"], f"{r['ring_width_px']:g}",
                           f"{r['seconds']:.3f}", f"{r['error_max']:.2e}",
-                          "*" if i in front else "") for i, r in enumerate(rows)])
+                          "*" if r.get("pareto") else "") for r in doc["rows"]])
         lines.append("")
     render_path = out_dir / "render_tradeoff.json"
     if render_path.is_file():
