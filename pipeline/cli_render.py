@@ -43,7 +43,7 @@ def _aovs(text: str) -> tuple[str, ...]:
 
 def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024",
                        texture_size: int = 1024) -> None:
-    from .render import AOVS, BLURS
+    from .render import AOVS, BLURS, SHADOW_SAMPLING
 
     p.add_argument("--camera", default=None, metavar="PRIM",
                    help="UsdGeomCamera prim path (default: the first camera on the stage)")
@@ -54,7 +54,13 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--aovs", type=_aovs, default=AOVS, metavar="A,B",
                    help=f"AOVs to write, from {','.join(AOVS)} (default: all)")
     p.add_argument("--light-samples", type=int, default=16,
-                   help="stratified shadow rays per light and texel (area and dome lights)")
+                   help="stratified light samples per texel and light (area and dome lights; "
+                        "see --shadow-sampling for how many are traced)")
+    p.add_argument("--shadow-sampling", choices=SHADOW_SAMPLING, default="interleaved",
+                   help="interleaved: each texel traces a quarter of the light samples and "
+                        "borrows the rest from its 3x3 neighbours (Keller & Heidrich 2001; "
+                        "4x fewer rays, same error measured on the demo face); full: every "
+                        "texel traces all of them")
     p.add_argument("--variance-grid", type=int, default=12, metavar="N",
                    help="re-express all regions' profiles on N shared variances (fewer "
                         "blurs; the error is in render.json); 0 = each region's own")
@@ -81,7 +87,8 @@ def render_options(args: argparse.Namespace) -> Any:
 
     return RenderOptions(
         resolution=args.resolution, texture_size=args.texture_size, aovs=args.aovs,
-        light_samples=args.light_samples, roughness=args.roughness, rho_s=args.rho_s,
+        light_samples=args.light_samples, shadow_sampling=args.shadow_sampling,
+        roughness=args.roughness, rho_s=args.rho_s,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs)

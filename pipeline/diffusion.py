@@ -16,7 +16,6 @@ comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
@@ -25,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .opencl import build, cl_context
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -131,19 +131,9 @@ def _pass_reference(src: NDArray[np.float64], sigma: NDArray[np.float64],
 
 @lru_cache(maxsize=1)
 def _cl_state() -> tuple[Any, Any, Any]:
-    """Context, queue and built program on the first CPU device (PoCL), else any device."""
-    import pyopencl as cl
-
-    os.environ.setdefault("POCL_CACHE_DIR", os.path.join(
-        os.path.expanduser("~"), ".cache", "skinpipe", "pocl"))
-    devices = [d for p in cl.get_platforms() for d in p.get_devices()]
-    if not devices:
-        raise InputError("no OpenCL device: install pyopencl[pocl] for a CPU device")
-    cpu = [d for d in devices if d.type & cl.device_type.CPU]
-    ctx = cl.Context([(cpu or devices)[0]])
-    queue = cl.CommandQueue(ctx)
-    program = cl.Program(ctx, _KERNEL).build(options=[f"-DMIN_SIGMA={MIN_SIGMA_TEXELS}f"])
-    return ctx, queue, program
+    """Context, queue and the gather blur's program."""
+    ctx, queue = cl_context()
+    return ctx, queue, build(_KERNEL, [f"-DMIN_SIGMA={MIN_SIGMA_TEXELS}f"])
 
 
 @dataclass
@@ -403,8 +393,7 @@ def _pyramid_kernels() -> tuple[Any, Any]:
     """(downsample_tent, accumulate_term), built once per process."""
     import pyopencl as cl
 
-    ctx, _, _ = _cl_state()
-    program = cl.Program(ctx, _PYRAMID_KERNEL).build()
+    program = build(_PYRAMID_KERNEL)
     return cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_term")
 
 

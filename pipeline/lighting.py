@@ -94,24 +94,51 @@ def specular_albedo(cos_theta: NDArray[Any], roughness: float = DEFAULT_ROUGHNES
 # --------------------------------------------------------------------------- sampling
 
 
-def stratified_unit_square(n: int, rng: np.random.Generator) -> NDArray[np.float64]:
-    """n jittered points in [0, 1)^2 on a near-square grid (n rounded up to a full grid)."""
-    nx = max(1, math.ceil(math.sqrt(n)))
-    ny = max(1, math.ceil(n / nx))
+def stratified_unit_square(n: int, rng: np.random.Generator,
+                           even: bool = False) -> NDArray[np.float64]:
+    """n jittered points in [0, 1)^2 on a near-square grid (n rounded up to a full grid;
+    with ``even``, to a grid with an even number of rows and columns). Point
+    ``gy * nx + gx`` lies in column gx, row gy."""
+    nx, ny = grid_shape(n, even)
     gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
     pts = np.stack([(gx.ravel() + rng.random(nx * ny)) / nx,
                     (gy.ravel() + rng.random(nx * ny)) / ny], axis=1)
     return pts
 
 
-def _frame(axis: NDArray[np.float64]) -> NDArray[np.float64]:
-    """An orthonormal basis (rows t, b, axis) around unit vectors ``axis`` (..., 3)."""
-    a = np.asarray(axis, dtype=np.float64)
-    helper = np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    t = np.cross(helper, a)
-    t /= np.linalg.norm(t, axis=-1, keepdims=True)
-    b = np.cross(a, t)
-    return np.stack([t, b, a], axis=-2)
+def grid_shape(n: int, even: bool = False) -> tuple[int, int]:
+    """Columns and rows of the stratified grid that holds at least n samples."""
+    nx = max(1, math.ceil(math.sqrt(n)))
+    nx += nx % 2 if even else 0
+    ny = max(1, math.ceil(n / nx))
+    ny += ny % 2 if even else 0
+    return nx, ny
+
+
+def interleaved_strata(n: int) -> NDArray[np.int64]:
+    """Interleaved sampling (Keller & Heidrich 2001) of an even stratified grid: row
+    ``2 (y % 2) + (x % 2)`` lists the strata that texel (x, y) traces, those whose column
+    and row have the texel's parity. Each row is itself a coarser stratification of the
+    square, and every 2 x 2 block of texels covers all the strata between them."""
+    nx, ny = grid_shape(n, even=True)
+    g = np.arange(nx * ny).reshape(ny, nx)
+    return np.stack([g[qy::2, qx::2].ravel() for qy in (0, 1) for qx in (0, 1)])
+
+
+def _frame(axis: NDArray[Any], dtype: Any = np.float64) -> NDArray[Any]:
+    """An orthonormal basis (rows t, b, axis) around unit vectors ``axis`` (..., 3),
+    branch-free and without cross products (Duff et al. 2017, "Building an Orthonormal
+    Basis, Revisited", JCGT 6(1))."""
+    a = np.asarray(axis, dtype=dtype)
+    x, y, z = a[..., 0], a[..., 1], a[..., 2]
+    sign = np.where(z >= 0, 1, -1).astype(dtype)
+    k = -1 / (sign + z)
+    xy = x * y * k
+    out = np.empty((*a.shape[:-1], 3, 3), dtype)
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = 1 + sign * x * x * k, sign * xy, -sign * x
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = xy, sign + y * y * k, -y
+    out[..., 2, :] = a
+    return out
 
 
 def cone_direction(axis: NDArray[Any], cos_max: NDArray[Any] | float,
@@ -129,13 +156,16 @@ def cone_direction(axis: NDArray[Any], cos_max: NDArray[Any] | float,
             + np.asarray(cos_t)[..., None] * f[..., 2, :])
 
 
-def cosine_direction(normal: NDArray[Any], u: float, v: float,
-                     frame: NDArray[Any] | None = None) -> NDArray[np.float64]:
-    """Cosine-weighted hemisphere directions around unit ``normal`` (..., 3)."""
-    r = math.sqrt(u)
+def cosine_direction(normal: NDArray[Any] | None, u: NDArray[Any] | float,
+                     v: NDArray[Any] | float, frame: NDArray[Any] | None = None
+                     ) -> NDArray[np.float64]:
+    """Cosine-weighted hemisphere directions around unit ``normal`` (..., 3); u and v are
+    scalars or one per point."""
     f = _frame(normal) if frame is None else frame
-    return (r * math.cos(2 * math.pi * v) * f[..., 0, :] + r * math.sin(2 * math.pi * v)
-            * f[..., 1, :] + math.sqrt(max(0.0, 1.0 - u)) * f[..., 2, :])
+    uu = np.asarray(u, dtype=f.dtype)[..., None]
+    phi = np.asarray(v, dtype=f.dtype)[..., None] * f.dtype.type(2 * math.pi)
+    r, z = np.sqrt(uu), np.sqrt(np.maximum(0, 1 - uu))
+    return r * np.cos(phi) * f[..., 0, :] + r * np.sin(phi) * f[..., 1, :] + z * f[..., 2, :]
 
 
 def dome_radiance(light: Light, directions: NDArray[Any],
@@ -155,18 +185,6 @@ def dome_radiance(light: Light, directions: NDArray[Any],
 
 
 # -------------------------------------------------------------------------- irradiance
-
-
-@dataclass
-class IrradianceResult:
-    """Irradiance entering the skin per texel (H, W, 3), and per light the fraction of
-    its unshadowed irradiance that arrived (for the specular term)."""
-
-    entering: NDArray[np.float32]
-    visibility: dict[str, NDArray[np.float32]]
-    skipped: list[str] = field(default_factory=list)
-    rays: int = 0
-    seconds: float = 0.0
 
 
 def emitting_area(light: Light) -> float:
@@ -221,17 +239,28 @@ class LightSampler:
     """Stratified samples of one light as seen from surface points: ``sample(k)`` gives
     unit directions towards the light, the distance to it (for the shadow ray), and the
     irradiance the sample carries before shadowing and Fresnel: a scalar geometric
-    factor per point (cos x solid angle, or cos x cos x area / d^2, over N) and the
-    light's colour, or (N, 3) per point for a textured dome."""
+    factor per point (cos x solid angle, or cos x cos x area / d^2, over the samples per
+    point) and the light's colour, or (N, 3) per point for a textured dome.
+
+    With ``interleave`` (one class 0-3 per point, from the texel's parity), point i
+    traces only the strata ``interleaved_strata(samples)[interleave[i]]``: a quarter of
+    the rays, the rest borrowed from its neighbours by ``filter_interleaved``."""
 
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
-                 dome_texture: NDArray[np.float32] | None = None) -> None:
+                 dome_texture: NDArray[np.float32] | None = None,
+                 interleave: NDArray[Any] | None = None) -> None:
         self.light = light
         self.origins = origins
         self.normals = normals
-        self.grid = stratified_unit_square(samples, rng)
-        self.count = self.grid.shape[0]
+        self.strata: NDArray[np.int64] | None = None
+        if interleave is not None and samples >= 4:
+            self.grid = stratified_unit_square(samples, rng, even=True)
+            self.strata = interleaved_strata(samples)[np.asarray(interleave) % 4]
+            self.count = self.strata.shape[1]
+        else:
+            self.grid = stratified_unit_square(samples, rng)
+            self.count = self.grid.shape[0]
         self.texture = dome_texture
         # a textured dome's colour varies per direction and is carried by the weights
         self.colour = np.ones(3, np.float32) if light.kind == "dome" and dome_texture is not \
@@ -243,52 +272,171 @@ class LightSampler:
         elif light.kind == "sphere":
             self.dist, axis, self.cos_max = sphere_cone(light, origins)
             self.solid = 2 * math.pi * (1 - self.cos_max)
-            self.frame = _frame(axis).astype(np.float32)
+            self.frame = _frame(axis, np.float32)
             self.far = np.maximum(self.dist - max(light.radius, 1e-9), 0.0).astype(np.float32)
         elif light.kind == "rect":
             self.area = emitting_area(light)
         elif light.kind == "dome":
-            self.frame = _frame(normals).astype(np.float32)
+            self.frame = _frame(normals, np.float32)
         else:
             raise InputError(f"unsupported light kind {light.kind!r} at {light.path}")
         self.inf = np.full(n, np.inf, np.float32)
 
     def sample(self, k: int) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
-        u, v = self.grid[k]
+        """Sample k of every point: one stratum for all, or the point's k-th stratum."""
+        if self.strata is None:
+            u, v = self.grid[k]
+        else:
+            u, v = self.grid[self.strata[:, k]].T
         light, nrm = self.light, self.normals
         if light.kind == "distant":
             d = cone_direction(-light.axis, math.cos(self.half), u, v, self.frame) \
                 if self.half > 0 else -light.axis
-            d = np.broadcast_to(d.astype(np.float32), nrm.shape)
-            w = np.maximum(nrm @ d[0], 0) / self.count
-            return d, self.inf, w
+            d = d.astype(np.float32)
+            if d.ndim == 1:
+                w = np.maximum(nrm @ d, 0) / self.count
+                return np.broadcast_to(d, nrm.shape), self.inf, w
+            return d, self.inf, np.maximum((nrm * d).sum(axis=1), 0) / self.count
         if light.kind == "sphere":
             d = cone_direction(None, self.cos_max, u, v, self.frame).astype(np.float32)
             w = np.maximum((nrm * d).sum(axis=1), 0) * self.solid / self.count
             return d, self.far, w
         if light.kind == "rect":
-            local = np.array([(u - 0.5) * light.width, (v - 0.5) * light.height, 0.0, 1.0])
-            to_p = (local @ light.matrix)[:3].astype(np.float32) - self.origins
+            one = np.ones_like(np.asarray(u, dtype=np.float64))
+            local = np.stack([(np.asarray(u) - 0.5) * light.width,
+                              (np.asarray(v) - 0.5) * light.height, 0 * one, one], axis=-1)
+            to_p = (local @ light.matrix)[..., :3].astype(np.float32) - self.origins
             dist = np.linalg.norm(to_p, axis=1)
             d = to_p / np.maximum(dist, 1e-12)[:, None]
             cos_s = np.maximum((nrm * d).sum(axis=1), 0)
             cos_l = np.maximum(-(d @ light.axis.astype(np.float32)), 0)
             w = cos_s * cos_l * self.area / np.maximum(dist * dist, 1e-12) / self.count
             return d, dist * np.float32(1 - 1e-4), w
-        d = cosine_direction(None, float(u), float(v), self.frame).astype(np.float32)
+        d = cosine_direction(None, u, v, self.frame).astype(np.float32)
         w = np.full(nrm.shape[0], math.pi / self.count, np.float32)
         if self.texture is not None:
             return d, self.inf, w[:, None] * dome_radiance(light, d, self.texture)
         return d, self.inf, w
 
 
+_INTERLEAVE_KERNEL = r"""
+// one work-item per texel; planes (light, y, x) with traced = 0 or 1; normals packed
+// xyz per texel
+__kernel void filter_interleaved(__global const float *vis, __global const float *traced,
+                                 __global const float *normal, __global float *out,
+                                 const int h, const int w, const float min_cos)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= w || y >= h) return;
+    const int i = y * w + x;
+    const float3 n = vload3(i, normal);
+    const int plane = h * w;
+    float num[LIGHTS], den[LIGHTS];
+    for (int l = 0; l < LIGHTS; ++l) { num[l] = 0.0f; den[l] = 0.0f; }
+    for (int dy = -1; dy <= 1; ++dy) {
+        const int yy = y + dy;
+        if (yy < 0 || yy >= h) continue;
+        for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= w) continue;
+            const int j = yy * w + xx;
+            if (dot(n, vload3(j, normal)) < min_cos) continue;
+            const float tent = (float)((2 - abs(dy)) * (2 - abs(dx)));
+            for (int l = 0; l < LIGHTS; ++l) {
+                const float kt = tent * traced[l * plane + j];
+                num[l] += kt * vis[l * plane + j];
+                den[l] += kt;
+            }
+        }
+    }
+    for (int l = 0; l < LIGHTS; ++l)
+        out[l * plane + i] = den[l] > 0.0f ? num[l] / den[l] : vis[l * plane + i];
+}
+"""
+MAX_FILTER_LIGHTS = 4
+"""Lights one filter launch handles (a kernel is built per count, loops unrolled); more
+go in further launches."""
+
+
+@lru_cache(maxsize=MAX_FILTER_LIGHTS)
+def _interleave_kernel(lights: int) -> Any:
+    import pyopencl as cl
+
+    from .opencl import build
+
+    program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}"])
+    return cl.Kernel(program, "filter_interleaved")
+
+
+def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
+                       normal: NDArray[Any], min_cos: float = 0.9) -> NDArray[np.float32]:
+    """Texture-space reconstruction of interleaved shadow rays: each texel's visibility
+    (L, H, W: one plane per light) becomes the (1 2 1)^2 / 16 tent average over its
+    3 x 3 neighbourhood, which weights the four interleaved stratum sets equally
+    (Keller & Heidrich 2001). Neighbours count only where ``traced`` > 0 (the texel
+    traced rays towards that light) and their normal (H, W, 3) is within acos(min_cos)
+    of the texel's, so that a crease or a chart that happens to touch does not bleed.
+    OpenCL, one work-item per texel."""
+    import pyopencl as cl
+
+    from .opencl import cl_context
+
+    vis = np.ascontiguousarray(visibility, dtype=np.float32)
+    if vis.ndim != 3 or np.shape(traced) != vis.shape or \
+            np.shape(normal) != (*vis.shape[1:], 3):
+        raise InputError(f"visibility (L, H, W), traced (L, H, W) and normal (H, W, 3) must "
+                         f"agree; got {vis.shape}, {np.shape(traced)}, {np.shape(normal)}")
+    lights, h, w = vis.shape
+    ctx, queue = cl_context()
+    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+    nrm_buf = cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(normal, np.float32))
+    out = np.empty_like(vis)
+    for start in range(0, lights, MAX_FILTER_LIGHTS):
+        part = slice(start, min(start + MAX_FILTER_LIGHTS, lights))
+        vis_buf = cl.Buffer(ctx, flags, hostbuf=vis[part])
+        traced_buf = cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(
+            np.asarray(traced[part]) > 0, np.float32))
+        out_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, vis[part].nbytes)
+        _interleave_kernel(part.stop - start)(
+            queue, (w, h), None, vis_buf, traced_buf, nrm_buf, out_buf, np.int32(h),
+            np.int32(w), np.float32(min_cos))
+        cl.enqueue_copy(queue, out[part], out_buf)
+    return out
+
+
+@dataclass
+class IrradianceResult:
+    """Irradiance entering the skin per point (N, 3), and per light the fraction of its
+    unshadowed irradiance that arrived (``visibility``, for the specular term) and the
+    unshadowed irradiance itself (N, 3), so that interleaved visibility can be filtered
+    and applied afterwards (``entering_with``)."""
+
+    entering: NDArray[np.float32]
+    visibility: dict[str, NDArray[np.float32]]
+    unshadowed: dict[str, NDArray[np.float32]] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    rays: int = 0
+    seconds: float = 0.0
+
+    def entering_with(self, visibility: dict[str, NDArray[Any]]) -> NDArray[np.float32]:
+        """Irradiance entering the skin with each light's visibility replaced (e.g. by its
+        filtered form): sum of unshadowed x visibility."""
+        out = np.zeros_like(self.entering)
+        for path, un in self.unshadowed.items():
+            out += un * np.asarray(visibility[path], np.float32)[..., None]
+        return out
+
+
 def irradiance_texture(
     positions: NDArray[Any], normals: NDArray[Any], lights: list[Light], rays: RayScene,
     samples: int = 16, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
+    interleave: NDArray[Any] | None = None,
 ) -> IrradianceResult:
     """Irradiance entering the skin at surface points (N, 3) with unit normals, summed
-    over ``lights`` with ``samples`` stratified shadow rays per light and point.
+    over ``lights`` with ``samples`` stratified shadow rays per light and point (with
+    ``interleave``, a class 0-3 per point: a quarter of them, see ``LightSampler``; the
+    per-point visibility is then noisy until ``filter_interleaved`` has run).
 
     Ray origins are pushed off the surface along the normal by 1e-5 of the scene's
     diagonal (against self-shadowing acne) and sorted along a Morton curve; rays whose
@@ -302,10 +450,12 @@ def irradiance_texture(
     nrm = np.asarray(normals, dtype=np.float32)
     order = morton_order(pos)
     pos, nrm = pos[order], nrm[order]
+    classes = None if interleave is None else np.asarray(interleave)[order]
     origins = pos + nrm * np.float32(1e-5 * rays.diagonal)
     n = pos.shape[0]
     entering = np.zeros((n, 3), np.float32)
     visibility: dict[str, NDArray[np.float32]] = {}
+    unshadowed_by_light: dict[str, NDArray[np.float32]] = {}
     skipped: list[str] = []
     n_rays = 0
     rng = np.random.default_rng(seed)
@@ -314,7 +464,7 @@ def irradiance_texture(
             skipped.append(f"light {light.path}: zero radiance")
             continue
         sampler = LightSampler(light, origins, nrm, samples, rng,
-                               (dome_textures or {}).get(light.path))
+                               (dome_textures or {}).get(light.path), classes)
 
         def one(k: int, sampler: LightSampler = sampler) -> tuple[Any, Any, int]:
             d, dist, w = sampler.sample(k)
@@ -355,6 +505,11 @@ def irradiance_texture(
         back = np.empty(n, np.float32)
         back[order] = vis
         visibility[light.path] = back
+        un = np.empty((n, 3), np.float32)
+        un[order] = unshadowed[:, None] * colour if unshadowed.ndim == 1 else \
+            unshadowed * colour
+        unshadowed_by_light[light.path] = un
     result = np.empty((n, 3), np.float32)
     result[order] = entering
-    return IrradianceResult(result, visibility, skipped, n_rays, time.perf_counter() - start)
+    return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
+                            time.perf_counter() - start)

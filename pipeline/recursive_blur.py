@@ -215,12 +215,12 @@ class IIRKernels:
     def __init__(self) -> None:
         import pyopencl as cl
 
-        from .diffusion import _cl_state
+        from .opencl import build, cl_context
 
-        self.ctx, self.queue, _ = _cl_state()
+        self.ctx, self.queue = cl_context()
         self.kernels = {
-            per_texel: cl.Kernel(cl.Program(self.ctx, _KERNEL).build(
-                options=[f"-DPER_TEXEL={int(per_texel)}"]), "iir_rows_transposed")
+            per_texel: cl.Kernel(build(_KERNEL, [f"-DPER_TEXEL={int(per_texel)}"]),
+                                 "iir_rows_transposed")
             for per_texel in (False, True)}
         table = coefficient_table()
         self.entries = np.int32(table.shape[0])

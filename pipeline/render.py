@@ -28,6 +28,8 @@ from .fit import FitResult
 from .lighting import (
     DEFAULT_RHO_S,
     DEFAULT_ROUGHNESS,
+    IrradianceResult,
+    filter_interleaved,
     irradiance_texture,
     light_direction,
     specular_albedo,
@@ -40,6 +42,7 @@ from .unwrap import triangulate, unwrap
 
 AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
 BLURS = ("recursive", "gather")
+SHADOW_SAMPLING = ("interleaved", "full")
 MERGE_RELATIVE = 1e-3
 """Variances closer than this (relative) share one blur."""
 
@@ -52,6 +55,9 @@ class RenderOptions:
     texture_size: int = 1024
     aovs: tuple[str, ...] = AOVS
     light_samples: int = 16
+    shadow_sampling: str = "interleaved"
+    """'interleaved': each texel traces a quarter of the light samples and borrows the
+    rest from its 3 x 3 neighbours; 'full': every texel traces all of them."""
     roughness: float = DEFAULT_ROUGHNESS
     rho_s: float = DEFAULT_RHO_S
     albedo_split: float = 0.5
@@ -80,6 +86,9 @@ class RenderOptions:
             raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
         if not 0.0 <= self.albedo_split <= 1.0:
             raise InputError(f"albedo split must be in [0, 1], got {self.albedo_split}")
+        if self.shadow_sampling not in SHADOW_SAMPLING:
+            raise InputError(f"unknown shadow sampling {self.shadow_sampling!r}; choose from "
+                             f"{', '.join(SHADOW_SAMPLING)}")
         if self.blur not in BLURS:
             raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
         if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
@@ -201,6 +210,21 @@ def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float3
     return out[..., 0] if squeeze else out
 
 
+def interleaved_visibility(res: IrradianceResult, maps: TextureMaps
+                           ) -> dict[str, NDArray[np.float32]]:
+    """Each light's per-texel visibility from interleaved shadow rays, reconstructed in
+    texture space (``filter_interleaved``) and returned per covered texel."""
+    covered = maps.triangle >= 0
+    paths = list(res.visibility)
+    vis = np.zeros((len(paths), *covered.shape), np.float32)
+    traced = np.zeros_like(vis)
+    for i, p in enumerate(paths):
+        vis[i][covered] = res.visibility[p]
+        traced[i][covered] = res.unshadowed[p].sum(axis=1) > 0
+    filtered = filter_interleaved(vis, traced, maps.normal)
+    return {p: filtered[i][covered] for i, p in enumerate(paths)}
+
+
 def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
     """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
     size_v, size_u = texture.shape[:2]
@@ -243,7 +267,8 @@ def usable_uvs(mesh: SceneMesh) -> str | None:
     if mesh.uv_indices is None and uv.shape[0] != mesh.mesh.points.shape[0]:
         return "per-vertex st has the wrong length"
     tq = uv[uv_triangles(mesh)]  # type: ignore[index]
-    area = 0.5 * np.abs(np.cross(tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]))
+    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     if np.count_nonzero(area > 0) < 0.95 * area.size:
         return "more than 5% of the faces have zero UV area"
     if area.sum() > 1.05:
@@ -440,12 +465,18 @@ class Renderer:
         covered = maps.triangle >= 0
         key = content_hash(tex.mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
                            [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness,
-                           opts.rho_s, opts.seed)
+                           opts.rho_s, opts.seed, opts.shadow_sampling)
 
         def compute() -> Any:
+            texel_y, texel_x = np.nonzero(covered)
+            interleave = (texel_y % 2) * 2 + texel_x % 2 \
+                if opts.shadow_sampling == "interleaved" else None
             res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
                                      rays, opts.light_samples, opts.roughness, opts.rho_s,
-                                     opts.seed, dome_textures)
+                                     opts.seed, dome_textures, interleave)
+            if interleave is not None and res.visibility:
+                res.visibility = interleaved_visibility(res, maps)
+                res.entering = res.entering_with(res.visibility)
             e = np.zeros((*covered.shape, 3), np.float32)
             e[covered] = res.entering
             vis = {}

@@ -1,0 +1,33 @@
+"""The OpenCL device every texture-space kernel runs on: the first CPU device (PoCL
+from ``pyopencl[pocl]``), else any device; compiled kernels are cached on disk."""
+
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+from typing import Any
+
+from .errors import InputError
+
+
+@lru_cache(maxsize=1)
+def cl_context() -> tuple[Any, Any]:
+    """(context, in-order queue), made once per process."""
+    import pyopencl as cl
+
+    os.environ.setdefault("POCL_CACHE_DIR", os.path.join(
+        os.path.expanduser("~"), ".cache", "skinpipe", "pocl"))
+    devices = [d for p in cl.get_platforms() for d in p.get_devices()]
+    if not devices:
+        raise InputError("no OpenCL device: install pyopencl[pocl] for a CPU device")
+    cpu = [d for d in devices if d.type & cl.device_type.CPU]
+    ctx = cl.Context([(cpu or devices)[0]])
+    return ctx, cl.CommandQueue(ctx)
+
+
+def build(source: str, options: list[str] | None = None) -> Any:
+    """A program for the shared context (callers cache what they build)."""
+    import pyopencl as cl
+
+    ctx, _ = cl_context()
+    return cl.Program(ctx, source).build(options=options or [])
