@@ -36,25 +36,27 @@ TABLE_OCTAVES = 13  # up to 0.25 * 2^13 = 2048 texels
 TABLE_STEPS_PER_OCTAVE = 64
 
 
-def _poles(sigma: float) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
-    """Residues c_k and poles p_k with h(n) = sum_k c_k p_k^n for n >= 0."""
-    cs, ps = [], []
+def _poles(sigma: Any) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """Residues c_k (4,) and poles p_k (..., 4) with h(n) = sum_k c_k p_k^n for n >= 0,
+    for a scalar or an array of sigmas."""
+    cs, rates = [], []
     for a, b, lam, w in DERICHE_1993:
         c = complex(a, -b) / 2
-        p = np.exp(complex(-lam, w) / sigma)
         cs += [c, np.conj(c)]
-        ps += [p, np.conj(p)]
-    return np.array(cs), np.array(ps)
+        rates += [complex(-lam, w), complex(-lam, -w)]
+    s = np.asarray(sigma, np.float64)[..., None]
+    return np.array(cs), np.exp(np.array(rates) / s)
 
 
-def deriche_variance(sigma: float) -> float:
-    """Variance (texels^2) of the sampled Deriche filter with parameter ``sigma``:
-    sum n^2 p^n = p (1 + p) / (1 - p)^3 over each pole, both halves."""
+def deriche_variance(sigma: Any) -> Any:
+    """Variance (texels^2) of the sampled Deriche filter with parameter ``sigma`` (scalar
+    or array): sum n^2 p^n = p (1 + p) / (1 - p)^3 over each pole, both halves."""
     c, p = _poles(sigma)
     h0 = c.sum().real
-    mass = (2 * (c / (1 - p)).sum() - h0).real
-    second = (2 * (c * p * (1 + p) / (1 - p) ** 3).sum()).real
-    return float(second / mass)
+    mass = (2 * (c / (1 - p)).sum(axis=-1) - h0).real
+    second = (2 * (c * p * (1 + p) / (1 - p) ** 3).sum(axis=-1)).real
+    out = second / mass
+    return float(out) if np.ndim(sigma) == 0 else out
 
 
 def deriche_coefficients(sigma: float) -> NDArray[np.float64]:
@@ -63,7 +65,7 @@ def deriche_coefficients(sigma: float) -> NDArray[np.float64]:
     and y-[i] = m1 x[i+1] + m2 x[i+2] - a1 y-[i+1] - a2 y-[i+2]; y = sum of all four,
     normalised to unit sum. (The direct 4th-order form loses 5e-3 of the peak to
     float32 rounding of its coefficients; the parallel form keeps 1e-4.)"""
-    c, p = _poles(sigma)
+    c, p = _poles(float(sigma))
     rows = []
     for k in (0, 2):
         ck, pk = c[k], p[k]
@@ -84,7 +86,7 @@ def coefficient_table() -> NDArray[np.float32]:
     params = TABLE_MIN_SIGMA * 0.5 * 2.0 ** (
         np.arange(4 * (n + 2 * TABLE_STEPS_PER_OCTAVE)) / (4 * TABLE_STEPS_PER_OCTAVE))
     # below a quarter texel the filter is a near-delta whose variance rounds to <= 0
-    sd = np.maximum.accumulate(np.sqrt(np.maximum([deriche_variance(s) for s in params], 0)))
+    sd = np.maximum.accumulate(np.sqrt(np.maximum(deriche_variance(params), 0)))
     matched = np.interp(targets, sd, params)
     # Deriche's shape follows the Gaussian near the peak and is 0.45% short in variance
     # (its tails); matching the variance would cost 2e-3 at the peak. Below 0.8 texel

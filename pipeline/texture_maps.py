@@ -10,6 +10,7 @@ the UV layout. Row j of a map holds v = (j + 0.5) / size; column i holds u.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,7 +76,7 @@ def rasterize(
     normals = vertex_normals(points, tris)
 
     triangle = np.full((size, size), -1, np.int32)
-    bary = np.zeros((size, size, 3), np.float32)
+    bary = np.zeros((size, size, 2), np.float32)  # b1, b2 (b0 = 1 - b1 - b2)
     lo = np.ceil(tq.min(axis=1)).astype(np.int64).clip(0, size - 1)
     hi = np.floor(tq.max(axis=1)).astype(np.int64).clip(0, size - 1)
     wdt = np.where(ok, hi[:, 0] - lo[:, 0] + 1, 0).clip(0)
@@ -92,22 +93,28 @@ def rasterize(
         n = counts[chunk]
         t = np.repeat(chunk, n)
         k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-        x = lo[t, 0] + k % wdt[t]
-        y = lo[t, 1] + k // wdt[t]
+        row, col = np.divmod(k, wdt[t])
+        x, y = lo[t, 0] + col, lo[t, 1] + row
         dx, dy = x - tq[t, 0, 0], y - tq[t, 0, 1]
-        b1 = (dx * e2[t, 1] - dy * e2[t, 0]) / det[t]
-        b2 = (e1[t, 0] * dy - e1[t, 1] * dx) / det[t]
-        b0 = 1.0 - b1 - b2
-        inside = (b0 >= -1e-9) & (b1 >= -1e-9) & (b2 >= -1e-9)
-        triangle[y[inside], x[inside]] = t[inside]
-        bary[y[inside], x[inside]] = np.stack([b0, b1, b2], axis=1)[inside]
+        inv_det = 1.0 / det[t]
+        b1 = (dx * e2[t, 1] - dy * e2[t, 0]) * inv_det
+        b2 = (e1[t, 0] * dy - e1[t, 1] * dx) * inv_det
+        inside = np.flatnonzero((b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1 + 1e-9))
+        yi, xi = y[inside], x[inside]
+        triangle[yi, xi] = t[inside]
+        bary[yi, xi, 0] = b1[inside]
+        bary[yi, xi, 1] = b2[inside]
         start = end
     covered = triangle >= 0
     tri_c = triangle[covered]
-    b = bary[covered].astype(np.float64)[:, :, None]
+    corner = tris[tri_c]  # (N, 3) vertex indices
+    b12 = bary[covered]
+    weights = (1 - b12[:, 0] - b12[:, 1], b12[:, 0], b12[:, 1])
 
-    def interp(attr: NDArray[np.float64]) -> NDArray[np.float64]:
-        return (attr[tris[tri_c]] * b).sum(axis=1)
+    def interp(attr: NDArray[Any]) -> NDArray[np.float32]:
+        a = np.asarray(attr, np.float32)
+        return sum((a[corner[:, i]] * weights[i][:, None] for i in range(3)),
+                   start=np.zeros((tri_c.size, a.shape[1]), np.float32))
 
     position = np.zeros((size, size, 3), np.float32)
     position[covered] = interp(points)

@@ -21,9 +21,11 @@ from pipeline.reference_data import DEON_2007_SKIN
 from pipeline.render import (
     Renderer,
     RenderOptions,
+    bilinear,
     diffusion_terms,
     push_pull,
     render_files,
+    resample_bilinear,
 )
 from pipeline.scene import Light
 from pipeline.texture_maps import rasterize
@@ -205,6 +207,18 @@ def test_shared_variance_grid_reports_its_error() -> None:
     assert same.variances_mm2.size == 6 and "merged" in same.notes[0]
     with pytest.raises(InputError, match="single profile"):
         diffusion_terms(fits, single="nose")
+
+
+def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
+    rng = np.random.default_rng(2)
+    for shape, size in (((37, 50, 3), 16), ((1, 5, 3), 8), ((64, 64, 3), 64),
+                        ((20, 20, 3), 51)):
+        image = rng.random(shape).astype(np.float32)
+        centres = (np.arange(size) + 0.5) / size
+        uu, vv = np.meshgrid(centres, centres)
+        want = bilinear(image, np.stack([uu.ravel(), vv.ravel()], axis=1))
+        np.testing.assert_allclose(resample_bilinear(image, size),
+                                   want.reshape(size, size, 3), atol=1e-6)
 
 
 def test_push_pull_fills_holes_and_keeps_covered_texels() -> None:
