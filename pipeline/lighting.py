@@ -459,6 +459,16 @@ def irradiance_texture(
     skipped: list[str] = []
     n_rays = 0
     rng = np.random.default_rng(seed)
+    table = (1.0 - _rho_dt_table(float(roughness), float(rho_s))).astype(np.float32)
+    last = np.float32(table.size - 1)
+
+    def transmitted(cos: NDArray[np.float32]) -> NDArray[np.float32]:
+        """1 - rho_dt(cos), linear in the table (specular_albedo in float32)."""
+        x = np.clip(cos, 0, 1) * last
+        i = np.minimum(x.astype(np.int32), table.size - 2)
+        f = x - i
+        return table[i] * (1 - f) + table[i + 1] * f
+
     for light in lights:
         if not np.any(light.radiance > 0):
             skipped.append(f"light {light.path}: zero radiance")
@@ -474,15 +484,13 @@ def irradiance_texture(
                 return None, None, 0
             if cast.size == n:
                 blocked = rays.occluded(origins, d, dist)
-                cos = (nrm * d).sum(axis=1)
             else:
                 blocked = np.zeros(n, bool)
                 blocked[cast] = rays.occluded(origins[cast], d[cast], dist[cast])
-                cos = (nrm * d).sum(axis=1)
             # light the specular lobe reflects does not enter the skin
-            w = w * (1.0 - specular_albedo(cos, roughness, rho_s)).astype(np.float32).reshape(
-                (-1,) + (1,) * (w.ndim - 1))
-            return w * ~blocked.reshape(w.shape[:1] + (1,) * (w.ndim - 1)), w, cast.size
+            enters = transmitted(np.einsum("ij,ij->i", nrm, d))
+            w = w * (enters if w.ndim == 1 else enters[:, None])
+            return np.where(blocked if w.ndim == 1 else blocked[:, None], 0, w), w, cast.size
 
         lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
         unshadowed = np.zeros_like(lit)

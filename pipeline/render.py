@@ -418,6 +418,9 @@ class SkinTextures:
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
+    keys: dict[str, str] = field(default_factory=dict)
+    """Cache keys of the albedo and irradiance: what later tasks key on, instead of
+    hashing the maps themselves."""
 
 
 class Renderer:
@@ -476,7 +479,7 @@ class Renderer:
         albedo, source = self._cached(log, "albedo", albedo_key, lambda: albedo_map(
             mesh, opts.texture_size, scene.working_colorspace))
         log.measures["albedo_source"] = source
-        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo)
+        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo, keys={"albedo": albedo_key})
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]]) -> None:
@@ -513,6 +516,7 @@ class Renderer:
 
         e, filled, vis, res = self._cached(log, "irradiance", key, compute)
         tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
+        tex.keys["irradiance"] = key
         log.skipped += [s for s in res.skipped if s not in log.skipped]
         log.measures["irradiance"] = {"rays": res.rays, "seconds": res.seconds,
                                       "mrays_per_s": res.rays / max(res.seconds, 1e-9) / 1e6}
@@ -526,12 +530,14 @@ class Renderer:
         # blurs narrower than half a texel change nothing a texture can hold
         terms = diffusion_terms(tex.mesh.fits, opts.variance_grid, opts.single_profile,
                                 floor_mm2=(0.5 * texel_mm) ** 2)
-        key = content_hash(tex.irradiance, tex.albedo, terms.variances_mm2, terms.weights,
-                           opts.albedo_split, opts.scattering, opts.blur)
+        key = content_hash(tex.keys["irradiance"], tex.keys["albedo"], terms.variances_mm2,
+                           terms.weights, opts.albedo_split, opts.scattering, opts.blur)
 
         def compute() -> Any:
             a = opts.albedo_split
-            pre = tex.irradiance * np.power(tex.albedo, a)
+            # sqrt before and after (the default) without two general powers
+            before = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, a)
+            pre = tex.irradiance * before
             cov = maps.coverage
             skipped: list[str] = []
             if opts.scattering:
@@ -548,7 +554,7 @@ class Renderer:
             area = maps.mm_per_texel_u * maps.mm_per_texel_v * cov
             flux_in = float((pre.sum(axis=2) * area).sum())
             energy = float((out.sum(axis=2) * area).sum()) / flux_in if flux_in > 0 else 1.0
-            out = out * np.power(tex.albedo, 1.0 - a)
+            out = out * (before if a == 0.5 else np.power(tex.albedo, 1.0 - a))
             radiance = push_pull(out / math.pi, cov)
             return radiance, skipped, passes, energy, work
 
