@@ -85,10 +85,15 @@ def _rho_dt_table(roughness: float, rho_s: float, n: int = 64) -> NDArray[np.flo
 def specular_albedo(cos_theta: NDArray[Any], roughness: float = DEFAULT_ROUGHNESS,
                     rho_s: float = DEFAULT_RHO_S) -> NDArray[np.float64]:
     """rho_dt: the fraction of light arriving at cos_theta that the specular lobe
-    reflects (so 1 - rho_dt enters the skin)."""
-    table = _rho_dt_table(float(roughness), float(rho_s))
-    c = np.clip(np.asarray(cos_theta, dtype=np.float64), 0.0, 1.0)
-    return np.interp(c, np.linspace(0.0, 1.0, table.size), table)
+    reflects (so 1 - rho_dt enters the skin); linear in the table, in the precision of
+    ``cos_theta`` (float32 stays float32: it runs per shadow-ray sample)."""
+    c = np.asarray(cos_theta)
+    dtype = np.dtype(np.float32 if c.dtype == np.float32 else np.float64)
+    table = _rho_dt_table(float(roughness), float(rho_s)).astype(dtype)
+    x = np.clip(c.astype(dtype, copy=False), 0, 1) * dtype.type(table.size - 1)
+    i = np.minimum(x.astype(np.int32), table.size - 2)
+    f = x - i.astype(dtype)
+    return table[i] * (1 - f) + table[i + 1] * f
 
 
 # --------------------------------------------------------------------------- sampling
@@ -302,9 +307,9 @@ class LightSampler:
             w = np.maximum((nrm * d).sum(axis=1), 0) * self.solid / self.count
             return d, self.far, w
         if light.kind == "rect":
-            one = np.ones_like(np.asarray(u, dtype=np.float64))
+            zero = np.zeros_like(np.asarray(u, dtype=np.float64))
             local = np.stack([(np.asarray(u) - 0.5) * light.width,
-                              (np.asarray(v) - 0.5) * light.height, 0 * one, one], axis=-1)
+                              (np.asarray(v) - 0.5) * light.height, zero, zero + 1], axis=-1)
             to_p = (local @ light.matrix)[..., :3].astype(np.float32) - self.origins
             dist = np.linalg.norm(to_p, axis=1)
             d = to_p / np.maximum(dist, 1e-12)[:, None]
@@ -459,16 +464,6 @@ def irradiance_texture(
     skipped: list[str] = []
     n_rays = 0
     rng = np.random.default_rng(seed)
-    table = (1.0 - _rho_dt_table(float(roughness), float(rho_s))).astype(np.float32)
-    last = np.float32(table.size - 1)
-
-    def transmitted(cos: NDArray[np.float32]) -> NDArray[np.float32]:
-        """1 - rho_dt(cos), linear in the table (specular_albedo in float32)."""
-        x = np.clip(cos, 0, 1) * last
-        i = np.minimum(x.astype(np.int32), table.size - 2)
-        f = x - i
-        return table[i] * (1 - f) + table[i + 1] * f
-
     for light in lights:
         if not np.any(light.radiance > 0):
             skipped.append(f"light {light.path}: zero radiance")
@@ -488,7 +483,7 @@ def irradiance_texture(
                 blocked = np.zeros(n, bool)
                 blocked[cast] = rays.occluded(origins[cast], d[cast], dist[cast])
             # light the specular lobe reflects does not enter the skin
-            enters = transmitted(np.einsum("ij,ij->i", nrm, d))
+            enters = 1 - specular_albedo(np.einsum("ij,ij->i", nrm, d), roughness, rho_s)
             w = w * (enters if w.ndim == 1 else enters[:, None])
             return np.where(blocked if w.ndim == 1 else blocked[:, None], 0, w), w, cast.size
 

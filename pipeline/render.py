@@ -497,19 +497,20 @@ class Renderer:
             res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
                                      rays, opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave)
-            if interleave is not None and res.visibility:
-                res.visibility = interleaved_visibility(res, maps)
-                res.entering = res.entering_with(res.visibility)
+            visibility, entering = res.visibility, res.entering
+            if interleave is not None and visibility:
+                visibility = interleaved_visibility(res, maps)
+                entering = res.entering_with(visibility)
             e = np.zeros((*covered.shape, 3), np.float32)
-            e[covered] = res.entering
+            e[covered] = entering
             # one push-pull fills the irradiance and the visibility the specular lobe
             # looks up (dome lights light it unshadowed: theirs is not needed)
             kinds = {lt.path: lt.kind for lt in scene.lights}
-            spec = [p for p in res.visibility if kinds.get(p) != "dome"]
+            spec = [p for p in visibility if kinds.get(p) != "dome"]
             planes = np.zeros((*covered.shape, 3 + len(spec)), np.float32)
             planes[..., :3] = e
             for i, path in enumerate(spec):
-                planes[..., 3 + i][covered] = res.visibility[path]
+                planes[..., 3 + i][covered] = visibility[path]
             filled = push_pull(planes, maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             return e, filled[..., :3], vis, res
