@@ -207,21 +207,34 @@ class OpenCLBlur:
         return self.download()
 
 
-def _diffusion_inputs(
-    irradiance: NDArray[Any], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
-    region_weights: NDArray[Any] | None,
-) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float32],
-           NDArray[np.float32] | None, NDArray[np.bool_], BlurStats]:
-    """Checked arrays (E, v, term weights (R, K, 3), region weights or None), which
-    terms any present region uses, and stats noting the regions no texel uses."""
+def _check_irradiance(irradiance: NDArray[Any]) -> NDArray[np.float32]:
+    """(H, W, 3) float32 irradiance, every value finite (else InputError naming a texel)."""
     e = np.asarray(irradiance, dtype=np.float32)
     if e.ndim != 3 or e.shape[2] != 3:
         raise InputError(f"irradiance must be (H, W, 3), got {e.shape}")
-    h, w, _ = e.shape
-    bad = ~np.isfinite(e)
-    if bad.any():
-        y, x, c = np.argwhere(bad)[0]
+    # one float64 sum is finite exactly when every value is (a NaN or inf propagates and
+    # float32 values cannot overflow it); the texel is only looked for when it is not
+    if not np.isfinite(e.sum(dtype=np.float64)):
+        y, x, c = np.argwhere(~np.isfinite(e))[0]
         raise InputError(f"irradiance must be finite; texel ({x}, {y}) channel {c} is {e[y, x, c]}")
+    return e
+
+
+def _region_presence(region_weights: NDArray[np.float32] | None) -> NDArray[np.bool_] | None:
+    """Which regions any texel uses (None: one region everywhere)."""
+    if region_weights is None:
+        return None
+    n = region_weights.shape[-1]
+    return region_weights.reshape(-1, n).max(axis=0) > 0
+
+
+def _check_terms(
+    shape: tuple[int, int], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
+    region_weights: NDArray[Any] | None, present: NDArray[np.bool_] | None,
+) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.bool_], BlurStats]:
+    """Checked variances (K,) and term weights (R, K, 3) against a (H, W[, R]) layout,
+    which terms any present region uses, and stats noting the regions no texel uses."""
+    h, w = shape
     v = np.asarray(variances_mm2, dtype=np.float64)
     tw = np.asarray(term_weights, dtype=np.float32)
     if tw.ndim == 2:
@@ -232,21 +245,32 @@ def _diffusion_inputs(
     if region_weights is None:
         if n_regions != 1:
             raise InputError(f"{n_regions} regions' weights but no region weight map")
-        rw = None
-    else:
-        rw = np.asarray(region_weights, dtype=np.float32)
-        if rw.shape != (h, w, n_regions):
-            raise InputError(f"region weights must be ({h}, {w}, {n_regions}), got {rw.shape}")
+    elif region_weights.shape != (h, w, n_regions):
+        raise InputError(f"region weights must be ({h}, {w}, {n_regions}), "
+                         f"got {region_weights.shape}")
     if np.any(np.diff(v) < 0) or np.any(v <= 0) or not np.all(np.isfinite(v)):
         raise InputError(f"variances must be finite, > 0 and ascending, got {v.tolist()}")
     stats = BlurStats()
-    if rw is not None:
-        present = rw.reshape(-1, n_regions).max(axis=0) > 0
+    if present is not None:
         for r in np.flatnonzero(~present):
             stats.skipped.append(f"region {r}: no texel uses it")
         used = (tw[present].max(axis=(0, 2)) > 0) if present.any() else np.zeros(v.size, bool)
     else:
         used = tw[0].max(axis=1) > 0
+    return v, tw, used, stats
+
+
+def _diffusion_inputs(
+    irradiance: NDArray[Any], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
+    region_weights: NDArray[Any] | None,
+) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float32],
+           NDArray[np.float32] | None, NDArray[np.bool_], BlurStats]:
+    """Checked arrays (E, v, term weights (R, K, 3), region weights or None), which
+    terms any present region uses, and stats noting the regions no texel uses."""
+    e = _check_irradiance(irradiance)
+    rw = None if region_weights is None else np.asarray(region_weights, dtype=np.float32)
+    v, tw, used, stats = _check_terms(e.shape[:2], variances_mm2, term_weights, rw,
+                                      _region_presence(rw))
     return e, v, tw, rw, used, stats
 
 
@@ -348,53 +372,80 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
     dst[y * dw + x] = acc;
 }
 
-// acc += (sum_r rw[r] tw[term, r]) * rgb / alpha of a blurred (E cov, cov) texture read
-// at this texel (bilinearly from a level `scale` = 2^-k as large): normalised
-// convolution, so texels off the charts give nothing and take nothing.
-__kernel void accumulate_term(__global const float4 *level, __global float4 *acc,
-                              __global const float *cover, __global const float *rw,
-                              __global const float4 *tw, const int regions, const int term,
-                              const int w, const int h, const int lw, const int lh,
-                              const float scale)
+// A blurred (E cov, cov) texture at finest texel (x, y): read bilinearly from a level
+// `scale` = 2^-k as large (level k's texel j covers finest texels [j 2^k, (j + 1) 2^k)).
+inline float4 level_at(__global const float4 *level, const int x, const int y, const int w,
+                       const int h, const int lw, const int lh, const float scale)
+{
+    if (lw == w && lh == h) return level[y * w + x];
+    const float fx = clamp(((float)x + 0.5f) * scale - 0.5f, 0.0f, (float)(lw - 1));
+    const float fy = clamp(((float)y + 0.5f) * scale - 0.5f, 0.0f, (float)(lh - 1));
+    const int x0 = min((int)fx, lw - 2 < 0 ? 0 : lw - 2);
+    const int y0 = min((int)fy, lh - 2 < 0 ? 0 : lh - 2);
+    const int x1 = min(x0 + 1, lw - 1), y1 = min(y0 + 1, lh - 1);
+    const float ax = fx - (float)x0, ay = fy - (float)y0;
+    return (1.0f - ay) * ((1.0f - ax) * level[y0 * lw + x0] + ax * level[y0 * lw + x1])
+        + ay * ((1.0f - ax) * level[y1 * lw + x0] + ax * level[y1 * lw + x1]);
+}
+
+// acc += sum over the sources a and b (b absent: term_b < 0) of the source's
+// region-blended term weight (sum_r rw[r] tw[term, r]) times its rgb / alpha: normalised
+// convolution, so texels off the charts give nothing and take nothing. Two terms per
+// launch read the region weights, coverage and accumulator once for both; `init`
+// writes instead of adding (no clearing pass).
+__kernel void accumulate_terms(__global const float4 *src_a, const int lw_a, const int lh_a,
+                               const float scale_a, const int term_a,
+                               __global const float4 *src_b, const int lw_b, const int lh_b,
+                               const float scale_b, const int term_b,
+                               __global float4 *acc, __global const float *cover,
+                               __global const float *rw, __global const float4 *tw,
+                               const int regions, const int w, const int h, const int init)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const int i = y * w + x;
-    if (!(cover[i] > 0.0f)) return;
-    float4 t;
-    if (lw == w && lh == h) {
-        t = level[i];
-    } else {
-        const float fx = clamp(((float)x + 0.5f) * scale - 0.5f, 0.0f, (float)(lw - 1));
-        const float fy = clamp(((float)y + 0.5f) * scale - 0.5f, 0.0f, (float)(lh - 1));
-        const int x0 = min((int)fx, lw - 2 < 0 ? 0 : lw - 2);
-        const int y0 = min((int)fy, lh - 2 < 0 ? 0 : lh - 2);
-        const int x1 = min(x0 + 1, lw - 1), y1 = min(y0 + 1, lh - 1);
-        const float ax = fx - (float)x0, ay = fy - (float)y0;
-        t = (1.0f - ay) * ((1.0f - ax) * level[y0 * lw + x0] + ax * level[y0 * lw + x1])
-            + ay * ((1.0f - ax) * level[y1 * lw + x0] + ax * level[y1 * lw + x1]);
+    float4 sum = init ? (float4)(0.0f) : acc[i];
+    if (cover[i] > 0.0f) {
+        const float4 ta = level_at(src_a, x, y, w, h, lw_a, lh_a, scale_a);
+        const float4 tb = term_b < 0 ? (float4)(0.0f)
+                                     : level_at(src_b, x, y, w, h, lw_b, lh_b, scale_b);
+        float4 wa, wb;
+        if (regions == 0) {
+            wa = tw[term_a];
+            wb = term_b < 0 ? (float4)(0.0f) : tw[term_b];
+        } else {
+            wa = 0.0f; wb = 0.0f;
+            for (int r = 0; r < regions; ++r) {
+                const float q = rw[(size_t)i * regions + r];
+                wa += q * tw[term_a * regions + r];
+                if (term_b >= 0) wb += q * tw[term_b * regions + r];
+            }
+        }
+        if (ta.w > 1e-7f) sum += wa * (ta / ta.w);
+        if (tb.w > 1e-7f) sum += wb * (tb / tb.w);
     }
-    if (!(t.w > 1e-7f)) return;
-    float4 wgt;
-    if (regions == 0) {
-        wgt = tw[term];
-    } else {
-        wgt = 0.0f;
-        for (int r = 0; r < regions; ++r)
-            wgt += rw[(size_t)i * regions + r] * tw[term * regions + r];
-    }
-    acc[i] += wgt * (t / t.w);
+    acc[i] = sum;
+}
+
+// The accumulator's RGB, packed for the download.
+__kernel void rgb_of(__global const float4 *src, __global float *dst, const int texels)
+{
+    const int i = get_global_id(0);
+    if (i >= texels) return;
+    const float4 t = src[i];
+    dst[3 * i] = t.x; dst[3 * i + 1] = t.y; dst[3 * i + 2] = t.z;
 }
 """
 
 
 @lru_cache(maxsize=1)
-def _pyramid_kernels() -> tuple[Any, Any]:
-    """(downsample_tent, accumulate_term), built once per process."""
+def _pyramid_kernels() -> tuple[Any, Any, Any]:
+    """(downsample_tent, accumulate_terms, rgb_of), built once per process."""
     import pyopencl as cl
 
     program = build(_PYRAMID_KERNEL)
-    return cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_term")
+    return (cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_terms"),
+            cl.Kernel(program, "rgb_of"))
 
 
 def _added_variance_texels2(level: int) -> float:
@@ -422,24 +473,118 @@ def _level_shapes(h: int, w: int) -> list[tuple[int, int]]:
     return shapes
 
 
-def _table_bases(ctx: Any, mm: list[NDArray[np.float32]], levels: int) -> list[tuple[Any, Any]]:
-    """Device maps of 64 log2(mm per level-k texel) for k = 0..levels, u in row layout,
-    v transposed (the recursive kernel's second pass walks the transposed image); on
-    1/16 of a table step (sigma within 0.07%) so neighbouring texels share coefficients."""
+_PACK_KERNEL = r"""
+// (E cov, cov): the normalised convolution's input, from RGB irradiance and coverage
+__kernel void pack_coverage(__global const float *rgb, __global const float *cover,
+                            __global float4 *dst, const int texels)
+{
+    const int i = get_global_id(0);
+    if (i >= texels) return;
+    const float c = cover[i];
+    dst[i] = (float4)(c * rgb[3 * i], c * rgb[3 * i + 1], c * rgb[3 * i + 2], c);
+}
+"""
+
+
+@lru_cache(maxsize=1)
+def _pack_kernel() -> Any:
     import pyopencl as cl
 
-    from .recursive_blur import TABLE_STEPS_PER_OCTAVE
+    return cl.Kernel(build(_PACK_KERNEL), "pack_coverage")
 
-    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-    out = []
-    mm_k = mm
-    for k in range(levels + 1):
-        if k > 0:
-            mm_k = [_box_down(m) for m in mm_k]
-        bu, bv = (np.round(16 * TABLE_STEPS_PER_OCTAVE * np.log2(m * 2.0**k)) / 16 for m in mm_k)
-        out.append((cl.Buffer(ctx, flags, hostbuf=bu.astype(np.float32)),
-                    cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(bv.T, np.float32))))
-    return out
+
+class DiffusionLayout:
+    """What the diffusion of one texture layout needs besides the irradiance, on the
+    device: coverage, region weights, the pyramid's shapes, each level's per-texel
+    coefficient indices (texel size on a log2 grid, :func:`~.recursive_blur.quantized_log2`).
+    It depends on the UV layout and the texture size only, so a renderer makes it once
+    and reuses it for every frame and light (:func:`diffuse_prepared`), and it keeps the
+    work buffers: first touching fresh device memory costs PoCL about as much as a blur.
+    """
+
+    def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
+                 coverage: NDArray[Any], region_weights: NDArray[Any] | None = None) -> None:
+        import pyopencl as cl
+
+        from .recursive_blur import iir_kernels
+
+        cov = np.asarray(coverage, dtype=np.float32)
+        if cov.ndim != 2:
+            raise InputError(f"coverage must be (H, W), got {cov.shape}")
+        h, w = cov.shape
+        mm = [np.asarray(m, dtype=np.float32) for m in (mm_per_texel_u, mm_per_texel_v)]
+        if any(m.shape != (h, w) for m in mm):
+            raise InputError(f"coverage and mm-per-texel maps must be ({h}, {w})")
+        self.height, self.width = h, w
+        self.region_weights = None if region_weights is None else \
+            np.asarray(region_weights, dtype=np.float32)
+        if self.region_weights is not None and (self.region_weights.ndim != 3
+                                                or self.region_weights.shape[:2] != (h, w)):
+            raise InputError(f"region weights must be ({h}, {w}, R), "
+                             f"got {self.region_weights.shape}")
+        self.present = _region_presence(self.region_weights)
+        covered = cov > 0
+        self.any_covered = bool(covered.any())
+        self.shapes = _level_shapes(h, w)
+        self._index: dict[int, tuple[int, int, int, int, Any, Any]] = {}
+        self._buffers: dict[str, Any] = {}
+        if not self.any_covered:
+            return
+        on_chart = [m[covered] for m in mm]
+        for name, m, mc in zip("uv", mm, on_chart, strict=True):
+            if not (np.isfinite(mc).all() and mc.min() > 0):
+                y, x = np.argwhere(covered & ~(np.isfinite(m) & (m > 0)))[0]
+                raise InputError(f"mm per texel ({name}) must be finite and > 0 on covered "
+                                 f"texels; texel ({x}, {y}) has {m[y, x]}")
+        self.typical = [float(np.median(mc)) for mc in on_chart]
+        self.uniform = all(float(mc.max() - mc.min()) <= 1e-6 * float(mc.max())
+                           for mc in on_chart)
+        # the level is chosen for the narrowest blur but for the 1% smallest texels
+        self.coarse_mm = max(float(np.percentile(mc, 99.0)) for mc in on_chart)
+        self.finest_mm = min(float(mc.min()) for mc in on_chart)
+        del on_chart
+        # texels off the charts carry nothing, but the recursion runs through them: give
+        # them a typical size so their coefficients stay in range
+        self._mm = [np.where(covered, m, np.float32(t))
+                    for m, t in zip(mm, self.typical, strict=True)]
+        self.iir = iir_kernels()
+        ctx = self.iir.ctx
+        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        self.cover_buf = cl.Buffer(ctx, flags, hostbuf=cov)
+        self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
+        self.rw_buf = cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(
+            self.region_weights) if self.region_weights is not None else np.zeros(1, np.float32))
+
+    def level_index(self, k: int) -> tuple[int, int, int, int, Any, Any]:
+        """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
+        (row layout), v index buffer (transposed)) of level ``k``'s texel sizes on the
+        log2 grid; made on first use. A level-k texel's size is the mean of the finer
+        texels it covers."""
+        import pyopencl as cl
+
+        from .recursive_blur import quantized_log2
+
+        if k not in self._index:
+            mm_k = self._mm
+            for _ in range(k):
+                mm_k = [_box_down(m) for m in mm_k]
+            qu, qv = (quantized_log2(m * np.float32(2.0**k)) for m in mm_k)
+            flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+            lo_u, lo_v = int(qu.min()), int(qv.min())
+            self._index[k] = (
+                lo_u, int(qu.max()), lo_v, int(qv.max()),
+                cl.Buffer(self.iir.ctx, flags, hostbuf=(qu - lo_u).astype(np.int32)),
+                cl.Buffer(self.iir.ctx, flags,
+                          hostbuf=np.ascontiguousarray((qv - lo_v).T, np.int32)))
+        return self._index[k]
+
+    def buffer(self, name: str, nbytes: int) -> Any:
+        """A device work buffer, kept for the next diffusion of this layout."""
+        import pyopencl as cl
+
+        if name not in self._buffers:
+            self._buffers[name] = cl.Buffer(self.iir.ctx, cl.mem_flags.READ_WRITE, nbytes)
+        return self._buffers[name]
 
 
 def diffuse(
@@ -456,7 +601,20 @@ def diffuse(
     ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
     each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
     each region a texel is (None: one region everywhere). A texel's weights are the
-    region-blended ones, so borders between regions blend smoothly.
+    region-blended ones, so borders between regions blend smoothly. The layout is made
+    for this call; :class:`DiffusionLayout` and :func:`diffuse_prepared` keep it.
+    """
+    layout = DiffusionLayout(mm_per_texel_u, mm_per_texel_v, coverage, region_weights)
+    return diffuse_prepared(layout, irradiance, variances_mm2, term_weights)
+
+
+def diffuse_prepared(
+    layout: DiffusionLayout,
+    irradiance: NDArray[Any],
+    variances_mm2: NDArray[Any],
+    term_weights: NDArray[Any],
+) -> tuple[NDArray[np.float32], BlurStats]:
+    """:func:`diffuse` on a prepared layout.
 
     Each term is blurred from the irradiance by the recursive Gaussian of
     :mod:`.recursive_blur` (cost independent of its width), with per-texel sigma from
@@ -469,116 +627,124 @@ def diffuse(
     """
     import pyopencl as cl
 
-    from .recursive_blur import TABLE_MIN_SIGMA, TABLE_STEPS_PER_OCTAVE, iir_kernels
+    from .recursive_blur import QUANT_STEPS_PER_OCTAVE, TABLE_MIN_SIGMA
 
-    e, v, tw, rw, used, stats = _diffusion_inputs(irradiance, variances_mm2, term_weights,
-                                                  region_weights)
-    h, w, _ = e.shape
-    cov = np.asarray(coverage, dtype=np.float32)
-    mm = [np.asarray(m, dtype=np.float32) for m in (mm_per_texel_u, mm_per_texel_v)]
-    if cov.shape != (h, w) or any(m.shape != (h, w) for m in mm):
-        raise InputError(f"coverage and mm-per-texel maps must be ({h}, {w})")
-    covered = cov > 0
-    if not covered.any() or not used.any():
-        if not covered.any():
+    h, w = layout.height, layout.width
+    e = _check_irradiance(irradiance)
+    if e.shape[:2] != (h, w):
+        raise InputError(f"irradiance must be ({h}, {w}, 3) like its layout, got {e.shape}")
+    v, tw, used, stats = _check_terms((h, w), variances_mm2, term_weights,
+                                      layout.region_weights, layout.present)
+    if not layout.any_covered or not used.any():
+        if not layout.any_covered:
             stats.skipped.append("diffusion: no covered texel")
         return np.zeros((h, w, 3), np.float32), stats
-    on_chart = [m[covered] for m in mm]
-    for name, m, mc in zip("uv", mm, on_chart, strict=True):
-        if not (np.isfinite(mc).all() and mc.min() > 0):
-            y, x = np.argwhere(covered & ~(np.isfinite(m) & (m > 0)))[0]
-            raise InputError(f"mm per texel ({name}) must be finite and > 0 on covered texels;"
-                             f" texel ({x}, {y}) has {m[y, x]}")
-    typical = [float(np.median(mc)) for mc in on_chart]
-    uniform = all(float(mc.max() - mc.min()) <= 1e-6 * float(mc.max()) for mc in on_chart)
-    # the level is chosen for the narrowest blur but for the 1% smallest texels
-    coarse_mm = max(float(np.percentile(mc, 99.0)) for mc in on_chart)
-    finest_mm = min(float(mc.min()) for mc in on_chart)
-    del on_chart
-    # texels off the charts carry nothing, but the recursion runs through them: give
-    # them a typical size so their coefficients stay in range
-    mm = [np.where(covered, m, np.float32(t)) for m, t in zip(mm, typical, strict=True)]
-
-    iir = iir_kernels()
-    ctx, queue = iir.ctx, iir.queue
-    downsample, accumulate = _pyramid_kernels()
-    mf = cl.mem_flags
-    shapes = _level_shapes(h, w)
+    iir = layout.iir
+    queue = iir.queue
+    downsample, accumulate, rgb_of = _pyramid_kernels()
+    shapes = layout.shapes
     n_levels = len(shapes)
 
     def term_level(variance: float) -> int:
-        sigma = math.sqrt(variance) / coarse_mm  # narrowest blur, finest texels
+        sigma = math.sqrt(variance) / layout.coarse_mm  # narrowest blur, finest texels
         k = 0
         while k + 1 < n_levels and sigma / 2 ** (k + 1) >= LEVEL_MIN_SIGMA_TEXELS:
             k += 1
         return k
 
-    levels = [term_level(float(x)) for x in v]
-    need = max(lv for lv, u in zip(levels, used, strict=True) if u)
-    rgba = np.empty((h, w, 4), np.float32)
-    rgba[..., :3] = e * cov[..., None]
-    rgba[..., 3] = cov
-    pyramid = [cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=rgba)]
-    del rgba
-    for k in range(1, need + 1):
-        (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
-        pyramid.append(cl.Buffer(ctx, mf.READ_WRITE, dh * dw * 16))
-        downsample(queue, (dw, dh), None, pyramid[k - 1], pyramid[k], np.int32(sw),
-                   np.int32(sh), np.int32(dw), np.int32(dh))
-    bases = [(None, None)] * (need + 1) if uniform else _table_bases(ctx, mm, need)
-    nbytes = h * w * 16
-    work, tmp, scratch = (cl.Buffer(ctx, mf.READ_WRITE, nbytes) for _ in range(3))
-    acc = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
-    cl.enqueue_fill_buffer(queue, acc, np.float32(0.0), 0, nbytes)
-    cover_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cov)
-    n_regions = 0 if rw is None else tw.shape[0]
-    rw_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                       hostbuf=np.ascontiguousarray(rw) if rw is not None
-                       else np.zeros(1, np.float32))
-    tw4 = np.zeros((v.size, tw.shape[0], 4), np.float32)
-    tw4[..., :3] = np.transpose(tw, (1, 0, 2))
-    tw_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
-    blurred_texels = 0.0
-    last: tuple[float, int] | None = None
+    # one job per distinct (variance, level): equal variances share a blur, and their
+    # weights add (accumulation is linear in them); sub-texel terms share the unblurred
+    # irradiance (variance 0)
+    jobs: list[tuple[float, int]] = []
+    job_weights: list[NDArray[np.float32]] = []
     for i in range(v.size):
         if not used[i]:
             stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): zero weight everywhere")
             continue
-        k = levels[i]
-        lh, lw = shapes[k]
-        widest = math.sqrt(v[i]) / finest_mm
-        if widest < TABLE_MIN_SIGMA:
+        job = (float(v[i]), term_level(float(v[i])))
+        if math.sqrt(v[i]) / layout.finest_mm < TABLE_MIN_SIGMA:
             stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): narrower than a quarter "
                                  "texel, the unblurred irradiance")
-            source = pyramid[0]
-        elif last == (float(v[i]), k):
-            stats.skipped.append(f"term {i}: same variance as term {i - 1}, pass shared")
-            source = work
+            job = (0.0, 0)
+        if job in jobs:
+            if job[0] > 0:
+                stats.skipped.append(f"term {i}: same variance as term {i - 1}, pass shared")
+            job_weights[jobs.index(job)] += tw[:, i]
         else:
-            offsets = []
-            for axis in (0, 1):
-                added = _added_variance_texels2(k) * typical[axis] ** 2 if k else 0.0
-                v_eff = max(float(v[i]) - added, 1e-30)
-                offsets.append(TABLE_STEPS_PER_OCTAVE * (0.5 * math.log2(v_eff)
-                                                         - math.log2(TABLE_MIN_SIGMA)))
-            if uniform:
-                offsets = [o - TABLE_STEPS_PER_OCTAVE * math.log2(typical[a] * 2.0**k)
-                           for a, o in enumerate(offsets)]
-            iir.blur(pyramid[k], tmp, work, scratch, lh, lw, offsets[0], offsets[1],
-                     bases[k][0], bases[k][1])
-            stats.passes += 2
-            stats.levels.append(k)
-            blurred_texels += lh * lw
-            last = (float(v[i]), k)
-            source = work
-        src_k = 0 if source is pyramid[0] else k
-        src_h, src_w = shapes[src_k]
-        # level k's texel j covers finest texels [j 2^k, (j + 1) 2^k)
-        accumulate(queue, (w, h), None, source, acc, cover_buf, rw_buf, tw_buf,
-                   np.int32(n_regions), np.int32(i), np.int32(w), np.int32(h),
-                   np.int32(src_w), np.int32(src_h), np.float32(0.5**src_k))
-    out = np.empty((h, w, 4), np.float32)
-    cl.enqueue_copy(queue, out, acc)
+            jobs.append(job)
+            job_weights.append(tw[:, i].copy())
+    need = max(k for _, k in jobs)
+    nbytes = h * w * 16
+    mf = cl.mem_flags
+    tmp, acc = layout.buffer("tmp", nbytes), layout.buffer("acc", nbytes)
+    pyramid = [layout.buffer("level0", nbytes)]
+    cl.enqueue_copy(queue, tmp, np.ascontiguousarray(e))  # RGB: 12 of its 16 bytes a texel
+    _pack_kernel()(queue, (h * w,), None, tmp, layout.cover_buf, pyramid[0], np.int32(h * w))
+    for k in range(1, need + 1):
+        (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
+        pyramid.append(layout.buffer(f"level{k}", dh * dw * 16))
+        downsample(queue, (dw, dh), None, pyramid[k - 1], pyramid[k], np.int32(sw),
+                   np.int32(sh), np.int32(dw), np.int32(dh))
+    tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
+    tw4[..., :3] = np.stack(job_weights)
+    tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
+    weights = (acc, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(layout.n_regions),
+               np.int32(w), np.int32(h))
+    launches = 0
+
+    def add(a: tuple[Any, int, int], b: tuple[Any, int, int] | None) -> None:
+        """Accumulate one or two (buffer, level, job) sources."""
+        nonlocal launches
+        args = []
+        for src in (a, b if b is not None else (a[0], a[1], -1)):
+            lh, lw = shapes[src[1]]
+            args += [src[0], np.int32(lw), np.int32(lh), np.float32(0.5 ** src[1]),
+                     np.int32(src[2])]
+        accumulate(queue, (w, h), None, *args, *weights, np.int32(launches == 0))
+        launches += 1
+
+    blurred_texels = 0.0
+    # coarse terms and the unblurred irradiance wait in their own buffers, each paired
+    # with a full-resolution term (which has one work buffer) when that is accumulated
+    waiting: list[tuple[Any, int, int]] = []
+    full: list[tuple[int, Any, Any, Any, Any]] = []
+    for j, (variance, k) in enumerate(jobs):
+        lh, lw = shapes[k]
+        if variance == 0.0:
+            waiting.append((pyramid[0], 0, j))
+            continue
+        # sigma in mm per axis, less what the pyramid and its bilinear read add
+        sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2
+                                              if k else 0.0), 1e-30))
+                    for t in layout.typical]
+        if layout.uniform:
+            coefs = [iir.coefficients(sg / (t * 2.0**k))
+                     for sg, t in zip(sigma_mm, layout.typical, strict=True)]
+            index: list[Any] = [None, None]
+        else:
+            lo_u, hi_u, lo_v, hi_v, index_u, index_v = layout.level_index(k)
+            coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
+                     for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
+            index = [index_u, index_v]
+        stats.passes += 2
+        stats.levels.append(k)
+        blurred_texels += lh * lw
+        if k == 0:
+            full.append((j, coefs[0], coefs[1], index[0], index[1]))
+            continue
+        work = layout.buffer(f"level{k}.{len(waiting)}", lh * lw * 16)
+        iir.blur(pyramid[k], tmp, work, lh, lw, coefs[0], coefs[1], index[0], index[1])
+        waiting.append((work, k, j))
+    work = layout.buffer("work0", nbytes) if full else None
+    for j, *blur in full:
+        iir.blur(pyramid[0], tmp, work, h, w, *blur)
+        add((work, 0, j), waiting.pop() if waiting else None)
+    while waiting:
+        add(waiting.pop(), waiting.pop() if waiting else None)
+    rgb = tmp  # free again: the RGB download is 12 of its 16 bytes a texel
+    rgb_of(queue, (h * w,), None, acc, rgb, np.int32(h * w))
+    out = np.empty((h, w, 3), np.float32)
+    cl.enqueue_copy(queue, out, rgb)
     queue.finish()
     stats.full_blurs = blurred_texels / (h * w)
-    return out[..., :3], stats
+    return out, stats

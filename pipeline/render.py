@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from .diffusion import diffuse, diffuse_gather
+from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
 from .errors import InputError, SkinpipeError
 from .fit import FitResult
 from .lighting import (
@@ -419,8 +419,8 @@ class SkinTextures:
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
     keys: dict[str, str] = field(default_factory=dict)
-    """Cache keys of the albedo and irradiance: what later tasks key on, instead of
-    hashing the maps themselves."""
+    """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
+    instead of hashing the maps themselves."""
 
 
 class Renderer:
@@ -479,7 +479,8 @@ class Renderer:
         albedo, source = self._cached(log, "albedo", albedo_key, lambda: albedo_map(
             mesh, opts.texture_size, scene.working_colorspace))
         log.measures["albedo_source"] = source
-        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo, keys={"albedo": albedo_key})
+        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo,
+                            keys={"maps": key, "albedo": albedo_key})
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]]) -> None:
@@ -534,6 +535,16 @@ class Renderer:
         key = content_hash(tex.keys["irradiance"], tex.keys["albedo"], terms.variances_mm2,
                            terms.weights, opts.albedo_split, opts.scattering, opts.blur)
 
+        def layout() -> tuple[DiffusionLayout, NDArray[np.float32]]:
+            # depends on the UV layout only: made once for every frame and light
+            return (DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                                    maps.region_weights),
+                    (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel())
+
+        if f"diffusion:{key}" not in self._cache:
+            # its own task (not timed inside the diffusion's): a frame's diffusion reuses it
+            prepared, area = self._cached(log, "diffusion_layout", tex.keys["maps"], layout)
+
         def compute() -> Any:
             a = opts.albedo_split
             # sqrt before and after (the default) without two general powers
@@ -542,9 +553,13 @@ class Renderer:
             cov = maps.coverage
             skipped: list[str] = []
             if opts.scattering:
-                run = diffuse if opts.blur == "recursive" else diffuse_gather
-                out, stats = run(pre, maps.mm_per_texel_u, maps.mm_per_texel_v, cov,
-                                 terms.variances_mm2, terms.weights, maps.region_weights)
+                if opts.blur == "recursive":
+                    out, stats = diffuse_prepared(prepared, pre, terms.variances_mm2,
+                                                  terms.weights)
+                else:
+                    out, stats = diffuse_gather(pre, maps.mm_per_texel_u, maps.mm_per_texel_v,
+                                                cov, terms.variances_mm2, terms.weights,
+                                                maps.region_weights)
                 skipped, passes = stats.skipped, stats.passes
                 work = {"pyramid_levels": stats.levels,
                         "full_resolution_blurs": stats.full_blurs}
@@ -552,9 +567,9 @@ class Renderer:
                 out, passes, work = pre, 0, {}
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             # the blur moves flux, it must not create or lose it (chart borders included)
-            area = maps.mm_per_texel_u * maps.mm_per_texel_v * cov
-            flux_in = float((pre.sum(axis=2) * area).sum())
-            energy = float((out.sum(axis=2) * area).sum()) / flux_in if flux_in > 0 else 1.0
+            flux_in = float((area @ pre.reshape(-1, 3)).sum())
+            flux_out = float((area @ out.reshape(-1, 3)).sum())
+            energy = flux_out / flux_in if flux_in > 0 else 1.0
             out = out * (before if a == 0.5 else np.power(tex.albedo, 1.0 - a))
             radiance = push_pull(out / math.pi, cov)
             return radiance, skipped, passes, energy, work
