@@ -10,7 +10,6 @@ the UV layout. Row j of a map holds v = (j + 0.5) / size; column i holds u.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -109,17 +108,18 @@ def rasterize(
     tri_c = triangle[covered]
     corner = tris[tri_c]  # (N, 3) vertex indices
     b12 = bary[covered]
-    weights = (1 - b12[:, 0] - b12[:, 1], b12[:, 0], b12[:, 1])
-
-    def interp(attr: NDArray[Any]) -> NDArray[np.float32]:
-        a = np.asarray(attr, np.float32)
-        return sum((a[corner[:, i]] * weights[i][:, None] for i in range(3)),
-                   start=np.zeros((tri_c.size, a.shape[1]), np.float32))
-
+    w0 = 1 - b12[:, 0] - b12[:, 1]
+    # every per-vertex attribute in one (V, 6 + R) table: three gathers of whole rows
+    table = np.concatenate([np.asarray(points, np.float32), normals.astype(np.float32)]
+                           + ([np.asarray(region_weights, np.float32)]
+                              if region_weights is not None else []), axis=1)
+    attrs = table[corner[:, 0]] * w0[:, None]
+    attrs += table[corner[:, 1]] * b12[:, :1]
+    attrs += table[corner[:, 2]] * b12[:, 1:]
     position = np.zeros((size, size, 3), np.float32)
-    position[covered] = interp(points)
+    position[covered] = attrs[:, :3]
     normal = np.zeros((size, size, 3), np.float32)
-    nrm = interp(normals)
+    nrm = attrs[:, 3:6]
     normal[covered] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     mm_u = np.zeros((size, size), np.float32)
     mm_v = np.zeros((size, size), np.float32)
@@ -127,5 +127,5 @@ def rasterize(
     regions = None
     if region_weights is not None:
         regions = np.zeros((size, size, region_weights.shape[1]), np.float32)
-        regions[covered] = interp(np.asarray(region_weights, np.float64))
+        regions[covered] = attrs[:, 6:]
     return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions)
