@@ -134,6 +134,9 @@ def summary_table(s: dict[str, Any]) -> str:
                   if "max_diff_vs_naive" in e else "")
             lines.append(f"| {row['texture_size']} | {name} | {e['seconds']:.2f} | "
                          f"{e.get('full_resolution_blurs', '')} | {vs} | {df} |")
+    rows = [r for r in s["diffusion"]["rows"] if "diffusion_layout_s" in r]
+    lines += ["", "Layout preparation (once per UV layout and texture size): " + ", ".join(
+        f"{r['texture_size']}: {r['diffusion_layout_s']:.2f} s" for r in rows) + "."]
     lines += ["", "| texture | irradiance rays | Mrays/s |", "|---|---|---|"]
     lines += [f"| {row['texture_size']} | {row['irradiance_rays'] / 1e6:.1f} M | "
               f"{row['irradiance_mrays_per_s']:.2f} |" for row in s["diffusion"]["rows"]]

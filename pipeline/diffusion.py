@@ -354,6 +354,16 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= dw || y >= dh) return;
+    if (x > 0 && y > 0 && x < dw - 1 && y < dh - 1 && 2 * x + 2 < sw && 2 * y + 2 < sh) {
+        // interior: every tap inside, no edge weights (branch-free, 3x faster)
+        float4 rows[4];
+        for (int j = 0; j < 4; ++j) {
+            __global const float4 *r = src + (size_t)(2 * y + j - 1) * sw + 2 * x - 1;
+            rows[j] = 0.125f * (r[0] + r[3]) + 0.375f * (r[1] + r[2]);
+        }
+        dst[y * dw + x] = 0.125f * (rows[0] + rows[3]) + 0.375f * (rows[1] + rows[2]);
+        return;
+    }
     float wx[4] = {0.125f, 0.375f, 0.375f, 0.125f};
     float wy[4] = {0.125f, 0.375f, 0.375f, 0.125f};
     if (x == 0) wx[1] += 0.125f;
@@ -372,59 +382,42 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
     dst[y * dw + x] = acc;
 }
 
-// A blurred (E cov, cov) texture at finest texel (x, y): read bilinearly from a level
-// `scale` = 2^-k as large (level k's texel j covers finest texels [j 2^k, (j + 1) 2^k)).
-inline float4 level_at(__global const float4 *level, const int x, const int y, const int w,
-                       const int h, const int lw, const int lh, const float scale)
-{
-    if (lw == w && lh == h) return level[y * w + x];
-    const float fx = clamp(((float)x + 0.5f) * scale - 0.5f, 0.0f, (float)(lw - 1));
-    const float fy = clamp(((float)y + 0.5f) * scale - 0.5f, 0.0f, (float)(lh - 1));
-    const int x0 = min((int)fx, lw - 2 < 0 ? 0 : lw - 2);
-    const int y0 = min((int)fy, lh - 2 < 0 ? 0 : lh - 2);
-    const int x1 = min(x0 + 1, lw - 1), y1 = min(y0 + 1, lh - 1);
-    const float ax = fx - (float)x0, ay = fy - (float)y0;
-    return (1.0f - ay) * ((1.0f - ax) * level[y0 * lw + x0] + ax * level[y0 * lw + x1])
-        + ay * ((1.0f - ax) * level[y1 * lw + x0] + ax * level[y1 * lw + x1]);
-}
-
-// acc += sum over the sources a and b (b absent: term_b < 0) of the source's
-// region-blended term weight (sum_r rw[r] tw[term, r]) times its rgb / alpha: normalised
-// convolution, so texels off the charts give nothing and take nothing. Two terms per
-// launch read the region weights, coverage and accumulator once for both; `init`
-// writes instead of adding (no clearing pass).
-__kernel void accumulate_terms(__global const float4 *src_a, const int lw_a, const int lh_a,
-                               const float scale_a, const int term_a,
-                               __global const float4 *src_b, const int lw_b, const int lh_b,
-                               const float scale_b, const int term_b,
-                               __global float4 *acc, __global const float *cover,
-                               __global const float *rw, __global const float4 *tw,
-                               const int regions, const int w, const int h, const int init)
+// acc += (sum_r rw[r] tw[term, r]) * rgb / alpha of a blurred (E cov, cov) texture read
+// at this texel (bilinearly from a level `scale` = 2^-k as large): normalised
+// convolution, so texels off the charts give nothing and take nothing.
+__kernel void accumulate_term(__global const float4 *level, __global float4 *acc,
+                              __global const float *cover, __global const float *rw,
+                              __global const float4 *tw, const int regions, const int term,
+                              const int w, const int h, const int lw, const int lh,
+                              const float scale)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const int i = y * w + x;
-    float4 sum = init ? (float4)(0.0f) : acc[i];
-    if (cover[i] > 0.0f) {
-        const float4 ta = level_at(src_a, x, y, w, h, lw_a, lh_a, scale_a);
-        const float4 tb = term_b < 0 ? (float4)(0.0f)
-                                     : level_at(src_b, x, y, w, h, lw_b, lh_b, scale_b);
-        float4 wa, wb;
-        if (regions == 0) {
-            wa = tw[term_a];
-            wb = term_b < 0 ? (float4)(0.0f) : tw[term_b];
-        } else {
-            wa = 0.0f; wb = 0.0f;
-            for (int r = 0; r < regions; ++r) {
-                const float q = rw[(size_t)i * regions + r];
-                wa += q * tw[term_a * regions + r];
-                if (term_b >= 0) wb += q * tw[term_b * regions + r];
-            }
-        }
-        if (ta.w > 1e-7f) sum += wa * (ta / ta.w);
-        if (tb.w > 1e-7f) sum += wb * (tb / tb.w);
+    if (!(cover[i] > 0.0f)) return;
+    float4 t;
+    if (lw == w && lh == h) {
+        t = level[i];
+    } else {
+        const float fx = clamp(((float)x + 0.5f) * scale - 0.5f, 0.0f, (float)(lw - 1));
+        const float fy = clamp(((float)y + 0.5f) * scale - 0.5f, 0.0f, (float)(lh - 1));
+        const int x0 = min((int)fx, lw - 2 < 0 ? 0 : lw - 2);
+        const int y0 = min((int)fy, lh - 2 < 0 ? 0 : lh - 2);
+        const int x1 = min(x0 + 1, lw - 1), y1 = min(y0 + 1, lh - 1);
+        const float ax = fx - (float)x0, ay = fy - (float)y0;
+        t = (1.0f - ay) * ((1.0f - ax) * level[y0 * lw + x0] + ax * level[y0 * lw + x1])
+            + ay * ((1.0f - ax) * level[y1 * lw + x0] + ax * level[y1 * lw + x1]);
     }
-    acc[i] = sum;
+    if (!(t.w > 1e-7f)) return;
+    float4 wgt;
+    if (regions == 0) {
+        wgt = tw[term];
+    } else {
+        wgt = 0.0f;
+        for (int r = 0; r < regions; ++r)
+            wgt += rw[(size_t)i * regions + r] * tw[term * regions + r];
+    }
+    acc[i] += wgt * (t / t.w);
 }
 
 // The accumulator's RGB, packed for the download.
@@ -440,11 +433,11 @@ __kernel void rgb_of(__global const float4 *src, __global float *dst, const int 
 
 @lru_cache(maxsize=1)
 def _pyramid_kernels() -> tuple[Any, Any, Any]:
-    """(downsample_tent, accumulate_terms, rgb_of), built once per process."""
+    """(downsample_tent, accumulate_term, rgb_of), built once per process."""
     import pyopencl as cl
 
     program = build(_PYRAMID_KERNEL)
-    return (cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_terms"),
+    return (cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_term"),
             cl.Kernel(program, "rgb_of"))
 
 
@@ -688,30 +681,20 @@ def diffuse_prepared(
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
     tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
-    weights = (acc, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(layout.n_regions),
-               np.int32(w), np.int32(h))
-    launches = 0
+    weights = (acc, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(layout.n_regions))
+    cl.enqueue_fill_buffer(queue, acc, np.float32(0.0), 0, nbytes)
 
-    def add(a: tuple[Any, int, int], b: tuple[Any, int, int] | None) -> None:
-        """Accumulate one or two (buffer, level, job) sources."""
-        nonlocal launches
-        args = []
-        for src in (a, b if b is not None else (a[0], a[1], -1)):
-            lh, lw = shapes[src[1]]
-            args += [src[0], np.int32(lw), np.int32(lh), np.float32(0.5 ** src[1]),
-                     np.int32(src[2])]
-        accumulate(queue, (w, h), None, *args, *weights, np.int32(launches == 0))
-        launches += 1
+    def add(src: Any, k: int, j: int) -> None:
+        """acc += job j's weights times the blurred level-k image ``src``, normalised."""
+        lh, lw = shapes[k]
+        accumulate(queue, (w, h), None, src, *weights, np.int32(j), np.int32(w), np.int32(h),
+                   np.int32(lw), np.int32(lh), np.float32(0.5**k))
 
     blurred_texels = 0.0
-    # coarse terms and the unblurred irradiance wait in their own buffers, each paired
-    # with a full-resolution term (which has one work buffer) when that is accumulated
-    waiting: list[tuple[Any, int, int]] = []
-    full: list[tuple[int, Any, Any, Any, Any]] = []
     for j, (variance, k) in enumerate(jobs):
         lh, lw = shapes[k]
         if variance == 0.0:
-            waiting.append((pyramid[0], 0, j))
+            add(pyramid[0], 0, j)
             continue
         # sigma in mm per axis, less what the pyramid and its bilinear read add
         sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2
@@ -726,21 +709,12 @@ def diffuse_prepared(
             coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
                      for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
             index = [index_u, index_v]
+        work = layout.buffer(f"work{k}", lh * lw * 16)
+        iir.blur(pyramid[k], tmp, work, lh, lw, coefs[0], coefs[1], index[0], index[1])
+        add(work, k, j)
         stats.passes += 2
         stats.levels.append(k)
         blurred_texels += lh * lw
-        if k == 0:
-            full.append((j, coefs[0], coefs[1], index[0], index[1]))
-            continue
-        work = layout.buffer(f"level{k}.{len(waiting)}", lh * lw * 16)
-        iir.blur(pyramid[k], tmp, work, lh, lw, coefs[0], coefs[1], index[0], index[1])
-        waiting.append((work, k, j))
-    work = layout.buffer("work0", nbytes) if full else None
-    for j, *blur in full:
-        iir.blur(pyramid[0], tmp, work, h, w, *blur)
-        add((work, 0, j), waiting.pop() if waiting else None)
-    while waiting:
-        add(waiting.pop(), waiting.pop() if waiting else None)
     rgb = tmp  # free again: the RGB download is 12 of its 16 bytes a texel
     rgb_of(queue, (h * w,), None, acc, rgb, np.int32(h * w))
     out = np.empty((h, w, 3), np.float32)
