@@ -9,8 +9,10 @@ texels (1D). Its variance is 0.45% short of sigma^2 (in the tails); the sigma pa
 is solved for the exact variance below 0.8 texel (closed form of the second moment from
 the poles), where sampling makes any short filter narrower than sigma^2.
 
-Coefficients vary per texel (sigma from the stretch map), looked up in a table over
-log2(sigma) with linear interpolation (64 entries per octave). Chart borders are
+Coefficients vary per texel (sigma from the stretch map): per-texel sigmas are kept on
+a log2 grid of 1/1024 octave, each texel holds an index, and the coefficients of each
+index in use are interpolated on the host from a table over log2(sigma) (64 entries per
+octave) and loaded by the kernel per texel. Chart borders are
 handled by normalised convolution: alpha carries the coverage, RGB the irradiance
 times coverage, and a term is RGB / alpha after the blur, so uncovered texels give
 nothing and take nothing.

@@ -537,15 +537,18 @@ class Renderer:
         key = content_hash(tex.keys["irradiance"], tex.keys["albedo"], terms.variances_mm2,
                            terms.weights, opts.albedo_split, opts.scattering, opts.blur)
 
-        def layout() -> tuple[DiffusionLayout, NDArray[np.float32]]:
+        recursive = opts.scattering and opts.blur == "recursive"
+
+        def layout() -> tuple[DiffusionLayout | None, NDArray[np.float32]]:
             # depends on the UV layout only: made once for every frame and light
             return (DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                                    maps.region_weights),
+                                    maps.region_weights) if recursive else None,
                     (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel())
 
         if f"diffusion:{key}" not in self._cache:
             # its own task (not timed inside the diffusion's): a frame's diffusion reuses it
-            prepared, area = self._cached(log, "diffusion_layout", tex.keys["maps"], layout)
+            prepared, area = self._cached(log, "diffusion_layout",
+                                          content_hash(tex.keys["maps"], recursive), layout)
 
         def compute() -> Any:
             a = opts.albedo_split
@@ -555,7 +558,7 @@ class Renderer:
             cov = maps.coverage
             skipped: list[str] = []
             if opts.scattering:
-                if opts.blur == "recursive":
+                if prepared is not None:
                     out, stats = diffuse_prepared(prepared, pre, terms.variances_mm2,
                                                   terms.weights)
                 else:

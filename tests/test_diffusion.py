@@ -214,3 +214,31 @@ def test_extreme_variances_keep_energy() -> None:
     _, got, _ = _pencil(65, 0.1, 0.1, v, w)
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got.sum(axis=0) * 0.01, 1.0, rtol=1e-3)
+
+
+def test_a_prepared_layout_serves_many_diffusions_like_a_fresh_one() -> None:
+    # the layout keeps its device maps and work buffers between calls: different term
+    # sets (other levels, merged equal variances, a sub-texel term) and irradiances
+    # on it give what a fresh `diffuse` gives, and a wrong-sized irradiance is refused
+    from pipeline.diffusion import DiffusionLayout, diffuse_prepared
+
+    rng = np.random.default_rng(5)
+    n = 75  # odd: pyramid levels of odd size, rows not a multiple of four
+    yy, xx = np.mgrid[0:n, 0:n]
+    cov = (np.hypot(xx - 37, yy - 40) < 33).astype(np.float32)
+    mm_u = np.tile(np.linspace(0.05, 0.09, n), (n, 1))
+    mm_v = np.full((n, n), 0.07)
+    rw = np.stack([xx / (n - 1), 1 - xx / (n - 1)], -1)
+    layout = DiffusionLayout(mm_u, mm_v, cov, rw)
+    cases = [(np.array([1e-6, 0.004, 0.004, 0.3]), rng.random((2, 4, 3))),
+             (np.array([0.01, 0.5, 2.0]), rng.random((2, 3, 3))),
+             (np.array([1e-6, 0.004, 0.004, 0.3]), rng.random((2, 4, 3)))]
+    for v, w in cases:
+        e = rng.random((n, n, 3)).astype(np.float32)
+        got, stats = diffuse_prepared(layout, e, v, w)
+        fresh, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+        np.testing.assert_array_equal(got, fresh)
+        assert got.shape == (n, n, 3) and got.flags.c_contiguous
+    assert any("pass shared" in s for s in stats.skipped)
+    with pytest.raises(InputError, match="like its layout"):
+        diffuse_prepared(layout, np.ones((n, n + 1, 3), np.float32), v, w)
