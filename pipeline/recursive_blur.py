@@ -120,13 +120,13 @@ def _coefficients_at(sigma: NDArray[Any]) -> NDArray[np.float64]:
 
 def recursive_reference(image: NDArray[Any], sigma_u: NDArray[Any], sigma_v: NDArray[Any]
                         ) -> NDArray[np.float64]:
-    """float64 numpy version of :class:`RecursiveBlur` (u pass, then v pass), per-texel
-    coefficients interpolated from the same table. For tests and small images."""
+    """float64 numpy version of :class:`RecursiveBlur` (u pass, then v pass) for per-texel
+    sigma maps (H, W): sigma on the kernel's quantised grid, coefficients interpolated
+    from the same table. For tests and small images."""
     out = np.asarray(image, np.float64)
     for axis, sigma in ((1, sigma_u), (0, sigma_v)):
         x = np.moveaxis(out, axis, 0)           # lines along axis 0
-        sig = sigma if np.ndim(sigma) == 0 else quantized_sigma(sigma)
-        co = np.moveaxis(_coefficients_at(sig), axis, 0)[..., None]
+        co = np.moveaxis(_coefficients_at(quantized_sigma(sigma)), axis, 0)[..., None]
         n = x.shape[0]
         total = np.zeros_like(x)
         for sec in (0, 6):
