@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .direct_blur import direct_kernels, prefers_direct
 from .errors import InputError
 from .opencl import build, cl_context
 
@@ -141,6 +142,7 @@ class BlurStats:
     """What the diffusion did: passes run, passes skipped and why."""
 
     passes: int = 0
+    """Passes over a texture: two per recursive 2D blur, one per direct one."""
     skipped: list[str] = field(default_factory=list)
     levels: list[int] = field(default_factory=list)
     """Pyramid level each blurred term ran on (0: full resolution)."""
@@ -700,19 +702,23 @@ def diffuse_prepared(
         sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2
                                               if k else 0.0), 1e-30))
                     for t in layout.typical]
+        work = layout.buffer(f"work{k}", lh * lw * 16)
         if layout.uniform:
-            coefs = [iir.coefficients(sg / (t * 2.0**k))
-                     for sg, t in zip(sigma_mm, layout.typical, strict=True)]
-            index: list[Any] = [None, None]
+            su, sv = (sg / (t * 2.0**k) for sg, t in zip(sigma_mm, layout.typical, strict=True))
+            if prefers_direct(su, sv):  # narrow: one pass of the direct kernel is cheaper
+                direct_kernels().blur(pyramid[k], work, lh, lw, su, sv)
+                stats.passes += 1
+            else:
+                iir.blur(pyramid[k], tmp, work, lh, lw, iir.coefficients(su),
+                         iir.coefficients(sv))
+                stats.passes += 2
         else:
             lo_u, hi_u, lo_v, hi_v, index_u, index_v = layout.level_index(k)
             coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
                      for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
-            index = [index_u, index_v]
-        work = layout.buffer(f"work{k}", lh * lw * 16)
-        iir.blur(pyramid[k], tmp, work, lh, lw, coefs[0], coefs[1], index[0], index[1])
+            iir.blur(pyramid[k], tmp, work, lh, lw, coefs[0], coefs[1], index_u, index_v)
+            stats.passes += 2
         add(work, k, j)
-        stats.passes += 2
         stats.levels.append(k)
         blurred_texels += lh * lw
     rgb = tmp  # free again: the RGB download is 12 of its 16 bytes a texel

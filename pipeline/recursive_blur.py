@@ -209,8 +209,8 @@ __kernel void iir_rows_transposed(__global const float4 *src, __global float4 *d
             const float4 p = c0.z * a1[l] + c0.w * a2[l] - c1.x * p1[l] - c1.y * p2[l];
             const float4 q = c2.x * a1[l] + c2.y * a2[l] - c2.z * q1[l] - c2.w * q2[l];
             const float4 x = src[row[l] + i];
-            if (l < valid) dst[(size_t)i * (size_t)lines + (size_t)(L0 + l)] =
-                scratch[l * n + i] + p + q;
+            if (l < valid) STORE(scratch[l * n + i] + p + q,
+                                 dst + (size_t)i * (size_t)lines + (size_t)(L0 + l));
             a2[l] = a1[l]; a1[l] = x; p2[l] = p1[l]; p1[l] = p; q2[l] = q1[l]; q1[l] = q;
         }
     }
@@ -239,14 +239,14 @@ class IIRKernels:
     def __init__(self) -> None:
         import pyopencl as cl
 
-        from .opencl import build, cl_context
+        from .opencl import STORE_MACRO, build, cl_context
 
         self.ctx, self.queue = cl_context()
         self.kernels = {
-            uniform: cl.Kernel(build(_KERNEL, [f"-DUNIFORM={int(uniform)}",
-                                               f"-DLINES={LINES_PER_ITEM}"]),
-                               "iir_rows_transposed")
-            for uniform in (False, True)}
+            (uniform, stream): cl.Kernel(build(STORE_MACRO + _KERNEL, [
+                f"-DUNIFORM={int(uniform)}", f"-DLINES={LINES_PER_ITEM}",
+                f"-DSTREAM={int(stream)}"]), "iir_rows_transposed")
+            for uniform in (False, True) for stream in (False, True)}
         self.max_line = int(self.ctx.devices[0].local_mem_size) // (16 * LINES_PER_ITEM)
 
     def coefficients(self, sigma: NDArray[Any]) -> Any:
@@ -267,7 +267,10 @@ class IIRKernels:
             raise InputError(f"recursive blur: lines of {n} texels exceed this device's "
                              f"local memory ({self.max_line} at most)")
         # the one-sigma kernel never reads `index`: any buffer fills the argument
-        self.kernels[index is None](
+        from .opencl import STREAM_MIN_BYTES
+
+        stream = n * lines * 16 >= STREAM_MIN_BYTES
+        self.kernels[index is None, stream](
             self.queue, (-(-lines // LINES_PER_ITEM),), (1,), src, dst,
             cl.LocalMemory(16 * LINES_PER_ITEM * n), coefs if index is None else index,
             coefs, np.int32(n), np.int32(lines))
