@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from .direct_blur import direct_kernels, prefers_direct
 from .errors import InputError
-from .opencl import build, cl_context
+from .opencl import DeviceTexture, build, cl_context
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -150,7 +150,7 @@ class BlurStats:
     """Texels blurred, in full-resolution 2D blurs."""
 
 
-class OpenCLBlur:
+class OpenCLBlur(DeviceTexture):
     """Separable 2D Gaussian blurs of an RGBA float32 texture with per-texel sigma.
 
     Buffers for the stretch-derived sigma maps and coverage live on the device for the
@@ -160,32 +160,14 @@ class OpenCLBlur:
     def __init__(self, coverage: NDArray[Any]) -> None:
         import pyopencl as cl
 
-        self.ctx, self.queue, self.program = _cl_state()
-        self.kernel = cl.Kernel(self.program, "blur_axis")
-        self.height, self.width = coverage.shape
+        super().__init__(*coverage.shape)
+        _, _, program = _cl_state()
+        self.kernel = cl.Kernel(program, "blur_axis")
         mf = cl.mem_flags
         cov = np.ascontiguousarray(coverage, dtype=np.float32)
         self.cover_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cov)
-        nbytes = self.height * self.width * 16
-        self.buf_a = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
-        self.buf_b = cl.Buffer(self.ctx, mf.READ_WRITE, nbytes)
         self.sigma_u = cl.Buffer(self.ctx, mf.READ_ONLY, self.height * self.width * 4)
         self.sigma_v = cl.Buffer(self.ctx, mf.READ_ONLY, self.height * self.width * 4)
-
-    def upload(self, image: NDArray[Any]) -> None:
-        import pyopencl as cl
-
-        rgba = np.ascontiguousarray(image, dtype=np.float32)
-        if rgba.shape != (self.height, self.width, 4):
-            raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
-        cl.enqueue_copy(self.queue, self.buf_a, rgba)
-
-    def download(self) -> FloatImage:
-        import pyopencl as cl
-
-        out = np.empty((self.height, self.width, 4), dtype=np.float32)
-        cl.enqueue_copy(self.queue, out, self.buf_a)
-        return out
 
     def blur_in_place(self, sigma_u: NDArray[Any], sigma_v: NDArray[Any]) -> None:
         """Blur the device texture by the given per-texel sigmas (texels), u then v."""
@@ -201,12 +183,6 @@ class OpenCLBlur:
                         np.int32(axis), np.int32(MAX_RADIUS_TEXELS))
             self.buf_a, self.buf_b = self.buf_b, self.buf_a
         self.queue.finish()
-
-    def blur(self, image: NDArray[Any], sigma_u: NDArray[Any], sigma_v: NDArray[Any]
-             ) -> FloatImage:
-        self.upload(image)
-        self.blur_in_place(sigma_u, sigma_v)
-        return self.download()
 
 
 def _check_irradiance(irradiance: NDArray[Any]) -> NDArray[np.float32]:

@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .opencl import DeviceTexture
 
 FIR_MAX_ERROR = 6e-4
 """Truncation error budget of the direct kernel, relative to the 2D peak (the recursive
@@ -281,35 +282,14 @@ def direct_kernels() -> DirectKernels:
     return DirectKernels()
 
 
-class DirectBlur:
+class DirectBlur(DeviceTexture):
     """One-pass direct Gaussian blurs of an RGBA float32 texture on the device (one sigma
     per axis, in texels); the same interface as :class:`~.recursive_blur.RecursiveBlur`
     for scalar sigmas."""
 
     def __init__(self, height: int, width: int) -> None:
-        import pyopencl as cl
-
+        super().__init__(height, width)
         self.kernels = direct_kernels()
-        self.queue = self.kernels.queue
-        self.height, self.width = height, width
-        nbytes = height * width * 16
-        self.buf_a = cl.Buffer(self.kernels.ctx, cl.mem_flags.READ_WRITE, nbytes)
-        self.buf_b = cl.Buffer(self.kernels.ctx, cl.mem_flags.READ_WRITE, nbytes)
-
-    def upload(self, image: NDArray[Any]) -> None:
-        import pyopencl as cl
-
-        rgba = np.ascontiguousarray(image, dtype=np.float32)
-        if rgba.shape != (self.height, self.width, 4):
-            raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
-        cl.enqueue_copy(self.queue, self.buf_a, rgba)
-
-    def download(self) -> NDArray[np.float32]:
-        import pyopencl as cl
-
-        out = np.empty((self.height, self.width, 4), dtype=np.float32)
-        cl.enqueue_copy(self.queue, out, self.buf_a)
-        return out
 
     def blur_in_place(self, sigma_u: float, sigma_v: float) -> None:
         """Blur the uploaded texture (the result becomes the texture)."""
@@ -317,8 +297,3 @@ class DirectBlur:
                           float(sigma_u), float(sigma_v))
         self.queue.finish()
         self.buf_a, self.buf_b = self.buf_b, self.buf_a
-
-    def blur(self, image: NDArray[Any], sigma_u: float, sigma_v: float) -> NDArray[np.float32]:
-        self.upload(image)
-        self.blur_in_place(sigma_u, sigma_v)
-        return self.download()

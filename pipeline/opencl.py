@@ -7,6 +7,9 @@ import os
 from functools import lru_cache
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from .errors import InputError
 
 STREAM_MIN_BYTES = 16 << 20
@@ -45,3 +48,42 @@ def build(source: str, options: list[str] | None = None) -> Any:
 
     ctx, _ = cl_context()
     return cl.Program(ctx, source).build(options=options or [])
+
+
+class DeviceTexture:
+    """An RGBA float32 texture on the device (``buf_a``) and a second buffer of its size
+    (``buf_b``) for the work between passes: what every blur class holds. Subclasses
+    implement ``blur_in_place`` (sigmas in texels), leaving the result in ``buf_a``."""
+
+    def __init__(self, height: int, width: int) -> None:
+        import pyopencl as cl
+
+        self.ctx, self.queue = cl_context()
+        self.height, self.width = height, width
+        nbytes = height * width * 16
+        self.buf_a = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+        self.buf_b = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+
+    def upload(self, image: NDArray[Any]) -> None:
+        import pyopencl as cl
+
+        rgba = np.ascontiguousarray(image, dtype=np.float32)
+        if rgba.shape != (self.height, self.width, 4):
+            raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
+        cl.enqueue_copy(self.queue, self.buf_a, rgba)
+
+    def download(self) -> NDArray[np.float32]:
+        import pyopencl as cl
+
+        out = np.empty((self.height, self.width, 4), dtype=np.float32)
+        cl.enqueue_copy(self.queue, out, self.buf_a)
+        return out
+
+    def blur_in_place(self, sigma_u: Any, sigma_v: Any) -> None:
+        raise NotImplementedError
+
+    def blur(self, image: NDArray[Any], sigma_u: Any, sigma_v: Any) -> NDArray[np.float32]:
+        """Upload ``image``, blur it, return the result."""
+        self.upload(image)
+        self.blur_in_place(sigma_u, sigma_v)
+        return self.download()

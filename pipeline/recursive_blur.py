@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .opencl import DeviceTexture
 
 # Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
 # sum over the pairs of (a cos(w x) + b sin(w x)) exp(-lam x)
@@ -291,7 +292,7 @@ def iir_kernels() -> IIRKernels:
     return IIRKernels()
 
 
-class RecursiveBlur:
+class RecursiveBlur(DeviceTexture):
     """Separable recursive Gaussian blurs of an RGBA float32 texture on the device.
 
     ``blur_in_place(sigma_u, sigma_v)`` takes per-texel maps or scalars (texels); a
@@ -299,31 +300,8 @@ class RecursiveBlur:
     """
 
     def __init__(self, height: int, width: int) -> None:
-        import pyopencl as cl
-
+        super().__init__(height, width)
         self.iir = iir_kernels()
-        self.queue = self.iir.queue
-        self.height, self.width = height, width
-        mf = cl.mem_flags
-        nbytes = height * width * 16
-        ctx = self.iir.ctx
-        self.buf_a = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
-        self.buf_t = cl.Buffer(ctx, mf.READ_WRITE, nbytes)
-
-    def upload(self, image: NDArray[Any]) -> None:
-        import pyopencl as cl
-
-        rgba = np.ascontiguousarray(image, dtype=np.float32)
-        if rgba.shape != (self.height, self.width, 4):
-            raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
-        cl.enqueue_copy(self.queue, self.buf_a, rgba)
-
-    def download(self) -> NDArray[np.float32]:
-        import pyopencl as cl
-
-        out = np.empty((self.height, self.width, 4), dtype=np.float32)
-        cl.enqueue_copy(self.queue, out, self.buf_a)
-        return out
 
     def _pass(self, sigma: Any, transposed: bool) -> tuple[Any, Any]:
         """(coefficient buffer, index buffer or None) for a scalar sigma or a map."""
@@ -346,11 +324,6 @@ class RecursiveBlur:
     def blur_in_place(self, sigma_u: Any, sigma_v: Any) -> None:
         coefs_u, index_u = self._pass(sigma_u, False)
         coefs_v, index_v = self._pass(sigma_v, True)
-        self.iir.blur(self.buf_a, self.buf_t, self.buf_a, self.height, self.width,
+        self.iir.blur(self.buf_a, self.buf_b, self.buf_a, self.height, self.width,
                       coefs_u, coefs_v, index_u, index_v)
         self.queue.finish()
-
-    def blur(self, image: NDArray[Any], sigma_u: Any, sigma_v: Any) -> NDArray[np.float32]:
-        self.upload(image)
-        self.blur_in_place(sigma_u, sigma_v)
-        return self.download()
