@@ -16,8 +16,9 @@ Same input, same run, each the best of a few repeats:
 - scipy.ndimage.gaussian_filter (3-sigma truncation).
 
 Reports milliseconds, ratios, the copy bandwidth floor (the issue's: two passes, each
-reading and writing the texture; and one read plus one write), and every blur's peak
-error against the exact (untruncated) sampled Gaussian, relative to its peak.
+reading and writing the texture; and one read plus one write) from the fastest copy
+into existing memory before and after the blurs, and every blur's peak error against
+the exact (untruncated) sampled Gaussian, relative to its peak.
 """
 
 from __future__ import annotations
@@ -78,9 +79,11 @@ def main() -> None:
     tex = np.random.default_rng(0).random((n, n, 4), dtype=np.float32)
     nbytes = tex.nbytes
     copy_dst = np.empty_like(tex)
-    copy_s = best_of(lambda: np.copyto(copy_dst, tex), 5)
-    bandwidth = 2 * nbytes / copy_s  # a copy reads and writes
-    floor_s = 4 * nbytes / bandwidth  # two passes, each reads and writes the texture
+
+    def copy_seconds() -> float:
+        return best_of(lambda: np.copyto(copy_dst, tex), 5)
+
+    copy_s = copy_seconds()
     cv_dst = np.empty_like(tex)
     gather = OpenCLBlur(np.ones((n, n), np.float32))
     iir = RecursiveBlur(n, n)
@@ -139,8 +142,6 @@ def main() -> None:
                "recursive_s": recursive_map_s, "gather_s": gather_s, "cv2_s": cv_s,
                "cv2_ksize": k3, "cv2_same_radius_s": cv_same_s, "scipy_s": sp_s,
                "ours_vs_cv2": ours_s / cv_s, "ours_vs_cv2_same_radius": ours_s / cv_same_s,
-               "ours_vs_floor": ours_s / floor_s,
-               "recursive_uniform_vs_floor": recursive_s / floor_s,
                "gather_vs_cv2": gather_s / cv_s, "gather_gbps": 4 * nbytes / gather_s / 1e9,
                "gather_max_rel_error_vs_scipy": gather_err,
                "peak_error_vs_exact": errors}
@@ -151,9 +152,16 @@ def main() -> None:
               f"  cv2 {cv_s * 1e3:7.1f} (same R {cv_same_s * 1e3:7.1f})  gather "
               f"{gather_s * 1e3:8.1f}  scipy {sp_s * 1e3:7.1f}", flush=True)
         print(f"{'':>17} ours/cv2 {ours_s / cv_s:5.2f} (same R {ours_s / cv_same_s:5.2f})  "
-              f"ours/floor {ours_s / floor_s:4.2f}  peak err: "
+              f"ours/first copy floor {ours_s / (2 * copy_s):4.2f}  peak err: "
               + "  ".join(f"{k} {v:.1e}" for k, v in errors.items() if v is not None),
               flush=True)
+    # the fastest copy of the run (before and after the blurs): the strictest floor
+    copy_s = min(copy_s, copy_seconds())
+    bandwidth = 2 * nbytes / copy_s  # a copy reads and writes
+    floor_s = 4 * nbytes / bandwidth  # two passes, each reads and writes the texture
+    for row in rows:
+        row["ours_vs_floor"] = row["ours_s"] / floor_s
+        row["recursive_uniform_vs_floor"] = row["recursive_uniform_s"] / floor_s
     doc = {"benchmark": "blur", "size": n, "channels": 4, "dtype": "float32",
            "copy_bandwidth_gbps": bandwidth / 1e9, "floor_s": floor_s,
            "one_pass_floor_s": floor_s / 2, "rows": rows}

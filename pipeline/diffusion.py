@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from .direct_blur import direct_kernels, prefers_direct
 from .errors import InputError
-from .opencl import DeviceTexture, build, cl_context
+from .opencl import DeviceTexture, build, cl_context, device_buffer, host_buffer
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -475,7 +475,6 @@ class DiffusionLayout:
 
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None) -> None:
-        import pyopencl as cl
 
         from .recursive_blur import iir_kernels
 
@@ -519,12 +518,10 @@ class DiffusionLayout:
         self._mm = [np.where(covered, m, np.float32(t))
                     for m, t in zip(mm, self.typical, strict=True)]
         self.iir = iir_kernels()
-        ctx = self.iir.ctx
-        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        self.cover_buf = cl.Buffer(ctx, flags, hostbuf=cov)
+        self.cover_buf = host_buffer(cov)
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
-        self.rw_buf = cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(
-            self.region_weights) if self.region_weights is not None else np.zeros(1, np.float32))
+        self.rw_buf = host_buffer(self.region_weights if self.region_weights is not None
+                                  else np.zeros(1, np.float32))
 
     def level_index(self, k: int) -> tuple[int, int, int, int, Any, Any]:
         """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
@@ -551,10 +548,9 @@ class DiffusionLayout:
 
     def buffer(self, name: str, nbytes: int) -> Any:
         """A device work buffer, kept for the next diffusion of this layout."""
-        import pyopencl as cl
 
         if name not in self._buffers:
-            self._buffers[name] = cl.Buffer(self.iir.ctx, cl.mem_flags.READ_WRITE, nbytes)
+            self._buffers[name] = device_buffer(nbytes)
         return self._buffers[name]
 
 

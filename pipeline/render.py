@@ -516,7 +516,10 @@ class Renderer:
                 planes[..., 3 + i][covered] = visibility[path]
             filled = push_pull(planes, maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
-            return e, filled[..., :3], vis, res
+            # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
+            summary = IrradianceResult(np.empty((0, 3), np.float32), {}, {}, res.skipped,
+                                       res.rays, res.seconds)
+            return e, filled[..., :3], vis, summary
 
         e, filled, vis, res = self._cached(log, "irradiance", key, compute)
         tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis

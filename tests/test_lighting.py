@@ -6,8 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from pipeline.lighting import (
+    LightSampler,
     beckmann_ndf,
     filter_interleaved,
     fresnel_schlick,
@@ -157,3 +159,32 @@ def test_interleaved_shadow_rays_match_full_sampling_in_a_penumbra() -> None:
     for sure in (v_ref == 0, v_ref == 1):
         vf = vis.ravel()[sure.ravel()]
         np.testing.assert_array_equal(vf, vf.round())
+
+
+@pytest.mark.parametrize("kind", ["sphere", "dome"])
+@pytest.mark.parametrize("interleaved", [False, True])
+def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool) -> None:
+    # the OpenCL sampler (sphere lights, untextured domes) computes what LightSampler.sample
+    # and specular_albedo compute in numpy, from the same strata
+    rng = np.random.default_rng(5)
+    n = 5000
+    pts = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    matrix = np.eye(4)
+    matrix[3, :3] = [3.0, 40.0, 25.0]
+    light = Light("/L", kind, np.ones(3), matrix, radius=4.0) if kind == "sphere" else \
+        Light("/L", kind, np.full(3, 0.5), np.eye(4))
+    classes = rng.integers(0, 4, n) if interleaved else None
+    sampler, numpy = (LightSampler(light, pts, nrm, 16, np.random.default_rng(1), None,
+                                   classes, 0.3, 0.3, device=dev) for dev in (True, False))
+    assert sampler.device is not None and numpy.device is None
+    for k in range(sampler.count):
+        d, dist, w = sampler.entering_sample(k)
+        d_ref, dist_ref, w_ref = numpy.sample(k)
+        enters = 1 - specular_albedo(np.einsum("ij,ij->i", nrm, d_ref.astype(np.float64)),
+                                     0.3, 0.3)
+        np.testing.assert_allclose(d, d_ref, atol=2e-6)
+        np.testing.assert_allclose(dist, dist_ref, rtol=1e-6)
+        np.testing.assert_allclose(w, w_ref * enters, rtol=2e-5, atol=1e-7)
+    assert np.all(np.isfinite(w)) and np.all(w >= 0)
