@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import DeviceTexture
+from .opencl import STORE_MACRO, STREAM_MIN_BYTES, DeviceTexture, build, cl_context
 
 FIR_MAX_ERROR = 6e-4
 """Truncation error budget of the direct kernel, relative to the 2D peak (the recursive
@@ -225,16 +225,12 @@ class DirectKernels:
     (:func:`direct_kernels`)."""
 
     def __init__(self) -> None:
-        from .opencl import cl_context
-
         self.ctx, self.queue = cl_context()
         self._kernels: dict[tuple[int, int, bool], Any] = {}
         self._weights: dict[float, Any] = {}
 
     def kernel(self, ru: int, rv: int, stream: bool) -> Any:
         import pyopencl as cl
-
-        from .opencl import STORE_MACRO, build
 
         key = (ru, rv, stream)
         if key not in self._kernels:
@@ -259,8 +255,6 @@ class DirectKernels:
         """Enqueue one 2D blur of the (height, width) float4 image ``src`` into ``dst``
         (a different buffer: the pass reads its neighbours while it writes)."""
         import pyopencl as cl
-
-        from .opencl import STREAM_MIN_BYTES
 
         if src is dst:
             raise InputError("direct blur: source and destination must differ")

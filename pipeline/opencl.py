@@ -64,8 +64,8 @@ def _host_memory_device() -> bool:
     return bool(ctx.devices[0].type & cl.device_type.CPU)
 
 
-def device_buffer(nbytes: int, contents: NDArray[Any] | None = None) -> Any:
-    """A read-write device buffer of ``nbytes`` (or holding ``contents``).
+def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
+    """A read-write device buffer: of that many bytes, or holding that array.
 
     On a CPU device under Linux, one of :data:`HUGE_PAGE_MIN_BYTES` or more is anonymous
     memory of its own, which the kernel is asked to back with 2 MiB pages
@@ -83,9 +83,9 @@ def device_buffer(nbytes: int, contents: NDArray[Any] | None = None) -> Any:
 
     ctx, _ = cl_context()
     flags = cl.mem_flags.READ_WRITE
-    data = None if contents is None else np.ascontiguousarray(contents).reshape(-1).view(
-        np.uint8)
-    size = nbytes if data is None else data.size
+    data = None if isinstance(size_or_contents, int) else \
+        np.ascontiguousarray(size_or_contents).reshape(-1).view(np.uint8)
+    size = size_or_contents if data is None else data.size
     if size < HUGE_PAGE_MIN_BYTES or not hasattr(mmap, "MADV_HUGEPAGE") \
             or not _host_memory_device():
         if data is None:
@@ -120,7 +120,6 @@ class DeviceTexture:
     implement ``blur_in_place`` (sigmas in texels), leaving the result in ``buf_a``."""
 
     def __init__(self, height: int, width: int) -> None:
-
         self.ctx, self.queue = cl_context()
         self.height, self.width = height, width
         self.buf_a = device_buffer(height * width * 16)

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import DeviceTexture
+from .opencl import STORE_MACRO, STREAM_MIN_BYTES, DeviceTexture, build, cl_context
 
 # Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
 # sum over the pairs of (a cos(w x) + b sin(w x)) exp(-lam x)
@@ -240,8 +240,6 @@ class IIRKernels:
     def __init__(self) -> None:
         import pyopencl as cl
 
-        from .opencl import STORE_MACRO, build, cl_context
-
         self.ctx, self.queue = cl_context()
         self.kernels = {
             (uniform, stream): cl.Kernel(build(STORE_MACRO + _KERNEL, [
@@ -268,8 +266,6 @@ class IIRKernels:
             raise InputError(f"recursive blur: lines of {n} texels exceed this device's "
                              f"local memory ({self.max_line} at most)")
         # the one-sigma kernel never reads `index`: any buffer fills the argument
-        from .opencl import STREAM_MIN_BYTES
-
         stream = n * lines * 16 >= STREAM_MIN_BYTES
         self.kernels[index is None, stream](
             self.queue, (-(-lines // LINES_PER_ITEM),), (1,), src, dst,
