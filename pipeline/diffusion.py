@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .direct_blur import direct_kernels, prefers_direct
+from .direct_blur import direct_kernels, kernel_parameter, prefers_direct
 from .errors import InputError
 from .opencl import DeviceTexture, build, cl_context, device_buffer, host_buffer
 
@@ -35,34 +35,6 @@ DIRECT_SIGMA_TEXELS = 2.5
 """Terms narrower than this are blurred from the irradiance itself, not incrementally
 from the previous term: a chain of one-texel passes is not Gaussian in shape."""
 
-
-def _sampled_gaussian_variance(param: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Variance (texels^2) of the kernel exp(-k^2 / 2 p^2), |k| <= ceil(3 p), normalised."""
-    out = np.empty_like(param)
-    for n, p in enumerate(param):
-        k = np.arange(-math.ceil(3 * p), math.ceil(3 * p) + 1, dtype=np.float64)
-        g = np.exp(-k * k / (2 * p * p))
-        out[n] = (k * k * g).sum() / g.sum()
-    return out
-
-
-_PARAM_TABLE = np.linspace(0.3, 1.5, 481)
-_VARIANCE_TABLE = _sampled_gaussian_variance(_PARAM_TABLE)
-
-
-def kernel_parameter(sigma_texels: NDArray[Any]) -> NDArray[np.float32]:
-    """The Gaussian parameter whose sampled kernel has variance sigma^2 exactly.
-
-    Below about one texel a sampled Gaussian is narrower than its parameter says (at
-    sigma = 0.5 its variance is 0.18, not 0.25), and the error compounds over the
-    passes of a profile; above 1.5 texels the two agree to better than 1e-6.
-    """
-    s = np.asarray(sigma_texels, dtype=np.float64)
-    var = s * s
-    small = var < _VARIANCE_TABLE[-1]
-    out = s.copy()
-    out[small] = np.interp(var[small], _VARIANCE_TABLE, _PARAM_TABLE)
-    return out.astype(np.float32)
 
 _KERNEL = r"""
 // One 1D Gaussian pass along `axis` (0 = u/x, 1 = v/y) with a per-texel sigma (texels).

@@ -357,33 +357,31 @@ class LightSampler:
         # a textured dome's colour varies per direction and is carried by the weights
         self.colour = np.ones(3, np.float32) if light.kind == "dome" and dome_texture is not \
             None else surface_radiance(light).astype(np.float32)
-        n = origins.shape[0]
-        self.inf = np.full(n, np.inf, np.float32)
-        self.device = None
-        if device and light.kind in DEVICE_SAMPLED_KINDS and dome_texture is None:
-            # the kernel makes the cone and the frame; a sphere's shadow rays end at it
-            r = max(light.radius, 1e-9)
-            self._sphere = [np.float32(x) for x in (*np.asarray(light.position)[:3], r)] \
-                if light.kind == "sphere" else [np.float32(0)] * 4
-            if light.kind == "sphere":
-                to_c = np.asarray(light.position, np.float32) - origins
-                self.far = np.maximum(np.sqrt(np.einsum("ij,ij->i", to_c, to_c)) - r,
-                                      0).astype(np.float32)
-            self.device = self._device_setup()
-        elif light.kind == "distant":
+        self.inf = np.full(origins.shape[0], np.inf, np.float32)
+        # the device kernel makes a sphere's cone and every frame per point itself
+        on_device = device and light.kind in DEVICE_SAMPLED_KINDS and dome_texture is None
+        radius = max(light.radius, 1e-9)
+        if light.kind == "distant":
             self.half = math.radians(max(light.angle_deg, 0.0)) / 2
             self.frame = _frame(-light.axis)
         elif light.kind == "sphere":
-            self.dist, axis, self.cos_max = sphere_cone(light, origins)
-            self.solid = 2 * math.pi * (1 - self.cos_max)
-            self.frame = _frame(axis, np.float32)
-            self.far = np.maximum(self.dist - max(light.radius, 1e-9), 0.0).astype(np.float32)
+            if on_device:
+                to_c = np.asarray(light.position, np.float32) - origins
+                dist = np.sqrt(np.einsum("ij,ij->i", to_c, to_c))
+            else:
+                dist, axis, self.cos_max = sphere_cone(light, origins)
+                self.solid = 2 * math.pi * (1 - self.cos_max)
+                self.frame = _frame(axis, np.float32)
+            self.far = np.maximum(dist - radius, 0.0).astype(np.float32)  # rays end at it
         elif light.kind == "rect":
             self.area = emitting_area(light)
         elif light.kind == "dome":
-            self.frame = _frame(normals, np.float32)
+            if not on_device:
+                self.frame = _frame(normals, np.float32)
         else:
             raise InputError(f"unsupported light kind {light.kind!r} at {light.path}")
+        self._sphere = [np.float32(x) for x in (*np.asarray(light.position)[:3], radius)]
+        self.device = self._device_setup() if on_device else None
 
     def _device_setup(self) -> dict[str, Any]:
         """The device buffers :meth:`entering_sample` reads (uploaded once per sampler)."""

@@ -233,19 +233,24 @@ def quantized_sigma(sigma: NDArray[Any]) -> NDArray[np.float64]:
     return 2.0 ** (quantized_log2(s) / QUANT_STEPS_PER_OCTAVE)
 
 
+@lru_cache(maxsize=4)
+def _iir_kernel(uniform: bool, stream: bool) -> Any:
+    """The recursive pass for one sigma or per-texel coefficients, with or without
+    streaming stores: built when first needed."""
+    import pyopencl as cl
+
+    options = [f"-DUNIFORM={int(uniform)}", f"-DLINES={LINES_PER_ITEM}",
+               f"-DSTREAM={int(stream)}"]
+    return cl.Kernel(build(STORE_MACRO + _KERNEL, options), "iir_rows_transposed")
+
+
 class IIRKernels:
     """The built recursive-pass kernels (one sigma, per texel); one per process
     (:func:`iir_kernels`)."""
 
     def __init__(self) -> None:
-        import pyopencl as cl
 
         self.ctx, self.queue = cl_context()
-        self.kernels = {
-            (uniform, stream): cl.Kernel(build(STORE_MACRO + _KERNEL, [
-                f"-DUNIFORM={int(uniform)}", f"-DLINES={LINES_PER_ITEM}",
-                f"-DSTREAM={int(stream)}"]), "iir_rows_transposed")
-            for uniform in (False, True) for stream in (False, True)}
         self.max_line = int(self.ctx.devices[0].local_mem_size) // (16 * LINES_PER_ITEM)
 
     def coefficients(self, sigma: NDArray[Any]) -> Any:
@@ -267,7 +272,7 @@ class IIRKernels:
                              f"local memory ({self.max_line} at most)")
         # the one-sigma kernel never reads `index`: any buffer fills the argument
         stream = n * lines * 16 >= STREAM_MIN_BYTES
-        self.kernels[index is None, stream](
+        _iir_kernel(index is None, stream)(
             self.queue, (-(-lines // LINES_PER_ITEM),), (1,), src, dst,
             cl.LocalMemory(16 * LINES_PER_ITEM * n), coefs if index is None else index,
             coefs, np.int32(n), np.int32(lines))

@@ -517,16 +517,15 @@ class Renderer:
             filled = push_pull(planes, maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
-            summary = IrradianceResult(np.empty((0, 3), np.float32), {}, {}, res.skipped,
-                                       res.rays, res.seconds)
-            return e, filled[..., :3], vis, summary
+            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds)
 
-        e, filled, vis, res = self._cached(log, "irradiance", key, compute)
+        e, filled, vis, (skipped, rays_cast, seconds) = self._cached(log, "irradiance", key,
+                                                                      compute)
         tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
         tex.keys["irradiance"] = key
-        log.skipped += [s for s in res.skipped if s not in log.skipped]
-        log.measures["irradiance"] = {"rays": res.rays, "seconds": res.seconds,
-                                      "mrays_per_s": res.rays / max(res.seconds, 1e-9) / 1e6}
+        log.skipped += [s for s in skipped if s not in log.skipped]
+        log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
+                                      "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6}
 
     def _diffusion(self, log: TaskLog, tex: SkinTextures) -> None:
         opts = self.options
