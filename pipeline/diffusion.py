@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .direct_blur import direct_kernels, kernel_parameter, prefers_direct
+from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter, prefers_direct
 from .errors import InputError
 from .opencl import DeviceTexture, build, cl_context, device_buffer, host_buffer
 
@@ -332,63 +332,104 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
     dst[y * dw + x] = acc;
 }
 
-// acc += (sum_r rw[r] tw[term, r]) * rgb / alpha of a blurred (E cov, cov) texture read
-// at this texel (bilinearly from a level `scale` = 2^-k as large): normalised
-// convolution, so texels off the charts give nothing and take nothing.
-__kernel void accumulate_term(__global const float4 *level, __global float4 *acc,
-                              __global const float *cover, __global const float *rw,
-                              __global const float4 *tw, const int regions, const int term,
-                              const int w, const int h, const int lw, const int lh,
-                              const float scale)
+// One batch of blurred terms added up at each texel, each (sum_r rw[r] tw[job, r]) times
+// rgb / alpha of its blurred (E cov, cov) texture (normalised convolution: texels off
+// the charts give nothing and take nothing), read at this texel or bilinearly from a
+// pyramid level 2^-level as large. Job n of the batch: jobs[4n .. 4n+3] = (offset of its
+// texture in `terms` in float4, or -1 for `base`; job index into tw; level width;
+// level height), levels[n] its level. The region weights are read once for the whole
+// batch (a pass per term read them, 24 bytes a texel with six regions, once per term).
+// ACC_IN: add the accumulator of the previous batches; RGB_OUT: write packed RGB for
+// the download (last batch), else the accumulator.
+#define INL __attribute__((always_inline)) inline
+// Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
+// from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
+// them).
+INL float4 bilinear(__global const float4 *level, int x, int y, int lw, int lh, float scale)
+{
+    float fx = ((float)x + 0.5f) * scale - 0.5f, fy = ((float)y + 0.5f) * scale - 0.5f;
+    fx = fx < 0.0f ? 0.0f : fx;
+    fy = fy < 0.0f ? 0.0f : fy;
+    int x0 = (int)fx, y0 = (int)fy;
+    x0 = x0 > lw - 2 ? lw - 2 : x0;
+    y0 = y0 > lh - 2 ? lh - 2 : y0;
+    x0 = x0 < 0 ? 0 : x0;
+    y0 = y0 < 0 ? 0 : y0;
+    const int x1 = x0 + 1 < lw ? x0 + 1 : lw - 1, y1 = y0 + 1 < lh ? y0 + 1 : lh - 1;
+    float ax = fx - (float)x0, ay = fy - (float)y0;
+    ax = ax > 1.0f ? 1.0f : ax;
+    ay = ay > 1.0f ? 1.0f : ay;
+    __global const float4 *r0 = level + y0 * lw, *r1 = level + y1 * lw;
+    return (1.0f - ay) * ((1.0f - ax) * r0[x0] + ax * r0[x1])
+        + ay * ((1.0f - ax) * r1[x0] + ax * r1[x1]);
+}
+__kernel void accumulate_terms(__global const float4 *terms, __global const float4 *base,
+                               __constant int *jobs, __global float4 *acc,
+                               __global float *rgb, __global const float *cover,
+                               __global const float *rw, __constant float4 *tw,
+                               const int w, const int h)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const int i = y * w + x;
-    if (!(cover[i] > 0.0f)) return;
-    float4 t;
-    if (lw == w && lh == h) {
-        t = level[i];
-    } else {
-        const float fx = clamp(((float)x + 0.5f) * scale - 0.5f, 0.0f, (float)(lw - 1));
-        const float fy = clamp(((float)y + 0.5f) * scale - 0.5f, 0.0f, (float)(lh - 1));
-        const int x0 = min((int)fx, lw - 2 < 0 ? 0 : lw - 2);
-        const int y0 = min((int)fy, lh - 2 < 0 ? 0 : lh - 2);
-        const int x1 = min(x0 + 1, lw - 1), y1 = min(y0 + 1, lh - 1);
-        const float ax = fx - (float)x0, ay = fy - (float)y0;
-        t = (1.0f - ay) * ((1.0f - ax) * level[y0 * lw + x0] + ax * level[y0 * lw + x1])
-            + ay * ((1.0f - ax) * level[y1 * lw + x0] + ax * level[y1 * lw + x1]);
+    const int levels[N_JOBS] = {LEVELS};  // compiled in: the branches below fold away
+    float4 sum = 0.0f;
+#if ACC_IN
+    sum = acc[i];
+#endif
+#if REGIONS > 0
+    float r[REGIONS];
+#pragma unroll
+    for (int k = 0; k < REGIONS; ++k) r[k] = rw[(size_t)i * REGIONS + k];
+#endif
+#pragma unroll
+    for (int n = 0; n < N_JOBS; ++n) {
+        const int off = jobs[4 * n], job = jobs[4 * n + 1];
+        float4 t;
+        if (levels[n] < 0) t = base[i];
+        else if (levels[n] == 0) t = terms[(size_t)off + i];
+        else t = bilinear(terms + off, x, y, jobs[4 * n + 2], jobs[4 * n + 3],
+                          1.0f / (float)(1 << levels[n]));
+#if REGIONS > 0
+        float4 wgt = 0.0f;
+#pragma unroll
+        for (int k = 0; k < REGIONS; ++k) wgt += r[k] * tw[job * REGIONS + k];
+#else
+        const float4 wgt = tw[job];
+#endif
+        sum += (t.w > 1e-7f ? 1.0f / t.w : 0.0f) * wgt * t;
     }
-    if (!(t.w > 1e-7f)) return;
-    float4 wgt;
-    if (regions == 0) {
-        wgt = tw[term];
-    } else {
-        wgt = 0.0f;
-        for (int r = 0; r < regions; ++r)
-            wgt += rw[(size_t)i * regions + r] * tw[term * regions + r];
-    }
-    acc[i] += wgt * (t / t.w);
-}
-
-// The accumulator's RGB, packed for the download.
-__kernel void rgb_of(__global const float4 *src, __global float *dst, const int texels)
-{
-    const int i = get_global_id(0);
-    if (i >= texels) return;
-    const float4 t = src[i];
-    dst[3 * i] = t.x; dst[3 * i + 1] = t.y; dst[3 * i + 2] = t.z;
+    sum = cover[i] > 0.0f ? sum : (float4)(0.0f);
+#if RGB_OUT
+    rgb[3 * i] = sum.x; rgb[3 * i + 1] = sum.y; rgb[3 * i + 2] = sum.z;
+#else
+    acc[i] = sum;
+#endif
 }
 """
 
 
 @lru_cache(maxsize=1)
-def _pyramid_kernels() -> tuple[Any, Any, Any]:
-    """(downsample_tent, accumulate_term, rgb_of), built once per process."""
+def _downsample_kernel() -> Any:
     import pyopencl as cl
 
-    program = build(_PYRAMID_KERNEL)
-    return (cl.Kernel(program, "downsample_tent"), cl.Kernel(program, "accumulate_term"),
-            cl.Kernel(program, "rgb_of"))
+    return cl.Kernel(build(_PYRAMID_KERNEL, ["-DREGIONS=0", "-DN_JOBS=1", "-DLEVELS=0",
+                                             "-DACC_IN=0", "-DRGB_OUT=0"]),
+                     "downsample_tent")
+
+
+@lru_cache(maxsize=64)
+def _accumulate_kernel(regions: int, levels: tuple[int, ...], acc_in: bool, rgb_out: bool
+                       ) -> Any:
+    """The accumulation of one batch of jobs on these pyramid levels (-1: the unblurred
+    irradiance) for ``regions`` region weights a texel (0: one region), built when
+    first needed."""
+    import pyopencl as cl
+
+    options = [f"-DREGIONS={regions}", f"-DN_JOBS={len(levels)}",
+               "-DLEVELS=" + ",".join(map(str, levels)), f"-DACC_IN={int(acc_in)}",
+               f"-DRGB_OUT={int(rgb_out)}"]
+    return cl.Kernel(build(_PYRAMID_KERNEL, options), "accumulate_terms")
 
 
 def _added_variance_texels2(level: int) -> float:
@@ -469,6 +510,7 @@ class DiffusionLayout:
         self.any_covered = bool(covered.any())
         self.shapes = _level_shapes(h, w)
         self._index: dict[int, tuple[int, int, int, int, Any, Any]] = {}
+        self._texel_index: dict[int, Any] = {}
         self._buffers: dict[str, Any] = {}
         if not self.any_covered:
             return
@@ -495,20 +537,25 @@ class DiffusionLayout:
         self.rw_buf = host_buffer(self.region_weights if self.region_weights is not None
                                   else np.zeros(1, np.float32))
 
-    def level_index(self, k: int) -> tuple[int, int, int, int, Any, Any]:
-        """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
-        (row layout), v index buffer (transposed)) of level ``k``'s texel sizes on the
-        log2 grid; made on first use. A level-k texel's size is the mean of the finer
-        texels it covers."""
-        import pyopencl as cl
-
+    def _level_steps(self, k: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        """Level ``k``'s texel sizes (u, v) on the log2 grid, in finest texels (a
+        level-k texel's size is the mean of the finer texels it covers)."""
         from .recursive_blur import quantized_log2
 
+        mm_k = self._mm
+        for _ in range(k):
+            mm_k = [_box_down(m) for m in mm_k]
+        qu, qv = (quantized_log2(m * np.float32(2.0**k)) for m in mm_k)
+        return qu, qv
+
+    def level_index(self, k: int) -> tuple[int, int, int, int, Any, Any]:
+        """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
+        (int32, row layout), v index buffer (transposed)) of level ``k``'s texel sizes
+        on the log2 grid, for the recursive blur; made on first use."""
+        import pyopencl as cl
+
         if k not in self._index:
-            mm_k = self._mm
-            for _ in range(k):
-                mm_k = [_box_down(m) for m in mm_k]
-            qu, qv = (quantized_log2(m * np.float32(2.0**k)) for m in mm_k)
+            qu, qv = self._level_steps(k)
             flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
             lo_u, lo_v = int(qu.min()), int(qv.min())
             self._index[k] = (
@@ -518,12 +565,112 @@ class DiffusionLayout:
                           hostbuf=np.ascontiguousarray((qv - lo_v).T, np.int32)))
         return self._index[k]
 
-    def buffer(self, name: str, nbytes: int) -> Any:
-        """A device work buffer, kept for the next diffusion of this layout."""
+    def texel_steps(self, k: int) -> tuple[NDArray[np.int32], NDArray[np.int32], Any, Any,
+                                           int] | None:
+        """For the per-texel direct blur of level ``k``: (u steps, v steps) in use on the
+        log2 grid of texel sizes, from the :data:`DIRECT_TEXEL_QUANTILE` smallest up,
+        the texels' indices into them (uint16 buffers, row layout; smaller texels take
+        the smallest step) and how many texels are smaller; made on first use. None when
+        the steps span more than a uint16 holds."""
+        import pyopencl as cl
 
-        if name not in self._buffers:
+        if k not in self._texel_index:
+            qu, qv = self._level_steps(k)
+            steps, indices, smaller = [], [], 0
+            for q in (qu, qv):
+                lo = int(np.floor(np.quantile(q, DIRECT_TEXEL_QUANTILE)))
+                steps.append(np.arange(lo, int(q.max()) + 1, dtype=np.int32))
+                smaller += int((q < lo).sum())
+                indices.append(np.maximum(q - lo, 0))
+            if max(st.size for st in steps) > 65535:
+                self._texel_index[k] = None
+            else:
+                flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+                self._texel_index[k] = (*steps, *(cl.Buffer(self.iir.ctx, flags,
+                                                            hostbuf=i.astype(np.uint16))
+                                                  for i in indices), smaller)
+        return self._texel_index[k]
+
+    def buffer(self, name: str, nbytes: int) -> Any:
+        """A device work buffer of at least ``nbytes``, kept for the next diffusion of
+        this layout."""
+
+        if name not in self._buffers or self._buffers[name].size < nbytes:
+            self._buffers.pop(name, None)  # its memory goes before the larger one comes
             self._buffers[name] = device_buffer(nbytes)
         return self._buffers[name]
+
+
+DIRECT_TEXEL_QUANTILE = 1e-4
+"""The per-texel direct blur's radius is set by the texel sizes from this quantile up:
+one in 10^4 texels can be far smaller than the rest (degenerate UV, on the demo face
+ten at 0.011 mm against 0.082 mm at this quantile and 0.105 mm median), and they
+would set a radius far wider than every other texel needs; they are blurred as if
+they were the quantile's size (narrower than their own sigma), and counted."""
+TERM_BUFFER_TEXTURES = 4
+"""Blurred terms kept at once before they are added up, in full-resolution textures
+(64 MiB each at 2048^2): more batches cost one more pass over the accumulator each."""
+_TERM_ALIGN = 4096
+"""Byte alignment of each term in the term buffer (a sub-buffer's origin must be aligned
+to the device's base address alignment, at most 4 KiB)."""
+
+
+def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
+    """Consecutive jobs grouped so that each group's blurred textures (``sizes`` bytes,
+    0 for one that reads the irradiance itself) fit ``budget`` bytes side by side: per
+    group, job -> (start, end) byte range in the term buffer."""
+    batches: list[dict[int, tuple[int, int]]] = [{}]
+    used = 0
+    for j, size in enumerate(sizes):
+        span = -(-size // _TERM_ALIGN) * _TERM_ALIGN
+        if batches[-1] and used + span > budget:
+            batches.append({})
+            used = 0
+        batches[-1][j] = (used, used + max(size, 16))
+        used += span
+    return batches
+
+
+def _blur_job(layout: DiffusionLayout, src: Any, tmp: Any, dst: Any, variance: float,
+              k: int, stats: BlurStats) -> None:
+    """Enqueue the blur of one term (``variance`` mm^2) of pyramid level ``k`` (``src``)
+    into ``dst``: sigma per axis less what the pyramid and its bilinear read add; the
+    direct kernel for narrow uniform blurs, else the recursive one (per texel where
+    the layout's texel sizes vary)."""
+    from .recursive_blur import QUANT_STEPS_PER_OCTAVE
+
+    iir = layout.iir
+    lh, lw = layout.shapes[k]
+    sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2 if k else 0.0),
+                              1e-30)) for t in layout.typical]
+    if layout.uniform:
+        su, sv = (sg / (t * 2.0**k) for sg, t in zip(sigma_mm, layout.typical, strict=True))
+        if prefers_direct(su, sv):  # narrow: one pass of the direct kernel is cheaper
+            direct_kernels().blur(src, dst, lh, lw, su, sv)
+            stats.passes += 1
+            return
+        iir.blur(src, tmp, dst, lh, lw, iir.coefficients(su), iir.coefficients(sv))
+    else:
+        steps = layout.texel_steps(k)
+        if steps is not None:
+            # per-texel sigma (level texels) on each axis's log2 grid; the widest at its
+            # smallest texel sets the radius
+            sigmas = [sg / 2.0 ** (q / QUANT_STEPS_PER_OCTAVE)
+                      for sg, q in zip(sigma_mm, steps[:2], strict=True)]
+            if prefers_direct(float(sigmas[0][0]), float(sigmas[1][0]), per_texel=True):
+                direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(sigmas[0]),
+                                                fir_weight_table(sigmas[1]), *steps[2:4])
+                stats.passes += 1
+                note = (f"level {k}: {steps[4]} texel sizes below the "
+                        f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
+                if steps[4] and note not in stats.skipped:
+                    stats.skipped.append(note)
+                return
+        lo_u, hi_u, lo_v, hi_v, index_u, index_v = layout.level_index(k)
+        coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
+                 for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
+        iir.blur(src, tmp, dst, lh, lw, coefs[0], coefs[1], index_u, index_v)
+    stats.passes += 2
 
 
 def diffuse(
@@ -566,7 +713,7 @@ def diffuse_prepared(
     """
     import pyopencl as cl
 
-    from .recursive_blur import QUANT_STEPS_PER_OCTAVE, TABLE_MIN_SIGMA
+    from .recursive_blur import TABLE_MIN_SIGMA
 
     h, w = layout.height, layout.width
     e = _check_irradiance(irradiance)
@@ -580,7 +727,6 @@ def diffuse_prepared(
         return np.zeros((h, w, 3), np.float32), stats
     iir = layout.iir
     queue = iir.queue
-    downsample, accumulate, rgb_of = _pyramid_kernels()
     shapes = layout.shapes
     n_levels = len(shapes)
 
@@ -615,10 +761,11 @@ def diffuse_prepared(
     need = max(k for _, k in jobs)
     nbytes = h * w * 16
     mf = cl.mem_flags
-    tmp, acc = layout.buffer("tmp", nbytes), layout.buffer("acc", nbytes)
+    tmp = layout.buffer("tmp", nbytes)
     pyramid = [layout.buffer("level0", nbytes)]
-    cl.enqueue_copy(queue, tmp, np.ascontiguousarray(e))  # RGB: 12 of its 16 bytes a texel
-    _pack_kernel()(queue, (h * w,), None, tmp, layout.cover_buf, pyramid[0], np.int32(h * w))
+    source = host_buffer(e)  # RGB: 12 of its 16 bytes a texel, read where it is
+    _pack_kernel()(queue, (h * w,), None, source, layout.cover_buf, pyramid[0], np.int32(h * w))
+    downsample = _downsample_kernel()
     for k in range(1, need + 1):
         (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
         pyramid.append(layout.buffer(f"level{k}", dh * dw * 16))
@@ -627,48 +774,32 @@ def diffuse_prepared(
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
     tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
-    weights = (acc, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(layout.n_regions))
-    cl.enqueue_fill_buffer(queue, acc, np.float32(0.0), 0, nbytes)
-
-    def add(src: Any, k: int, j: int) -> None:
-        """acc += job j's weights times the blurred level-k image ``src``, normalised."""
-        lh, lw = shapes[k]
-        accumulate(queue, (w, h), None, src, *weights, np.int32(j), np.int32(w), np.int32(h),
-                   np.int32(lw), np.int32(lh), np.float32(0.5**k))
+    batches = _term_batches([0 if var == 0.0 else shapes[k][0] * shapes[k][1] * 16
+                             for var, k in jobs], TERM_BUFFER_TEXTURES * nbytes)
+    terms = layout.buffer("terms", max(end for batch in batches for _, end in batch.values()))
+    acc = layout.buffer("acc", nbytes) if len(batches) > 1 else tmp
 
     blurred_texels = 0.0
-    for j, (variance, k) in enumerate(jobs):
-        lh, lw = shapes[k]
-        if variance == 0.0:
-            add(pyramid[0], 0, j)
-            continue
-        # sigma in mm per axis, less what the pyramid and its bilinear read add
-        sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2
-                                              if k else 0.0), 1e-30))
-                    for t in layout.typical]
-        work = layout.buffer(f"work{k}", lh * lw * 16)
-        if layout.uniform:
-            su, sv = (sg / (t * 2.0**k) for sg, t in zip(sigma_mm, layout.typical, strict=True))
-            if prefers_direct(su, sv):  # narrow: one pass of the direct kernel is cheaper
-                direct_kernels().blur(pyramid[k], work, lh, lw, su, sv)
-                stats.passes += 1
-            else:
-                iir.blur(pyramid[k], tmp, work, lh, lw, iir.coefficients(su),
-                         iir.coefficients(sv))
-                stats.passes += 2
-        else:
-            lo_u, hi_u, lo_v, hi_v, index_u, index_v = layout.level_index(k)
-            coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
-                     for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
-            iir.blur(pyramid[k], tmp, work, lh, lw, coefs[0], coefs[1], index_u, index_v)
-            stats.passes += 2
-        add(work, k, j)
-        stats.levels.append(k)
-        blurred_texels += lh * lw
-    rgb = tmp  # free again: the RGB download is 12 of its 16 bytes a texel
-    rgb_of(queue, (h * w,), None, acc, rgb, np.int32(h * w))
+    for b, batch in enumerate(batches):
+        table = np.zeros((len(batch), 4), np.int32)
+        for n, (j, (start, end)) in enumerate(batch.items()):
+            variance, k = jobs[j]
+            lh, lw = shapes[k]
+            table[n] = (start // 16 if variance > 0 else -1, j, lw, lh)
+            if variance == 0.0:
+                continue
+            work = terms.get_sub_region(start, end - start)
+            _blur_job(layout, pyramid[k], tmp, work, variance, k, stats)
+            stats.levels.append(k)
+            blurred_texels += lh * lw
+        last = b == len(batches) - 1
+        levels = tuple(jobs[j][1] if jobs[j][0] > 0 else -1 for j in batch)
+        _accumulate_kernel(layout.n_regions, levels, b > 0, last)(
+            queue, (w, h), None, terms, pyramid[0],
+            cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
+            acc, tmp, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h))
     out = np.empty((h, w, 3), np.float32)
-    cl.enqueue_copy(queue, out, rgb)
+    cl.enqueue_copy(queue, out, tmp)  # the last batch wrote packed RGB there
     queue.finish()
     stats.full_blurs = blurred_texels / (h * w)
     return out, stats

@@ -40,6 +40,10 @@ FIR_MAX_RADIUS = 16
 """Widest direct kernel the dispatcher picks (:func:`prefers_direct`): measured at
 2048^2 on two cores, the direct blur at radius 16 costs about what the recursive one
 does (about 35 ms), and each unit of radius adds about 1.5 ms."""
+FIR_MAX_RADIUS_PER_TEXEL = 11
+"""Widest per-texel direct kernel the dispatcher picks: each tap loads two weights
+and builds a pair from them (measured at 2048^2 on the demo face's layout: radius 9
+47 ms against 56 ms for the per-texel recursive blur, radius 14 57 against 49)."""
 RING_BYTES = 20 * 1024
 """Local-memory ring of 2R + 1 filtered rows of a band: kept inside a 32 KiB L1 cache
 (measured at 2048^2, radius 8: 128 KiB ring 68 ms, 17 KiB ring 23.5 ms)."""
@@ -130,10 +134,21 @@ def fir_weights(sigma: float) -> NDArray[np.float64]:
     """One-sided weights w[0..R] of the direct kernel for ``sigma`` texels (w[0] + 2
     sum w[1:] = 1): the sampled Gaussian of :func:`fir_parameter`, cut at
     :func:`direct_radius` and renormalised."""
-    p = fir_parameter(sigma)
-    k = np.arange(fir_radius(p) + 1, dtype=np.float64)
+    return fir_weight_table(np.array([sigma], np.float64))[0]
+
+
+def fir_weight_table(sigma_texels: NDArray[Any]) -> NDArray[np.float64]:
+    """(N, R + 1) one-sided weights of the direct kernel, one row per sigma (N,) in
+    texels, all cut at the radius of the widest (:func:`direct_radius` of the largest
+    sigma): each row is :func:`fir_weights` of its sigma where that radius is its own,
+    and a longer (more exact) cut of the same Gaussian otherwise."""
+    s = np.atleast_1d(np.asarray(sigma_texels, np.float64))
+    for value in (s.min(), s.max()):
+        _check_sigma(float(value))
+    p = kernel_parameter(s, truncate=10.0).astype(np.float64)[:, None]
+    k = np.arange(fir_radius(float(p.max())) + 1, dtype=np.float64)
     w = np.exp(-k * k / (2 * p * p))
-    return w / (w[0] + 2 * w[1:].sum())
+    return w / (w[:, :1] + 2 * w[:, 1:].sum(axis=1, keepdims=True))
 
 
 def band_columns(radius_v: int) -> int:
@@ -145,10 +160,11 @@ def band_columns(radius_v: int) -> int:
     return b
 
 
-def prefers_direct(sigma_u: float, sigma_v: float) -> bool:
-    """Whether the direct blur is the faster one for these sigmas (texels): both radii
-    at most :data:`FIR_MAX_RADIUS`."""
-    return max(direct_radius(sigma_u), direct_radius(sigma_v)) <= FIR_MAX_RADIUS
+def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False) -> bool:
+    """Whether the direct blur is the faster one for these sigmas (texels; per texel: the
+    widest): both radii at most :data:`FIR_MAX_RADIUS` (:data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
+    limit = FIR_MAX_RADIUS_PER_TEXEL if per_texel else FIR_MAX_RADIUS
+    return max(direct_radius(sigma_u), direct_radius(sigma_v)) <= limit
 
 
 def direct_reference(image: NDArray[Any], sigma_u: float, sigma_v: float) -> NDArray[np.float64]:
@@ -159,6 +175,27 @@ def direct_reference(image: NDArray[Any], sigma_u: float, sigma_v: float) -> NDA
     for axis, sigma in ((1, sigma_u), (0, sigma_v)):
         w = fir_weights(sigma)
         out = correlate1d(out, np.r_[w[:0:-1], w], axis=axis, mode="constant", cval=0.0)
+    return out
+
+
+def direct_texel_reference(image: NDArray[Any], table_u: NDArray[Any], table_v: NDArray[Any],
+                           index_u: NDArray[Any], index_v: NDArray[Any]) -> NDArray[np.float64]:
+    """float64 numpy version of the per-texel direct blur
+    (:meth:`DirectKernels.blur_per_texel`): texel t filtered along u with row
+    index_u[t] of ``table_u``, then along v with row index_v[t] of ``table_v``, zero
+    outside the image."""
+    out = np.asarray(image, np.float64)
+    for axis, table, index in ((1, table_u, index_u), (0, table_v, index_v)):
+        r = table.shape[1] - 1
+        n = out.shape[axis]
+        pad = [(0, 0)] * out.ndim
+        pad[axis] = (r, r)
+        padded = np.pad(out, pad)
+        acc = np.zeros_like(out)
+        for k in range(-r, r + 1):
+            taps = np.take(padded, np.arange(r + k, r + k + n), axis=axis)
+            acc += np.asarray(table, np.float64)[index, abs(k)][..., None] * taps
+        out = acc
     return out
 
 
@@ -247,50 +284,153 @@ __kernel void fir_band(__global const float4 *src, __global float4 *dst,
         }
     }
 }
+
+// The same walk with weights per texel: row iu[texel] of `wut` (RU + 1 one-sided weights
+// a row) horizontally, row iv[texel] of `wvt` vertically, each texel's own Gaussian
+// (its sigma from the stretch map) cut at the widest one's radius.
+INL float8 both(__global const float *wa, __global const float *wb, int k) {
+    const float4 a = wa[k], b = wb[k];
+    return (float8)(a, b);
+}
+__kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
+                             __global const float *wut, __global const float *wvt,
+                             __global const ushort *iu, __global const ushort *iv,
+                             __local float8 *ring, const int width, const int height,
+                             const int strip)
+{
+    const int x0 = get_global_id(0) * B;
+    const int y0 = get_global_id(1) * strip;
+    if (x0 >= width || y0 >= height) return;
+    const int y1 = y0 + strip < height ? y0 + strip : height;
+    const int nx = width - x0 < B ? width - x0 : B;
+    const bool interior = x0 >= RU && x0 + B + RU <= width;
+    __local float4 *ring4 = (__local float4 *)ring;
+    for (int yy = y0 - RV; yy < y1 + RV; ++yy) {
+        const int slot = SLOT(yy);
+        if (yy < 0 || yy >= height) {
+            for (int c = 0; c < nx; ++c) ring4[slot * B + c] = 0.0f;
+        } else if (interior) {
+            __global const float4 *row = src + (size_t)yy * width;
+            __global const ushort *ir = iu + (size_t)yy * width;
+            __local float8 *out = ring + slot * (B / 2);
+            for (int c = 0; c < B / 2; ++c) {
+                const int x = x0 + 2 * c;
+                __global const float *wa = wut + ir[x] * (RU + 1);
+                __global const float *wb = wut + ir[x + 1] * (RU + 1);
+                float8 h = both(wa, wb, 0) * pair(row, x);
+#pragma unroll
+                for (int k = 1; k <= RU; ++k)
+                    h += both(wa, wb, k) * (pair(row, x - k) + pair(row, x + k));
+                out[c] = h;
+            }
+        } else {
+            __global const float4 *row = src + (size_t)yy * width;
+            __global const ushort *ir = iu + (size_t)yy * width;
+            for (int c = 0; c < nx; ++c) {
+                const int x = x0 + c;
+                __global const float *wa = wut + ir[x] * (RU + 1);
+                float4 h = wa[0] * row[x];
+                for (int k = 1; k <= RU; ++k)
+                    h += wa[k] * (tex0(row, x - k, width) + tex0(row, x + k, width));
+                ring4[slot * B + c] = h;
+            }
+        }
+        if (yy < y0 + RV) continue;
+        const int yo = yy - RV;
+        int rows[2 * RV + 1];
+#pragma unroll
+        for (int j = 0; j <= 2 * RV; ++j) rows[j] = SLOT(yo - RV + j);
+        __global const ushort *ir = iv + (size_t)yo * width + x0;
+        __global float4 *out = dst + (size_t)yo * width + x0;
+        if (interior) {
+            __local const float8 *rk[2 * RV + 1];
+#pragma unroll
+            for (int j = 0; j <= 2 * RV; ++j) rk[j] = ring + rows[j] * (B / 2);
+            for (int c = 0; c < B / 2; ++c) {
+                __global const float *wa = wvt + ir[2 * c] * (RV + 1);
+                __global const float *wb = wvt + ir[2 * c + 1] * (RV + 1);
+                float8 v = both(wa, wb, 0) * rk[RV][c];
+#pragma unroll
+                for (int k = 1; k <= RV; ++k)
+                    v += both(wa, wb, k) * (rk[RV - k][c] + rk[RV + k][c]);
+                STORE(v.lo, out + 2 * c);
+                STORE(v.hi, out + 2 * c + 1);
+            }
+        } else {
+            for (int c = 0; c < nx; ++c) {
+                __global const float *wa = wvt + ir[c] * (RV + 1);
+                float4 v = wa[0] * ring4[rows[RV] * B + c];
+                for (int k = 1; k <= RV; ++k)
+                    v += wa[k] * (ring4[rows[RV - k] * B + c] + ring4[rows[RV + k] * B + c]);
+                out[c] = v;
+            }
+        }
+    }
+}
 """
 
 
 class DirectKernels:
-    """Built direct-blur kernels, one per (RU, RV) radius pair; one per process
-    (:func:`direct_kernels`)."""
+    """Built direct-blur kernels, one per (RU, RV) radius pair and weights kind (one
+    per axis, per texel); one per process (:func:`direct_kernels`)."""
 
     def __init__(self) -> None:
         self.ctx, self.queue = cl_context()
-        self._kernels: dict[tuple[int, int, bool], Any] = {}
+        self._kernels: dict[tuple[int, int, bool, bool], Any] = {}
 
-    def kernel(self, ru: int, rv: int, stream: bool) -> Any:
+    def kernel(self, ru: int, rv: int, stream: bool, per_texel: bool = False) -> Any:
         import pyopencl as cl
 
-        key = (ru, rv, stream)
+        key = (ru, rv, stream, per_texel)
         if key not in self._kernels:
             options = [f"-DRU={ru}", f"-DRV={rv}", f"-DB={band_columns(rv)}",
                        f"-DSTREAM={int(stream)}"]
-            self._kernels[key] = cl.Kernel(build(STORE_MACRO + _KERNEL, options), "fir_band")
+            self._kernels[key] = cl.Kernel(build(STORE_MACRO + _KERNEL, options),
+                                           "fir_band_texel" if per_texel else "fir_band")
         return self._kernels[key]
 
     def weights(self, sigma: float) -> tuple[int, Any]:
         """(radius, device buffer of the one-sided float32 weights) for ``sigma`` texels."""
         return _weights_buffer(round(float(sigma), 6))
 
-    def blur(self, src: Any, dst: Any, height: int, width: int, sigma_u: float,
-             sigma_v: float) -> None:
-        """Enqueue one 2D blur of the (height, width) float4 image ``src`` into ``dst``
-        (a different buffer: the pass reads its neighbours while it writes)."""
+    def _run(self, ru: int, rv: int, per_texel: bool, src: Any, dst: Any, height: int,
+             width: int, *weights: Any) -> None:
         import pyopencl as cl
 
         if src is dst:
             raise InputError("direct blur: source and destination must differ")
-        ru, wu = self.weights(sigma_u)
-        rv, wv = self.weights(sigma_v)
         b = band_columns(rv)
         bands = -(-width // b)
         # enough work items for every core, without a halo larger than a quarter strip
         strip = min(MAX_STRIP_ROWS, max(8 * rv, -(-height * bands // 64)))
         strips = -(-height // strip)
         stream = height * width * 16 >= STREAM_MIN_BYTES
-        self.kernel(ru, rv, stream)(self.queue, (bands, strips), (1, 1), src, dst, wu, wv,
-                            cl.LocalMemory((2 * rv + 1) * b * 16), np.int32(width),
-                            np.int32(height), np.int32(strip))
+        self.kernel(ru, rv, stream, per_texel)(
+            self.queue, (bands, strips), (1, 1), src, dst, *weights,
+            cl.LocalMemory((2 * rv + 1) * b * 16), np.int32(width), np.int32(height),
+            np.int32(strip))
+
+    def blur(self, src: Any, dst: Any, height: int, width: int, sigma_u: float,
+             sigma_v: float) -> None:
+        """Enqueue one 2D blur of the (height, width) float4 image ``src`` into ``dst``
+        (a different buffer: the pass reads its neighbours while it writes)."""
+        ru, wu = self.weights(sigma_u)
+        rv, wv = self.weights(sigma_v)
+        self._run(ru, rv, False, src, dst, height, width, wu, wv)
+
+    def blur_per_texel(self, src: Any, dst: Any, height: int, width: int,
+                       table_u: NDArray[Any], table_v: NDArray[Any], index_u: Any,
+                       index_v: Any) -> None:
+        """Enqueue one 2D blur with per-texel weights: texel t uses row index_u[t] of
+        ``table_u`` (N, RU + 1) along u and row index_v[t] of ``table_v`` along v (both
+        index buffers uint16 in row layout; tables from :func:`fir_weight_table`)."""
+        import pyopencl as cl
+
+        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        bufs = [cl.Buffer(self.ctx, flags, hostbuf=np.ascontiguousarray(t, np.float32))
+                for t in (table_u, table_v)]
+        self._run(table_u.shape[1] - 1, table_v.shape[1] - 1, True, src, dst, height, width,
+                  *bufs, index_u, index_v)
 
 
 @lru_cache(maxsize=256)

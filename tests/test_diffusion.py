@@ -244,3 +244,75 @@ def test_a_prepared_layout_serves_many_diffusions_like_a_fresh_one() -> None:
     assert any("pass shared" in s for s in stats.skipped)
     with pytest.raises(InputError, match="like its layout"):
         diffuse_prepared(layout, np.ones((n, n + 1, 3), np.float32), v, w)
+
+
+def _stretched_layout(n: int) -> tuple[np.ndarray, ...]:
+    """Irradiance, mm per texel growing 0.05 -> 0.09 mm along u and 0.06 -> 0.08 along v,
+    a disc of coverage and two regions blending across u."""
+    rng = np.random.default_rng(8)
+    yy, xx = np.mgrid[0:n, 0:n]
+    cov = (np.hypot(xx - n / 2, yy - n / 2) < 0.45 * n).astype(np.float32)
+    mm_u = np.tile(np.linspace(0.05, 0.09, n), (n, 1))
+    mm_v = np.tile(np.linspace(0.06, 0.08, n)[:, None], (1, n))
+    rw = np.stack([xx / (n - 1), 1 - xx / (n - 1)], -1).astype(np.float32)
+    return rng.random((n, n, 3)).astype(np.float32), mm_u, mm_v, cov, rw
+
+
+def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> None:
+    # per-texel direct blur (one pass a term): each texel's Gaussian of v / (mm per
+    # texel)^2 on its own axis, as a normalised convolution, against float64
+    from pipeline.direct_blur import direct_texel_reference, fir_weight_table
+    from pipeline.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
+
+    n = 131
+    e, mm_u, mm_v, cov, rw = _stretched_layout(n)
+    v = np.array([0.004, 0.02])
+    w = np.array([[[0.3, 0.5, 0.6], [0.7, 0.5, 0.4]], [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]])
+    got, stats = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    assert stats.passes == 2 and stats.levels == [0, 0]
+    expect = np.zeros((n, n, 3))
+    rgba = np.concatenate([e * cov[..., None], cov[..., None]], -1)
+    for i, var in enumerate(v):
+        tables, rows = [], []
+        for m in (mm_u, mm_v):
+            # the kernel's sizes: median off the charts, on the log2 grid, from the
+            # 1e-4 quantile up
+            m = np.where(cov > 0, m, np.median(m[cov > 0])).astype(np.float32)
+            q = quantized_log2(m)
+            lo = int(np.floor(np.quantile(q, 1e-4)))
+            sigma = math.sqrt(var) / 2.0 ** (np.arange(lo, q.max() + 1) / QUANT_STEPS_PER_OCTAVE)
+            tables.append(fir_weight_table(sigma))
+            rows.append(np.maximum(q - lo, 0))
+        t = direct_texel_reference(rgba, tables[0], tables[1], rows[0], rows[1])
+        expect += (rw @ w[:, i]) * t[..., :3] / np.maximum(t[..., 3:], 1e-30)
+    inside = cov > 0
+    assert np.abs(got - expect)[inside].max() < 1e-5 * np.abs(expect).max()
+    assert np.all(got[~inside] == 0)
+
+
+def test_a_few_tiny_texels_do_not_set_the_direct_radius() -> None:
+    # three degenerate texels ten times smaller than the rest: they are blurred as the
+    # 1e-4 quantile's size and counted, the blur stays one direct pass
+    n = 200
+    e, mm_u, mm_v, cov, rw = _stretched_layout(n)
+    mm_u[100, 50:53] = 0.005
+    v, w = np.array([0.02]), np.full((2, 1, 3), 1.0)
+    got, stats = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    assert stats.passes == 1
+    assert any("3 texel sizes below" in s for s in stats.skipped)
+    assert np.all(np.isfinite(got))
+
+
+def test_term_batches_add_up_like_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    # blurred terms are kept TERM_BUFFER_TEXTURES at a time before they are added up;
+    # one at a time (an accumulator pass between batches) gives the same sum
+    import pipeline.diffusion as d
+
+    n = 96
+    e, mm_u, mm_v, cov, rw = _stretched_layout(n)
+    v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
+    one, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    monkeypatch.setattr(d, "TERM_BUFFER_TEXTURES", 1)
+    assert len(d._term_batches([n * n * 16] * 3 + [0], n * n * 16)) == 3
+    batched, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    np.testing.assert_allclose(batched, one, rtol=1e-6, atol=1e-7)

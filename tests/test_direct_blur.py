@@ -12,8 +12,10 @@ from pipeline.direct_blur import (
     band_columns,
     direct_kernels,
     direct_reference,
+    direct_texel_reference,
     fir_parameter,
     fir_radius,
+    fir_weight_table,
     fir_weights,
     prefers_direct,
     truncation_error,
@@ -72,6 +74,50 @@ def test_opencl_agrees_with_the_float64_reference(h: int, w: int, su: float, sv:
     assert np.abs(ours - ref).max() / np.abs(ref).max() < 1e-5
 
 
+def test_weight_table_rows_are_each_sigmas_kernel_at_the_widest_radius() -> None:
+    sigmas = np.array([2.0, 0.4, 1.0, 1.7])
+    table = fir_weight_table(sigmas)
+    assert table.shape == (4, fir_radius(fir_parameter(2.0)) + 1)
+    np.testing.assert_allclose(table[0], fir_weights(2.0), rtol=1e-12)
+    np.testing.assert_allclose(table[:, 0] + 2 * table[:, 1:].sum(axis=1), 1.0, rtol=1e-12)
+    k = np.arange(table.shape[1])
+    variance = 2 * (k * k * table).sum(axis=1)
+    # a longer cut than each sigma's own keeps more of its variance, never less
+    np.testing.assert_allclose(variance, sigmas**2, rtol=5e-3)
+    with pytest.raises(InputError, match="sigma"):
+        fir_weight_table(np.array([1.0, 0.0]))
+
+
+def _texel_case(h: int, w: int, seed: int) -> tuple[np.ndarray, ...]:
+    """An image, u and v weight tables and random per-texel rows into them."""
+    rng = np.random.default_rng(seed)
+    img = rng.random((h, w, 4)).astype(np.float32)
+    tu = fir_weight_table(np.geomspace(0.4, 2.5, 9))
+    tv = fir_weight_table(np.geomspace(0.3, 1.2, 5))
+    iu = rng.integers(0, 9, (h, w)).astype(np.uint16)
+    iv = rng.integers(0, 5, (h, w)).astype(np.uint16)
+    return img, tu, tv, iu, iv
+
+
+@pytest.mark.parametrize(("h", "w"), [(37, 53), (300, 517), (1, 1), (1024, 1030)])
+def test_per_texel_weights_agree_with_the_float64_reference(h: int, w: int) -> None:
+    # each texel's own row of weights: edge and interior (pair) bands, odd sizes, and a
+    # 16 MiB texture (streaming stores)
+    import pyopencl as cl
+
+    img, tu, tv, iu, iv = _texel_case(h, w, 4)
+    blur = DirectBlur(h, w)
+    blur.upload(img)
+    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+    bu, bv = (cl.Buffer(blur.ctx, flags, hostbuf=i) for i in (iu, iv))
+    direct_kernels().blur_per_texel(blur.buf_a, blur.buf_b, h, w, tu, tv, bu, bv)
+    blur.queue.finish()
+    blur.buf_a, blur.buf_b = blur.buf_b, blur.buf_a
+    ours = blur.download()
+    ref = direct_texel_reference(img, tu, tv, iu, iv)
+    assert np.abs(ours - ref).max() / np.abs(ref).max() < 1e-5
+
+
 def test_texels_outside_count_as_zero() -> None:
     # a constant image keeps its value inside and falls at the borders by the mass the
     # kernel puts outside: 1 - sum of the weights past the edge, per axis
@@ -88,6 +134,8 @@ def test_band_fits_the_ring_budget_and_dispatch_rule() -> None:
     assert band_columns(3) == 128 and band_columns(8) == 64 and band_columns(40) == 16
     assert prefers_direct(1.0, 2.0) and prefers_direct(4.0, 0.5)
     assert not prefers_direct(1.0, 6.0)
+    # per-texel weights cost more a tap: a narrower limit
+    assert prefers_direct(2.0, 2.0, per_texel=True) and not prefers_direct(4.0, 1.0, per_texel=True)
 
 
 def test_bad_input_is_refused() -> None:
