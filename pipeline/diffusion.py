@@ -25,7 +25,15 @@ from numpy.typing import NDArray
 
 from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter, prefers_direct
 from .errors import InputError
-from .opencl import DeviceTexture, build, cl_context, device_buffer, host_buffer
+from .opencl import (
+    DeviceTexture,
+    build,
+    cl_context,
+    device_buffer,
+    host_buffer,
+    host_output,
+    read_output,
+)
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -339,8 +347,8 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
 // texture in `terms` in float4, or -1 for `base`; job index into tw; level width;
 // level height), levels[n] its level. The region weights are read once for the whole
 // batch (a pass per term read them, 24 bytes a texel with six regions, once per term).
-// ACC_IN: add the accumulator of the previous batches; RGB_OUT: write packed RGB for
-// the download (last batch), else the accumulator.
+// The sum goes to `rgb` (the result's own memory on a CPU device); ACC_IN: added to what
+// the previous batches left there.
 #define INL __attribute__((always_inline)) inline
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
 // from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
@@ -364,10 +372,9 @@ INL float4 bilinear(__global const float4 *level, int x, int y, int lw, int lh, 
         + ay * ((1.0f - ax) * r1[x0] + ax * r1[x1]);
 }
 __kernel void accumulate_terms(__global const float4 *terms, __global const float4 *base,
-                               __constant int *jobs, __global float4 *acc,
-                               __global float *rgb, __global const float *cover,
-                               __global const float *rw, __constant float4 *tw,
-                               const int w, const int h)
+                               __constant int *jobs, __global float *rgb,
+                               __global const float *cover, __global const float *rw,
+                               __constant float4 *tw, const int w, const int h)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
@@ -375,7 +382,7 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
     const int levels[N_JOBS] = {LEVELS};  // compiled in: the branches below fold away
     float4 sum = 0.0f;
 #if ACC_IN
-    sum = acc[i];
+    sum = (float4)(rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2], 0.0f);
 #endif
 #if REGIONS > 0
     float r[REGIONS];
@@ -400,11 +407,7 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
         sum += (t.w > 1e-7f ? 1.0f / t.w : 0.0f) * wgt * t;
     }
     sum = cover[i] > 0.0f ? sum : (float4)(0.0f);
-#if RGB_OUT
     rgb[3 * i] = sum.x; rgb[3 * i + 1] = sum.y; rgb[3 * i + 2] = sum.z;
-#else
-    acc[i] = sum;
-#endif
 }
 """
 
@@ -414,21 +417,19 @@ def _downsample_kernel() -> Any:
     import pyopencl as cl
 
     return cl.Kernel(build(_PYRAMID_KERNEL, ["-DREGIONS=0", "-DN_JOBS=1", "-DLEVELS=0",
-                                             "-DACC_IN=0", "-DRGB_OUT=0"]),
+                                             "-DACC_IN=0"]),
                      "downsample_tent")
 
 
 @lru_cache(maxsize=64)
-def _accumulate_kernel(regions: int, levels: tuple[int, ...], acc_in: bool, rgb_out: bool
-                       ) -> Any:
+def _accumulate_kernel(regions: int, levels: tuple[int, ...], acc_in: bool) -> Any:
     """The accumulation of one batch of jobs on these pyramid levels (-1: the unblurred
     irradiance) for ``regions`` region weights a texel (0: one region), built when
     first needed."""
     import pyopencl as cl
 
     options = [f"-DREGIONS={regions}", f"-DN_JOBS={len(levels)}",
-               "-DLEVELS=" + ",".join(map(str, levels)), f"-DACC_IN={int(acc_in)}",
-               f"-DRGB_OUT={int(rgb_out)}"]
+               "-DLEVELS=" + ",".join(map(str, levels)), f"-DACC_IN={int(acc_in)}"]
     return cl.Kernel(build(_PYRAMID_KERNEL, options), "accumulate_terms")
 
 
@@ -777,7 +778,8 @@ def diffuse_prepared(
     batches = _term_batches([0 if var == 0.0 else shapes[k][0] * shapes[k][1] * 16
                              for var, k in jobs], TERM_BUFFER_TEXTURES * nbytes)
     terms = layout.buffer("terms", max(end for batch in batches for _, end in batch.values()))
-    acc = layout.buffer("acc", nbytes) if len(batches) > 1 else tmp
+    out = np.empty((h, w, 3), np.float32)
+    out_buf = host_output(out)  # every batch adds its terms there
 
     blurred_texels = 0.0
     for b, batch in enumerate(batches):
@@ -792,14 +794,11 @@ def diffuse_prepared(
             _blur_job(layout, pyramid[k], tmp, work, variance, k, stats)
             stats.levels.append(k)
             blurred_texels += lh * lw
-        last = b == len(batches) - 1
         levels = tuple(jobs[j][1] if jobs[j][0] > 0 else -1 for j in batch)
-        _accumulate_kernel(layout.n_regions, levels, b > 0, last)(
+        _accumulate_kernel(layout.n_regions, levels, b > 0)(
             queue, (w, h), None, terms, pyramid[0],
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
-            acc, tmp, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h))
-    out = np.empty((h, w, 3), np.float32)
-    cl.enqueue_copy(queue, out, tmp)  # the last batch wrote packed RGB there
-    queue.finish()
+            out_buf, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h))
+    read_output(queue, out_buf, out)
     stats.full_blurs = blurred_texels / (h * w)
     return out, stats

@@ -24,7 +24,6 @@ from typing import Any, Literal
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import minimize, nnls
 
 from .errors import FitError, InputError
 from .profiles import fit_error_eq2c, ring_widths_mm, sum_of_gaussians
@@ -354,6 +353,8 @@ def _gram_weights(hess: FloatArray, grad: FloatArray, free_scale: bool) -> Float
         big = 1e3 * np.maximum(np.abs(a_all).max(axis=(1, 2)), 1.0)
         a_all = np.concatenate([a_all, np.repeat(big[:, None, None], k, axis=2)], axis=1)
         rhs = np.concatenate([rhs, big[:, None]], axis=1)
+    from scipy.optimize import nnls  # here: the renderer imports this module, not scipy's solvers
+
     out = np.empty_like(grad)
     for b in range(batch):
         out[b], _ = nnls(a_all[b], rhs[b], maxiter=50 * k)
@@ -410,6 +411,8 @@ def simplex_least_squares(
         big = 1e4 * max(float(np.linalg.norm(a_mat)), 1.0)
         a_mat = np.vstack([a_mat, np.full((1, basis.shape[1]), big)])
         b_vec = np.concatenate([b_vec, [big]])
+    from scipy.optimize import nnls
+
     w, _ = nnls(a_mat, b_vec, maxiter=50 * basis.shape[1])
     if not free_scale and w.sum() > 0:
         w = w / w.sum()
@@ -693,6 +696,8 @@ def _refine_slsqp(
     cons = [] if free_scale else [
         {"type": "eq", "fun": (lambda x, c=c: np.sum(unpack(x)[1][c]) - 1.0)} for c in range(n_c)
     ]
+    from scipy.optimize import minimize
+
     bounds = [log_bounds] * k + [(0.0, None if free_scale else 1.0)] * (n_c * k)
     res = minimize(
         fun, np.concatenate([log_u0, w0.reshape(-1)]), method="SLSQP", bounds=bounds,

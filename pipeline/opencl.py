@@ -114,6 +114,33 @@ def host_buffer(array: NDArray[Any]) -> Any:
     return cl.Buffer(ctx, cl.mem_flags.READ_ONLY | how, hostbuf=data)
 
 
+def host_output(array: NDArray[Any]) -> Any:
+    """A device buffer holding ``array``'s values that kernels write the array's new
+    contents into: on a CPU device the array's own memory (``USE_HOST_PTR``: no copy
+    either way; :func:`read_output` makes the array current), elsewhere a copy."""
+    import pyopencl as cl
+
+    ctx, _ = cl_context()
+    if not array.flags.c_contiguous:
+        raise InputError("host_output: the array must be C-contiguous")
+    how = cl.mem_flags.USE_HOST_PTR if _host_memory_device() else cl.mem_flags.COPY_HOST_PTR
+    return cl.Buffer(ctx, cl.mem_flags.READ_WRITE | how, hostbuf=array)
+
+
+def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:
+    """Bring ``array`` up to date with the :func:`host_output` buffer over it: a map and
+    unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue)."""
+    import pyopencl as cl
+
+    if _host_memory_device():
+        mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
+                                          array.dtype)
+        mapped.base.release(queue)
+        queue.finish()
+    else:
+        cl.enqueue_copy(queue, array, buffer)
+
+
 class DeviceTexture:
     """An RGBA float32 texture on the device (``buf_a``) and a second buffer of its size
     (``buf_b``) for the work between passes: what every blur class holds. Subclasses

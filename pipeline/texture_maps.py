@@ -1,20 +1,28 @@
-"""Texture-space maps by UV rasterisation (vectorised numpy).
+"""Texture-space maps by UV rasterisation (OpenCL; a vectorised numpy reference).
 
 For every texel whose centre falls inside a triangle of the UV layout: the surface
 position, the interpolated normal, the region weights, a coverage flag, and the
 stretch, i.e. how many mm of surface one texel spans along u and along v (d'Eon et al.
 2007's stretch map, inverted): the diffusion blur uses it to be right in mm whatever
 the UV layout. Row j of a map holds v = (j + 0.5) / size; column i holds u.
+
+:func:`rasterize` runs on the OpenCL device (one work item per triangle claims the
+texels whose centres it covers, the highest triangle index winning a shared edge as
+the numpy version's last write does; one per texel interpolates the attributes);
+:func:`rasterize_reference` is the numpy version it is tested against.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .opencl import build, cl_context, host_output, read_output
 
 CHUNK_CANDIDATES = 4_000_000
 
@@ -47,12 +55,13 @@ def vertex_normals(points: NDArray[np.float64], tris: NDArray[np.int32]) -> NDAr
     return np.where(length > 0, n / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
 
 
-def rasterize(
-    points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
-    uv_tris: NDArray[np.int32], size: int, meters_per_unit: float,
-    region_weights: NDArray[np.float64] | None = None,
-) -> TextureMaps:
-    """Rasterise triangles (vertex indices ``tris``, UV indices ``uv_tris``) at ``size``."""
+def _triangles(points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
+               uv_tris: NDArray[np.int32], size: int, meters_per_unit: float
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                          NDArray[np.float64], NDArray[np.float64]]:
+    """Checked input; per triangle its UV corners in texel coordinates (T, 3, 2), the
+    determinant of its UV edges, and mm of surface per texel step along u and v (the
+    stretch, J = dP / d texel); the vertex normals."""
     if not 8 <= size <= 16384:
         raise InputError(f"texture size must be 8-16384 texels, got {size}")
     if not np.all(np.isfinite(uv)):
@@ -72,8 +81,27 @@ def rasterize(
     mm = meters_per_unit * 1000.0
     tri_mm_u = np.linalg.norm(jac[:, :, 0], axis=1) * mm
     tri_mm_v = np.linalg.norm(jac[:, :, 1], axis=1) * mm
-    normals = vertex_normals(points, tris)
+    return tq, det, tri_mm_u, tri_mm_v, vertex_normals(points, tris)
 
+
+def _attribute_table(points: NDArray[np.float64], normals: NDArray[np.float64],
+                     region_weights: NDArray[np.float64] | None) -> NDArray[np.float32]:
+    """Every per-vertex attribute in one (V, 6 + R) table: position, normal, regions."""
+    return np.concatenate([np.asarray(points, np.float32), normals.astype(np.float32)]
+                          + ([np.asarray(region_weights, np.float32)]
+                             if region_weights is not None else []), axis=1)
+
+
+def rasterize_reference(
+    points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
+    uv_tris: NDArray[np.int32], size: int, meters_per_unit: float,
+    region_weights: NDArray[np.float64] | None = None,
+) -> TextureMaps:
+    """:func:`rasterize` in vectorised numpy (one thread): the reference for its tests."""
+    tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
+                                                      meters_per_unit)
+    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
+    ok = np.abs(det) > 1e-12
     triangle = np.full((size, size), -1, np.int32)
     bary = np.zeros((size, size, 2), np.float32)  # b1, b2 (b0 = 1 - b1 - b2)
     lo = np.ceil(tq.min(axis=1)).astype(np.int64).clip(0, size - 1)
@@ -109,10 +137,7 @@ def rasterize(
     corner = tris[tri_c]  # (N, 3) vertex indices
     b12 = bary[covered]
     w0 = 1 - b12[:, 0] - b12[:, 1]
-    # every per-vertex attribute in one (V, 6 + R) table: three gathers of whole rows
-    table = np.concatenate([np.asarray(points, np.float32), normals.astype(np.float32)]
-                           + ([np.asarray(region_weights, np.float32)]
-                              if region_weights is not None else []), axis=1)
+    table = _attribute_table(points, normals, region_weights)  # three gathers of rows
     attrs = table[corner[:, 0]] * w0[:, None]
     attrs += table[corner[:, 1]] * b12[:, :1]
     attrs += table[corner[:, 2]] * b12[:, 1:]
@@ -129,3 +154,139 @@ def rasterize(
         regions = np.zeros((size, size, region_weights.shape[1]), np.float32)
         regions[covered] = attrs[:, 6:]
     return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions)
+
+
+_KERNEL = r"""
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+// the numpy reference's arithmetic, in the same order: no fused multiply-adds
+#define CORNERS(t) \
+    const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
+    const double e1x = tq[6 * (t) + 2] - ax, e1y = tq[6 * (t) + 3] - ay; \
+    const double e2x = tq[6 * (t) + 4] - ax, e2y = tq[6 * (t) + 5] - ay;
+
+// One triangle: every texel centre of its bounding box (clipped to the texture) that
+// its barycentrics put inside, with 1e-9 of slack, takes the triangle's index unless
+// a higher one already has it.
+__kernel void claim_texels(__global const double *tq, __global const double *det,
+                           __global int *triangle, const int size, const int n_tris)
+{
+    const int t = get_global_id(0);
+    if (t >= n_tris) return;
+    const double d = det[t];
+    if (!(fabs(d) > 1e-12)) return;
+    CORNERS(t)
+    const double bx = ax + e1x, by = ay + e1y, cx = ax + e2x, cy = ay + e2y;
+    const double top = size - 1;
+    const int x0 = (int)ceil(clamp(fmin(ax, fmin(bx, cx)), 0.0, top));
+    const int x1 = (int)floor(clamp(fmax(ax, fmax(bx, cx)), 0.0, top));
+    const int y0 = (int)ceil(clamp(fmin(ay, fmin(by, cy)), 0.0, top));
+    const int y1 = (int)floor(clamp(fmax(ay, fmax(by, cy)), 0.0, top));
+    const double inv = 1.0 / d;
+    for (int y = y0; y <= y1; ++y) {
+        const double dy = (double)y - ay;
+        for (int x = x0; x <= x1; ++x) {
+            const double dx = (double)x - ax;
+            const double b1 = (dx * e2y - dy * e2x) * inv;
+            const double b2 = (e1x * dy - e1y * dx) * inv;
+            if (b1 >= -1e-9 && b2 >= -1e-9 && b1 + b2 <= 1.0 + 1e-9)
+                atomic_max(triangle + (size_t)y * size + x, t);
+        }
+    }
+}
+
+// One texel: its triangle's barycentrics at the texel centre (float32, as stored by the
+// reference) and the interpolated attributes; zero where no triangle covers it.
+__kernel void texel_attributes(__global const int *triangle, __global const double *tq,
+                               __global const double *det, __global const int *corners,
+                               __global const float *table, __global const float *tri_mm,
+                               __global float *position, __global float *normal,
+                               __global float *mm_u, __global float *mm_v,
+                               __global float *regions, const int size, const int n_regions)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= size || y >= size) return;
+    const size_t i = (size_t)y * size + x;
+    const int t = triangle[i];
+    const int channels = 6 + n_regions;
+    if (t < 0) {
+        for (int c = 0; c < 3; ++c) { position[3 * i + c] = 0.0f; normal[3 * i + c] = 0.0f; }
+        for (int r = 0; r < n_regions; ++r) regions[i * n_regions + r] = 0.0f;
+        mm_u[i] = 0.0f; mm_v[i] = 0.0f;
+        return;
+    }
+    CORNERS(t)
+    const double inv = 1.0 / det[t];
+    const double dx = (double)x - ax, dy = (double)y - ay;
+    const float b1 = (float)((dx * e2y - dy * e2x) * inv);
+    const float b2 = (float)((e1x * dy - e1y * dx) * inv);
+    const float w0 = 1.0f - b1 - b2;
+    __global const float *p0 = table + (size_t)corners[3 * t] * channels;
+    __global const float *p1 = table + (size_t)corners[3 * t + 1] * channels;
+    __global const float *p2 = table + (size_t)corners[3 * t + 2] * channels;
+    float n[3];
+    for (int c = 0; c < 3; ++c) {
+        position[3 * i + c] = p0[c] * w0 + p1[c] * b1 + p2[c] * b2;
+        n[c] = p0[3 + c] * w0 + p1[3 + c] * b1 + p2[3 + c] * b2;
+    }
+    const float len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    const float scale = 1.0f / (len > 1e-12f ? len : 1e-12f);
+    for (int c = 0; c < 3; ++c) normal[3 * i + c] = n[c] * scale;
+    for (int r = 0; r < n_regions; ++r)
+        regions[i * n_regions + r] = p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2;
+    mm_u[i] = tri_mm[2 * t]; mm_v[i] = tri_mm[2 * t + 1];
+}
+"""
+
+
+@lru_cache(maxsize=1)
+def _kernels() -> tuple[Any, Any]:
+    import pyopencl as cl
+
+    program = build(_KERNEL)
+    return cl.Kernel(program, "claim_texels"), cl.Kernel(program, "texel_attributes")
+
+
+def rasterize(
+    points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
+    uv_tris: NDArray[np.int32], size: int, meters_per_unit: float,
+    region_weights: NDArray[np.float64] | None = None,
+) -> TextureMaps:
+    """Rasterise triangles (vertex indices ``tris``, UV indices ``uv_tris``) at ``size``
+    on the OpenCL device: the maps of :func:`rasterize_reference` (the same float64
+    coverage test and float32 interpolation; normals within float32 rounding)."""
+    import pyopencl as cl
+
+    tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
+                                                      meters_per_unit)
+    ctx, queue = cl_context()
+    claim, attributes = _kernels()
+    n_tris = tq.shape[0]
+    n_regions = 0 if region_weights is None else int(np.shape(region_weights)[1])
+    ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+
+    def const(a: NDArray[Any], dtype: Any) -> Any:
+        return cl.Buffer(ctx, ro, hostbuf=np.ascontiguousarray(a, dtype).reshape(-1)
+                         if np.size(a) else np.zeros(1, dtype))
+
+    tq_buf, det_buf = const(tq, np.float64), const(det, np.float64)
+    triangle = np.full((size, size), -1, np.int32)
+    tri_buf = host_output(triangle)
+    if n_tris:
+        claim(queue, (n_tris,), None, tq_buf, det_buf, tri_buf, np.int32(size),
+              np.int32(n_tris))
+    out = {"position": np.empty((size, size, 3), np.float32),
+           "normal": np.empty((size, size, 3), np.float32),
+           "mm_u": np.empty((size, size), np.float32), "mm_v": np.empty((size, size), np.float32),
+           "regions": np.empty((size, size, n_regions) if n_regions else 1, np.float32)}
+    bufs = {k: host_output(v) for k, v in out.items()}
+    attributes(queue, (size, size), None, tri_buf, tq_buf, det_buf, const(tris, np.int32),
+               const(_attribute_table(points, normals, region_weights), np.float32),
+               const(np.stack([tri_mm_u, tri_mm_v], 1), np.float32), bufs["position"],
+               bufs["normal"], bufs["mm_u"], bufs["mm_v"], bufs["regions"], np.int32(size),
+               np.int32(n_regions))
+    read_output(queue, tri_buf, triangle)
+    for k, v in out.items():
+        read_output(queue, bufs[k], v)
+    return TextureMaps(size, triangle, out["position"], out["normal"], out["mm_u"],
+                       out["mm_v"], out["regions"] if n_regions else None)

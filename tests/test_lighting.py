@@ -76,6 +76,21 @@ def test_morton_order_is_a_permutation_that_groups_neighbours() -> None:
     assert step < 0.5 * np.linalg.norm(np.diff(pts, axis=0), axis=1).mean()
 
 
+def test_morton_order_matches_bit_interleaving_by_hand() -> None:
+    # points on the 10-bit grid itself (exact quantisation), ties kept in input order
+    rng = np.random.default_rng(1)
+    q = rng.integers(0, 1024, (20000, 3))
+    q[0], q[1] = 0, 1023  # the grid's extent
+    q[5000:5010] = q[7]  # ties
+    code = np.zeros(len(q), np.int64)
+    for b in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> b) & 1) << (3 * b + axis)
+    expected = np.argsort(code, kind="stable")
+    np.testing.assert_array_equal(morton_order(q.astype(np.float32)), expected)
+    np.testing.assert_array_equal(morton_order(q.astype(np.float64)), expected)
+
+
 def test_interleaved_strata_partition_the_grid_and_each_set_is_stratified() -> None:
     for n in (4, 8, 16, 36, 64):
         nx, ny = grid_shape(n, even=True)
