@@ -146,7 +146,8 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     """Paint the sample albedo for the first skin mesh of ``asset`` (unwrapping it first
     when it has no usable UVs) and bind it; returns the texture's path."""
     from .imageio import write_exr
-    from .render import ensure_skin_uvs, push_pull
+    from .push_pull import push_pull
+    from .render import ensure_skin_uvs
     from .texture_maps import rasterize
     from .unwrap import triangulate
     from .usd_schema import WORKING_COLORSPACE

@@ -35,6 +35,7 @@ from .lighting import (
     specular_albedo,
     torrance_sparrow,
 )
+from .push_pull import push_pull
 from .raytrace import RayScene
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, vertex_normals
@@ -178,39 +179,6 @@ def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0
 
 
 # ------------------------------------------------------------------------ helpers
-
-
-def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float32]:
-    """Fill texels outside the charts from their surroundings (push-pull: Gortler et al.
-    1996), so bilinear lookups near a seam never blend in black. Covered texels are
-    returned unchanged."""
-    v = np.asarray(values, dtype=np.float32)
-    c = np.asarray(coverage, dtype=np.float32)
-    squeeze = v.ndim == 2
-    if squeeze:
-        v = v[..., None]
-    levels = [(v * c[..., None], c)]
-    while min(levels[-1][1].shape) > 1:
-        pv, pc = levels[-1]
-        h, w = pc.shape
-        if h % 2 or w % 2:
-            pv = np.pad(pv, ((0, h % 2), (0, w % 2), (0, 0)))
-            pc = np.pad(pc, ((0, h % 2), (0, w % 2)))
-        # strided sums: numpy's reshape-and-sum over (2, 2) blocks is 3x slower
-        sv = pv[0::2, 0::2] + pv[1::2, 0::2] + pv[0::2, 1::2] + pv[1::2, 1::2]
-        sc = pc[0::2, 0::2] + pc[1::2, 0::2] + pc[0::2, 1::2] + pc[1::2, 1::2]
-        levels.append((sv, sc))
-    # normalised colours per level, each level's holes filled from the coarser one
-    # (its parent texel, repeated 2x2: dense, 4x faster than indexing the holes)
-    filled = levels[-1][0] / np.maximum(levels[-1][1], 1e-30)[..., None]
-    for sv, sc in reversed(levels[1:-1]):
-        up = np.repeat(np.repeat(filled, 2, axis=0)[:sc.shape[0]], 2, axis=1)[:, :sc.shape[1]]
-        filled = np.divide(sv, sc[..., None], out=up, where=sc[..., None] > 0)
-    if len(levels) > 1:
-        h, w = c.shape
-        filled = np.repeat(np.repeat(filled, 2, axis=0)[:h], 2, axis=1)[:, :w]
-    out = np.where(c[..., None] > 0, v, filled).astype(np.float32, copy=False)
-    return out[..., 0] if squeeze else out
 
 
 def interleaved_visibility(res: IrradianceResult, maps: TextureMaps

@@ -23,7 +23,6 @@ from pipeline.render import (
     RenderOptions,
     bilinear,
     diffusion_terms,
-    push_pull,
     render_files,
     resample_bilinear,
 )
@@ -219,15 +218,6 @@ def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
         want = bilinear(image, np.stack([uu.ravel(), vv.ravel()], axis=1))
         np.testing.assert_allclose(resample_bilinear(image, size),
                                    want.reshape(size, size, 3), atol=1e-5)  # float32 uv
-
-
-def test_push_pull_fills_holes_and_keeps_covered_texels() -> None:
-    rng = np.random.default_rng(1)
-    values = rng.random((33, 47, 3)).astype(np.float32)
-    cov = (rng.random((33, 47)) > 0.7).astype(np.float32)
-    out = push_pull(values, cov)
-    np.testing.assert_array_equal(out[cov > 0], values[cov > 0])
-    assert np.all(np.isfinite(out)) and out.min() >= values.min() and out.max() <= values.max()
 
 
 # ----------------------------------------------------------------- scenes through USD

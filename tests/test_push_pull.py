@@ -1,0 +1,52 @@
+"""Push-pull hole filling: the OpenCL version against the numpy reference, covered
+texels untouched, odd and degenerate shapes, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.push_pull import push_pull, push_pull_reference
+
+
+@pytest.mark.parametrize(("shape", "channels"), [
+    ((33, 47), 3), ((64, 64), 5), ((1, 9), 2), ((7, 1), 1), ((1, 1), 3), ((513, 300), 4),
+])
+def test_device_equals_the_numpy_reference(shape: tuple[int, int], channels: int) -> None:
+    rng = np.random.default_rng(1)
+    values = rng.random((*shape, channels)).astype(np.float32)
+    cov = (rng.random(shape) > 0.7).astype(np.float32)
+    out = push_pull(values, cov)
+    ref = push_pull_reference(values, cov)
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(out[cov > 0], values[cov > 0])
+
+
+def test_holes_take_their_surroundings_and_nothing_outside_their_range() -> None:
+    # a hole inside a constant field takes the constant; holes between two fields take
+    # values between them
+    values = np.full((64, 64), 2.0, np.float32)
+    cov = np.ones((64, 64), np.float32)
+    cov[20:28, 21:30] = 0.0
+    values[20:28, 21:30] = 99.0  # what the hole held must not show
+    out = push_pull(values, cov)
+    np.testing.assert_allclose(out, 2.0, rtol=1e-6)
+    values = np.zeros((64, 64), np.float32)
+    cov = np.zeros((64, 64), np.float32)
+    values[:, :32], cov[:, :32] = 1.0, 1.0
+    values[:, 48:], cov[:, 48:] = 3.0, 1.0
+    out = push_pull(values, cov)
+    assert np.all((out >= 1.0 - 1e-6) & (out <= 3.0 + 1e-6))
+
+
+def test_nothing_covered_gives_zeros_and_fractional_coverage_keeps_values() -> None:
+    values = np.full((16, 16, 3), 2.0, np.float32)
+    assert not push_pull(values, np.zeros((16, 16), np.float32)).any()
+    cov = np.full((16, 16), 0.25, np.float32)
+    np.testing.assert_array_equal(push_pull(values, cov), values)
+
+
+def test_mismatched_shapes_are_refused() -> None:
+    with pytest.raises(InputError, match="push-pull"):
+        push_pull(np.zeros((8, 8, 3)), np.zeros((8, 9)))
