@@ -5,10 +5,13 @@ sum_i w_i (G(v_i) * E), each 2D Gaussian applied as a horizontal then a vertical
 pass whose width at each texel comes from the stretch map (mm per texel along u and
 v), so the blur is right in mm whatever the UV layout.
 
-:func:`diffuse` (the renderer's) blurs every term from the irradiance with the
-recursive Gaussian of :mod:`.recursive_blur` (cost independent of the width), as a
-normalised convolution of (E coverage, coverage) so chart borders neither darken nor
-leak, and runs wide terms on a coarser level of a pyramid. :func:`diffuse_gather` is
+:func:`diffuse` (the renderer's) blurs every term from the irradiance, as a normalised
+convolution of (E coverage, coverage) so chart borders neither darken nor leak: narrow
+terms with the one-pass direct kernel of :mod:`.direct_blur` (per-texel weights where
+the texel size varies), the others with the recursive Gaussian of
+:mod:`.recursive_blur` (cost independent of the width), wide ones on a coarser level of
+a pyramid; the blurred terms are then added up a batch at a time, in one pass that
+reads the region weights once. :func:`diffuse_gather` is
 the first implementation, a per-tap gather whose cost grows with the width, kept for
 comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
 """
@@ -703,14 +706,16 @@ def diffuse_prepared(
 ) -> tuple[NDArray[np.float32], BlurStats]:
     """:func:`diffuse` on a prepared layout.
 
-    Each term is blurred from the irradiance by the recursive Gaussian of
-    :mod:`.recursive_blur` (cost independent of its width), with per-texel sigma from
-    the stretch maps, as a normalised convolution of (E cov, cov) (chart borders
-    neither darken nor leak), on the coarsest level of a (1, 3, 3, 1) pyramid where it is
-    still LEVEL_MIN_SIGMA_TEXELS wide (the variance the pyramid and bilinear read add is
-    taken off the blur). All of it stays on the device: one upload, one download.
-    Terms with zero weight on every texel are skipped; one narrower than a quarter
-    texel everywhere is the unblurred irradiance.
+    Each term is blurred from the irradiance (:func:`_blur_job`: the direct kernel when
+    narrow, else the recursive one), with per-texel sigma from the stretch maps, as a
+    normalised convolution of (E cov, cov) (chart borders neither darken nor leak), on
+    the coarsest level of a (1, 3, 3, 1) pyramid where it is still
+    LEVEL_MIN_SIGMA_TEXELS wide (the variance the pyramid and bilinear read add is
+    taken off the blur). The blurred terms are kept TERM_BUFFER_TEXTURES at a time and
+    added up in one pass per batch. On a CPU device the irradiance is read and the
+    result written where they are, in host memory. Terms with zero weight on every
+    texel are skipped; one narrower than a quarter texel everywhere is the unblurred
+    irradiance.
     """
     import pyopencl as cl
 

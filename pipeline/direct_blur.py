@@ -41,9 +41,10 @@ FIR_MAX_RADIUS = 16
 2048^2 on two cores, the direct blur at radius 16 costs about what the recursive one
 does (about 35 ms), and each unit of radius adds about 1.5 ms."""
 FIR_MAX_RADIUS_PER_TEXEL = 11
-"""Widest per-texel direct kernel the dispatcher picks: each tap loads two weights
-and builds a pair from them (measured at 2048^2 on the demo face's layout: radius 9
-47 ms against 56 ms for the per-texel recursive blur, radius 14 57 against 49)."""
+"""Widest per-texel direct kernel the dispatcher picks: each tap loads the weights of
+both texels of a pair (measured at 2048^2 on the demo face's layout: radius 4 18 ms
+against 43-45 ms for the per-texel recursive blur, radius 9 34 against 43-47, radius
+14 50-64 against 45-51)."""
 RING_BYTES = 20 * 1024
 """Local-memory ring of 2R + 1 filtered rows of a band: kept inside a 32 KiB L1 cache
 (measured at 2048^2, radius 8: 128 KiB ring 68 ms, 17 KiB ring 23.5 ms)."""
@@ -287,13 +288,14 @@ __kernel void fir_band(__global const float4 *src, __global float4 *dst,
 
 // The same walk with weights per texel: row iu[texel] of `wut` (RU + 1 one-sided weights
 // a row) horizontally, row iv[texel] of `wvt` vertically, each texel's own Gaussian
-// (its sigma from the stretch map) cut at the widest one's radius.
-INL float8 both(__global const float *wa, __global const float *wb, int k) {
-    const float4 a = wa[k], b = wb[k];
-    return (float8)(a, b);
+// (its sigma from the stretch map) cut at the widest one's radius. Each weight is
+// stored four times: its float4 load is the broadcast the float4 taps need (building
+// the pair from two scalar loads cost 24 against 18 ms at radius 4).
+INL float8 both(__global const float4 *wa, __global const float4 *wb, int k) {
+    return (float8)(wa[k], wb[k]);
 }
 __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
-                             __global const float *wut, __global const float *wvt,
+                             __global const float4 *wut, __global const float4 *wvt,
                              __global const ushort *iu, __global const ushort *iv,
                              __local float8 *ring, const int width, const int height,
                              const int strip)
@@ -315,8 +317,8 @@ __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
             __local float8 *out = ring + slot * (B / 2);
             for (int c = 0; c < B / 2; ++c) {
                 const int x = x0 + 2 * c;
-                __global const float *wa = wut + ir[x] * (RU + 1);
-                __global const float *wb = wut + ir[x + 1] * (RU + 1);
+                __global const float4 *wa = wut + ir[x] * (RU + 1);
+                __global const float4 *wb = wut + ir[x + 1] * (RU + 1);
                 float8 h = both(wa, wb, 0) * pair(row, x);
 #pragma unroll
                 for (int k = 1; k <= RU; ++k)
@@ -328,7 +330,7 @@ __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
             __global const ushort *ir = iu + (size_t)yy * width;
             for (int c = 0; c < nx; ++c) {
                 const int x = x0 + c;
-                __global const float *wa = wut + ir[x] * (RU + 1);
+                __global const float4 *wa = wut + ir[x] * (RU + 1);
                 float4 h = wa[0] * row[x];
                 for (int k = 1; k <= RU; ++k)
                     h += wa[k] * (tex0(row, x - k, width) + tex0(row, x + k, width));
@@ -347,8 +349,8 @@ __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
 #pragma unroll
             for (int j = 0; j <= 2 * RV; ++j) rk[j] = ring + rows[j] * (B / 2);
             for (int c = 0; c < B / 2; ++c) {
-                __global const float *wa = wvt + ir[2 * c] * (RV + 1);
-                __global const float *wb = wvt + ir[2 * c + 1] * (RV + 1);
+                __global const float4 *wa = wvt + ir[2 * c] * (RV + 1);
+                __global const float4 *wb = wvt + ir[2 * c + 1] * (RV + 1);
                 float8 v = both(wa, wb, 0) * rk[RV][c];
 #pragma unroll
                 for (int k = 1; k <= RV; ++k)
@@ -358,7 +360,7 @@ __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
             }
         } else {
             for (int c = 0; c < nx; ++c) {
-                __global const float *wa = wvt + ir[c] * (RV + 1);
+                __global const float4 *wa = wvt + ir[c] * (RV + 1);
                 float4 v = wa[0] * ring4[rows[RV] * B + c];
                 for (int k = 1; k <= RV; ++k)
                     v += wa[k] * (ring4[rows[RV - k] * B + c] + ring4[rows[RV + k] * B + c]);
@@ -427,7 +429,9 @@ class DirectKernels:
         import pyopencl as cl
 
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        bufs = [cl.Buffer(self.ctx, flags, hostbuf=np.ascontiguousarray(t, np.float32))
+        # each weight four times: a float4 load is the broadcast the float4 taps need
+        bufs = [cl.Buffer(self.ctx, flags, hostbuf=np.repeat(np.asarray(t, np.float32)[..., None],
+                                                             4, axis=-1))
                 for t in (table_u, table_v)]
         self._run(table_u.shape[1] - 1, table_v.shape[1] - 1, True, src, dst, height, width,
                   *bufs, index_u, index_v)
