@@ -407,6 +407,11 @@ class Renderer:
     def close(self) -> None:
         self.delegate.close()
 
+    def clear_cache(self) -> None:
+        """Drop every cached task result (texture-space maps, irradiance, diffusion, and
+        the diffusion layout's device buffers): the next frame recomputes them."""
+        self._cache.clear()
+
     def _cached(self, log: TaskLog, task: str, key: str, compute: Callable[[], Any]) -> Any:
         full = f"{task}:{key}"
         if full in self._cache:
@@ -526,6 +531,8 @@ class Renderer:
             before = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, a)
             pre = tex.irradiance * before
             cov = maps.coverage
+            # the blur moves flux, it must not create or lose it (chart borders included)
+            flux_in = float((area @ pre.reshape(-1, 3)).sum())
             skipped: list[str] = []
             if opts.scattering:
                 if prepared is not None:
@@ -535,18 +542,21 @@ class Renderer:
                     out, stats = diffuse_gather(pre, maps.mm_per_texel_u, maps.mm_per_texel_v,
                                                 cov, terms.variances_mm2, terms.weights,
                                                 maps.region_weights)
+                del pre  # texture-sized arrays go as soon as they are used (peak memory)
                 skipped, passes = stats.skipped, stats.passes
                 work = {"pyramid_levels": stats.levels,
                         "full_resolution_blurs": stats.full_blurs}
             else:
                 out, passes, work = pre, 0, {}
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
-            # the blur moves flux, it must not create or lose it (chart borders included)
-            flux_in = float((area @ pre.reshape(-1, 3)).sum())
             flux_out = float((area @ out.reshape(-1, 3)).sum())
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            out = out * (before if a == 0.5 else np.power(tex.albedo, 1.0 - a))
-            radiance = push_pull(out / math.pi, cov)
+            if a != 0.5:
+                before = np.power(tex.albedo, 1.0 - a)
+            out *= before  # out is this task's own array: in place
+            del before
+            out *= np.float32(1.0 / math.pi)
+            radiance = push_pull(out, cov)
             return radiance, skipped, passes, energy, work
 
         radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)
@@ -777,6 +787,8 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
             if progress and t is not None:
                 progress(f"frame {t}")
             images, log = renderer.render(t)
+            if own and t == times[-1]:
+                renderer.clear_cache()  # no frame follows: its textures go before the writes
             working = renderer.delegate.working_colorspace
             frame_name = name if t is None else f"{name}.{t:04d}"
             outputs = write_outputs(out_dir, frame_name, images, working, ocio)
