@@ -415,25 +415,19 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 """
 
 
-@lru_cache(maxsize=1)
-def _downsample_kernel() -> Any:
-    import pyopencl as cl
-
-    return cl.Kernel(build(_PYRAMID_KERNEL, ["-DREGIONS=0", "-DN_JOBS=1", "-DLEVELS=0",
-                                             "-DACC_IN=0"]),
-                     "downsample_tent")
-
-
 @lru_cache(maxsize=64)
-def _accumulate_kernel(regions: int, levels: tuple[int, ...], acc_in: bool) -> Any:
-    """The accumulation of one batch of jobs on these pyramid levels (-1: the unblurred
-    irradiance) for ``regions`` region weights a texel (0: one region), built when
-    first needed."""
+def _pyramid_kernels(regions: int, levels: tuple[int, ...], acc_in: bool) -> dict[str, Any]:
+    """The pack, downsample and accumulation kernels, the last for one batch of jobs on
+    these pyramid levels (-1: the unblurred irradiance) and ``regions`` region weights
+    a texel (0: one region); in one program, built when first needed (each build costs
+    PoCL about 60 ms, and a diffusion needs the first batch's program anyway)."""
     import pyopencl as cl
 
     options = [f"-DREGIONS={regions}", f"-DN_JOBS={len(levels)}",
                "-DLEVELS=" + ",".join(map(str, levels)), f"-DACC_IN={int(acc_in)}"]
-    return cl.Kernel(build(_PYRAMID_KERNEL, options), "accumulate_terms")
+    program = build(_PACK_KERNEL + _PYRAMID_KERNEL, options)
+    return {name: cl.Kernel(program, name)
+            for name in ("pack_coverage", "downsample_tent", "accumulate_terms")}
 
 
 def _added_variance_texels2(level: int) -> float:
@@ -474,13 +468,6 @@ __kernel void pack_coverage(__global const float *rgb, __global const float *cov
 """
 
 
-@lru_cache(maxsize=1)
-def _pack_kernel() -> Any:
-    import pyopencl as cl
-
-    return cl.Kernel(build(_PACK_KERNEL), "pack_coverage")
-
-
 class DiffusionLayout:
     """What the diffusion of one texture layout needs besides the irradiance, on the
     device: coverage, region weights, the pyramid's shapes, each level's per-texel
@@ -515,6 +502,7 @@ class DiffusionLayout:
         self.shapes = _level_shapes(h, w)
         self._index: dict[int, tuple[int, int, int, int, Any, Any]] = {}
         self._texel_index: dict[int, Any] = {}
+        self._steps: dict[int, tuple[NDArray[np.int32], ...]] = {}
         self._buffers: dict[str, Any] = {}
         if not self.any_covered:
             return
@@ -546,11 +534,12 @@ class DiffusionLayout:
         level-k texel's size is the mean of the finer texels it covers)."""
         from .recursive_blur import quantized_log2
 
-        mm_k = self._mm
-        for _ in range(k):
-            mm_k = [_box_down(m) for m in mm_k]
-        qu, qv = (quantized_log2(m * np.float32(2.0**k)) for m in mm_k)
-        return qu, qv
+        if k not in self._steps:  # kept until both kinds of index are made from them
+            mm_k = self._mm
+            for _ in range(k):
+                mm_k = [_box_down(m) for m in mm_k]
+            self._steps[k] = tuple(quantized_log2(m * np.float32(2.0**k)) for m in mm_k)
+        return self._steps[k]
 
     def level_index(self, k: int) -> tuple[int, int, int, int, Any, Any]:
         """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
@@ -567,7 +556,13 @@ class DiffusionLayout:
                 cl.Buffer(self.iir.ctx, flags, hostbuf=(qu - lo_u).astype(np.int32)),
                 cl.Buffer(self.iir.ctx, flags,
                           hostbuf=np.ascontiguousarray((qv - lo_v).T, np.int32)))
+            self._release_steps(k)
         return self._index[k]
+
+    def _release_steps(self, k: int) -> None:
+        """Drop level ``k``'s texel-size steps once both kinds of index are made."""
+        if k in self._index and k in self._texel_index:
+            self._steps.pop(k, None)
 
     def texel_steps(self, k: int) -> tuple[NDArray[np.int32], NDArray[np.int32], Any, Any,
                                            int] | None:
@@ -593,6 +588,7 @@ class DiffusionLayout:
                 self._texel_index[k] = (*steps, *(cl.Buffer(self.iir.ctx, flags,
                                                             hostbuf=i.astype(np.uint16))
                                                   for i in indices), smaller)
+            self._release_steps(k)
         return self._texel_index[k]
 
     def buffer(self, name: str, nbytes: int) -> Any:
@@ -769,19 +765,22 @@ def diffuse_prepared(
     mf = cl.mem_flags
     tmp = layout.buffer("tmp", nbytes)
     pyramid = [layout.buffer("level0", nbytes)]
+    batches = _term_batches([0 if var == 0.0 else shapes[k][0] * shapes[k][1] * 16
+                             for var, k in jobs], TERM_BUFFER_TEXTURES * nbytes)
+    variants = [_pyramid_kernels(layout.n_regions,
+                                 tuple(jobs[j][1] if jobs[j][0] > 0 else -1 for j in batch),
+                                 b > 0) for b, batch in enumerate(batches)]
     source = host_buffer(e)  # RGB: 12 of its 16 bytes a texel, read where it is
-    _pack_kernel()(queue, (h * w,), None, source, layout.cover_buf, pyramid[0], np.int32(h * w))
-    downsample = _downsample_kernel()
+    variants[0]["pack_coverage"](queue, (h * w,), None, source, layout.cover_buf,
+                                 pyramid[0], np.int32(h * w))
     for k in range(1, need + 1):
         (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
         pyramid.append(layout.buffer(f"level{k}", dh * dw * 16))
-        downsample(queue, (dw, dh), None, pyramid[k - 1], pyramid[k], np.int32(sw),
-                   np.int32(sh), np.int32(dw), np.int32(dh))
+        variants[0]["downsample_tent"](queue, (dw, dh), None, pyramid[k - 1], pyramid[k],
+                                       np.int32(sw), np.int32(sh), np.int32(dw), np.int32(dh))
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
     tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
-    batches = _term_batches([0 if var == 0.0 else shapes[k][0] * shapes[k][1] * 16
-                             for var, k in jobs], TERM_BUFFER_TEXTURES * nbytes)
     terms = layout.buffer("terms", max(end for batch in batches for _, end in batch.values()))
     out = np.empty((h, w, 3), np.float32)
     out_buf = host_output(out)  # every batch adds its terms there
@@ -799,8 +798,7 @@ def diffuse_prepared(
             _blur_job(layout, pyramid[k], tmp, work, variance, k, stats)
             stats.levels.append(k)
             blurred_texels += lh * lw
-        levels = tuple(jobs[j][1] if jobs[j][0] > 0 else -1 for j in batch)
-        _accumulate_kernel(layout.n_regions, levels, b > 0)(
+        variants[b]["accumulate_terms"](
             queue, (w, h), None, terms, pyramid[0],
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
             out_buf, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h))

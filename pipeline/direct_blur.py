@@ -200,7 +200,7 @@ def direct_texel_reference(image: NDArray[Any], table_u: NDArray[Any], table_v: 
     return out
 
 
-_KERNEL = r"""
+_HELPERS = r"""
 // One work item: a band of B texels (float4) across a strip of rows. Every input row
 // of the strip and its RV-row halo is filtered horizontally into slot y % (2RV + 1) of
 // the ring; each output row is the vertical filter over the ring. Interior bands work
@@ -216,6 +216,12 @@ INL float8 pair(__global const float4 *row, int x) { return *(__global const flo
 INL float4 tex0(__global const float4 *row, int x, int width) {
     return (x >= 0 && x < width) ? row[x] : (float4)(0.0f);
 }
+INL float8 both(__global const float4 *wa, __global const float4 *wb, int k) {
+    return (float8)(wa[k], wb[k]);
+}
+"""
+
+_KERNEL = r"""
 __kernel void fir_band(__global const float4 *src, __global float4 *dst,
                        __constant float *wuc, __constant float *wvc, __local float8 *ring,
                        const int width, const int height, const int strip)
@@ -286,14 +292,14 @@ __kernel void fir_band(__global const float4 *src, __global float4 *dst,
     }
 }
 
+"""
+
+_TEXEL_KERNEL = r"""
 // The same walk with weights per texel: row iu[texel] of `wut` (RU + 1 one-sided weights
 // a row) horizontally, row iv[texel] of `wvt` vertically, each texel's own Gaussian
 // (its sigma from the stretch map) cut at the widest one's radius. Each weight is
 // stored four times: its float4 load is the broadcast the float4 taps need (building
 // the pair from two scalar loads cost 24 against 18 ms at radius 4).
-INL float8 both(__global const float4 *wa, __global const float4 *wb, int k) {
-    return (float8)(wa[k], wb[k]);
-}
 __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
                              __global const float4 *wut, __global const float4 *wvt,
                              __global const ushort *iu, __global const ushort *iv,
@@ -372,23 +378,49 @@ __kernel void fir_band_texel(__global const float4 *src, __global float4 *dst,
 """
 
 
+def _texel_source() -> str:
+    """One program with the per-texel kernel for every radius 1 ..
+    :data:`FIR_MAX_RADIUS_PER_TEXEL` (the same on both axes) and both kinds of store:
+    PoCL's cost to build a program (about 60 ms from its cache) is per program, not per
+    kernel (measured: five kernels 43 ms, one 58 ms), and a diffusion uses several."""
+    parts = [_HELPERS]
+    for stream in (0, 1):
+        for r in range(1, FIR_MAX_RADIUS_PER_TEXEL + 1):
+            parts += [f"#define RU {r}\n#define RV {r}\n#define B {band_columns(r)}\n"
+                      f"#define STREAM {stream}\n", STORE_MACRO,
+                      _TEXEL_KERNEL.replace("fir_band_texel(", f"fir_band_texel_{r}_{stream}("),
+                      "#undef RU\n#undef RV\n#undef B\n#undef STREAM\n#undef STORE\n"]
+    return "".join(parts)
+
+
 class DirectKernels:
-    """Built direct-blur kernels, one per (RU, RV) radius pair and weights kind (one
-    per axis, per texel); one per process (:func:`direct_kernels`)."""
+    """Built direct-blur kernels: one program per (RU, RV) radius pair for one sigma per
+    axis, one program for every per-texel radius; one per process
+    (:func:`direct_kernels`)."""
 
     def __init__(self) -> None:
         self.ctx, self.queue = cl_context()
         self._kernels: dict[tuple[int, int, bool, bool], Any] = {}
+        self._texel_program: Any = None
 
     def kernel(self, ru: int, rv: int, stream: bool, per_texel: bool = False) -> Any:
         import pyopencl as cl
 
         key = (ru, rv, stream, per_texel)
         if key not in self._kernels:
-            options = [f"-DRU={ru}", f"-DRV={rv}", f"-DB={band_columns(rv)}",
-                       f"-DSTREAM={int(stream)}"]
-            self._kernels[key] = cl.Kernel(build(STORE_MACRO + _KERNEL, options),
-                                           "fir_band_texel" if per_texel else "fir_band")
+            if per_texel:
+                if ru != rv or not 1 <= ru <= FIR_MAX_RADIUS_PER_TEXEL:
+                    raise InputError(f"per-texel direct blur: radius {ru}, {rv} (one radius "
+                                     f"1-{FIR_MAX_RADIUS_PER_TEXEL} for both axes)")
+                if self._texel_program is None:
+                    self._texel_program = build(_texel_source())
+                self._kernels[key] = cl.Kernel(self._texel_program,
+                                               f"fir_band_texel_{ru}_{int(stream)}")
+            else:
+                options = [f"-DRU={ru}", f"-DRV={rv}", f"-DB={band_columns(rv)}",
+                           f"-DSTREAM={int(stream)}"]
+                self._kernels[key] = cl.Kernel(build(STORE_MACRO + _HELPERS + _KERNEL,
+                                                     options), "fir_band")
         return self._kernels[key]
 
     def weights(self, sigma: float) -> tuple[int, Any]:
@@ -425,16 +457,20 @@ class DirectKernels:
                        index_v: Any) -> None:
         """Enqueue one 2D blur with per-texel weights: texel t uses row index_u[t] of
         ``table_u`` (N, RU + 1) along u and row index_v[t] of ``table_v`` along v (both
-        index buffers uint16 in row layout; tables from :func:`fir_weight_table`)."""
+        index buffers uint16 in row layout; tables from :func:`fir_weight_table`). The
+        narrower table is padded with zero weights to the wider one's radius, which
+        both axes then use (at most :data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
         import pyopencl as cl
 
+        r = max(table_u.shape[1], table_v.shape[1]) - 1
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        # each weight four times: a float4 load is the broadcast the float4 taps need
-        bufs = [cl.Buffer(self.ctx, flags, hostbuf=np.repeat(np.asarray(t, np.float32)[..., None],
-                                                             4, axis=-1))
-                for t in (table_u, table_v)]
-        self._run(table_u.shape[1] - 1, table_v.shape[1] - 1, True, src, dst, height, width,
-                  *bufs, index_u, index_v)
+        bufs = []
+        for t in (table_u, table_v):
+            # each weight four times: a float4 load is the broadcast the float4 taps need
+            wide = np.zeros((t.shape[0], r + 1, 4), np.float32)
+            wide[:, :t.shape[1]] = np.asarray(t, np.float32)[..., None]
+            bufs.append(cl.Buffer(self.ctx, flags, hostbuf=wide))
+        self._run(r, r, True, src, dst, height, width, *bufs, index_u, index_v)
 
 
 @lru_cache(maxsize=256)
