@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -347,8 +347,9 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
 // rgb / alpha of its blurred (E cov, cov) texture (normalised convolution: texels off
 // the charts give nothing and take nothing), read at this texel or bilinearly from a
 // pyramid level 2^-level as large. Job n of the batch: jobs[4n .. 4n+3] = (offset of its
-// texture in `terms` in float4, or -1 for `base`; job index into tw; level width;
-// level height), levels[n] its level. The region weights are read once for the whole
+// texture in `terms` in float4; job index into tw; level width; level height),
+// levels[n] its level (-1: the unblurred irradiance, `base`). The region weights are
+// read once for the whole
 // batch (a pass per term read them, 24 bytes a texel with six regions, once per term).
 // The sum goes to `rgb` (the result's own memory on a CPU device); ACC_IN: added to what
 // the previous batches left there.
@@ -468,6 +469,35 @@ __kernel void pack_coverage(__global const float *rgb, __global const float *cov
 """
 
 
+DIRECT_TEXEL_QUANTILE = 1e-4
+"""The per-texel direct blur's radius is set by the texel sizes from this quantile up:
+one in 10^4 texels can be far smaller than the rest (degenerate UV, on the demo face
+ten at 0.011 mm against 0.082 mm at this quantile and 0.105 mm median), and they
+would set a radius far wider than every other texel needs; they are blurred as if
+they were the quantile's size (narrower than their own sigma), and counted."""
+TERM_BUFFER_TEXTURES = 4
+"""Blurred terms kept at once before they are added up, in full-resolution textures
+(64 MiB each at 2048^2): each further batch reads and writes the result once more."""
+_TERM_ALIGN = 4096
+"""Byte alignment of each term in the term buffer (a sub-buffer's origin must be aligned
+to the device's base address alignment, at most 4 KiB)."""
+
+
+class TexelSteps(NamedTuple):
+    """One pyramid level's texel sizes for the per-texel direct blur."""
+
+    u: NDArray[np.int32]
+    """Steps (log2 grid of texel sizes) in use along u, from the
+    :data:`DIRECT_TEXEL_QUANTILE` smallest up."""
+    v: NDArray[np.int32]
+    index_u: Any
+    """Each texel's index into ``u`` (uint16 device buffer, row layout; texels smaller
+    than the first step take it)."""
+    index_v: Any
+    smaller: int
+    """How many texel sizes (u and v) lie below the first step."""
+
+
 class DiffusionLayout:
     """What the diffusion of one texture layout needs besides the irradiance, on the
     device: coverage, region weights, the pyramid's shapes, each level's per-texel
@@ -479,7 +509,6 @@ class DiffusionLayout:
 
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None) -> None:
-
         from .recursive_blur import iir_kernels
 
         cov = np.asarray(coverage, dtype=np.float32)
@@ -501,7 +530,7 @@ class DiffusionLayout:
         self.any_covered = bool(covered.any())
         self.shapes = _level_shapes(h, w)
         self._index: dict[int, tuple[int, int, int, int, Any, Any]] = {}
-        self._texel_index: dict[int, Any] = {}
+        self._texel_index: dict[int, TexelSteps | None] = {}
         self._steps: dict[int, tuple[NDArray[np.int32], ...]] = {}
         self._buffers: dict[str, Any] = {}
         if not self.any_covered:
@@ -564,13 +593,9 @@ class DiffusionLayout:
         if k in self._index and k in self._texel_index:
             self._steps.pop(k, None)
 
-    def texel_steps(self, k: int) -> tuple[NDArray[np.int32], NDArray[np.int32], Any, Any,
-                                           int] | None:
-        """For the per-texel direct blur of level ``k``: (u steps, v steps) in use on the
-        log2 grid of texel sizes, from the :data:`DIRECT_TEXEL_QUANTILE` smallest up,
-        the texels' indices into them (uint16 buffers, row layout; smaller texels take
-        the smallest step) and how many texels are smaller; made on first use. None when
-        the steps span more than a uint16 holds."""
+    def texel_steps(self, k: int) -> TexelSteps | None:
+        """Level ``k``'s :class:`TexelSteps` for the per-texel direct blur, made on first
+        use; None when the steps span more than a uint16 holds."""
         import pyopencl as cl
 
         if k not in self._texel_index:
@@ -585,34 +610,19 @@ class DiffusionLayout:
                 self._texel_index[k] = None
             else:
                 flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-                self._texel_index[k] = (*steps, *(cl.Buffer(self.iir.ctx, flags,
-                                                            hostbuf=i.astype(np.uint16))
-                                                  for i in indices), smaller)
+                self._texel_index[k] = TexelSteps(
+                    *steps, *(cl.Buffer(self.iir.ctx, flags, hostbuf=i.astype(np.uint16))
+                              for i in indices), smaller)
             self._release_steps(k)
         return self._texel_index[k]
 
     def buffer(self, name: str, nbytes: int) -> Any:
         """A device work buffer of at least ``nbytes``, kept for the next diffusion of
         this layout."""
-
         if name not in self._buffers or self._buffers[name].size < nbytes:
             self._buffers.pop(name, None)  # its memory goes before the larger one comes
             self._buffers[name] = device_buffer(nbytes)
         return self._buffers[name]
-
-
-DIRECT_TEXEL_QUANTILE = 1e-4
-"""The per-texel direct blur's radius is set by the texel sizes from this quantile up:
-one in 10^4 texels can be far smaller than the rest (degenerate UV, on the demo face
-ten at 0.011 mm against 0.082 mm at this quantile and 0.105 mm median), and they
-would set a radius far wider than every other texel needs; they are blurred as if
-they were the quantile's size (narrower than their own sigma), and counted."""
-TERM_BUFFER_TEXTURES = 4
-"""Blurred terms kept at once before they are added up, in full-resolution textures
-(64 MiB each at 2048^2): more batches cost one more pass over the accumulator each."""
-_TERM_ALIGN = 4096
-"""Byte alignment of each term in the term buffer (a sub-buffer's origin must be aligned
-to the device's base address alignment, at most 4 KiB)."""
 
 
 def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
@@ -656,14 +666,15 @@ def _blur_job(layout: DiffusionLayout, src: Any, tmp: Any, dst: Any, variance: f
             # per-texel sigma (level texels) on each axis's log2 grid; the widest at its
             # smallest texel sets the radius
             sigmas = [sg / 2.0 ** (q / QUANT_STEPS_PER_OCTAVE)
-                      for sg, q in zip(sigma_mm, steps[:2], strict=True)]
+                      for sg, q in zip(sigma_mm, (steps.u, steps.v), strict=True)]
             if prefers_direct(float(sigmas[0][0]), float(sigmas[1][0]), per_texel=True):
                 direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(sigmas[0]),
-                                                fir_weight_table(sigmas[1]), *steps[2:4])
+                                                fir_weight_table(sigmas[1]), steps.index_u,
+                                                steps.index_v)
                 stats.passes += 1
-                note = (f"level {k}: {steps[4]} texel sizes below the "
+                note = (f"level {k}: {steps.smaller} texel sizes below the "
                         f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
-                if steps[4] and note not in stats.skipped:
+                if steps.smaller and note not in stats.skipped:
                     stats.skipped.append(note)
                 return
         lo_u, hi_u, lo_v, hi_v, index_u, index_v = layout.level_index(k)
@@ -791,7 +802,7 @@ def diffuse_prepared(
         for n, (j, (start, end)) in enumerate(batch.items()):
             variance, k = jobs[j]
             lh, lw = shapes[k]
-            table[n] = (start // 16 if variance > 0 else -1, j, lw, lh)
+            table[n] = (start // 16, j, lw, lh)
             if variance == 0.0:
                 continue
             work = terms.get_sub_region(start, end - start)

@@ -169,14 +169,11 @@ def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False) -> b
 
 
 def direct_reference(image: NDArray[Any], sigma_u: float, sigma_v: float) -> NDArray[np.float64]:
-    """float64 numpy version of the direct blur (u then v, zero outside the image)."""
-    from scipy.ndimage import correlate1d
-
-    out = np.asarray(image, np.float64)
-    for axis, sigma in ((1, sigma_u), (0, sigma_v)):
-        w = fir_weights(sigma)
-        out = correlate1d(out, np.r_[w[:0:-1], w], axis=axis, mode="constant", cval=0.0)
-    return out
+    """float64 numpy version of the direct blur (u then v, zero outside the image): the
+    per-texel reference with one row of weights per axis."""
+    rows = np.zeros(np.shape(image)[:2], np.intp)
+    return direct_texel_reference(image, fir_weights(sigma_u)[None], fir_weights(sigma_v)[None],
+                                  rows, rows)
 
 
 def direct_texel_reference(image: NDArray[Any], table_u: NDArray[Any], table_v: NDArray[Any],
@@ -227,22 +224,22 @@ _KERNEL = r"""
 // of `wvt` vertically, each texel's own Gaussian (its sigma from the stretch map) cut
 // at the widest one's radius. Per texel, each weight is stored four times: its float4
 // load is the broadcast the float4 taps need (building the pair from two scalar loads
-// cost 24 against 18 ms at radius 4). PAIR_W / ONE_W: the weight of tap k for a texel
-// pair (float8) or one texel.
+// cost 24 against 18 ms at radius 4). PAIR_W / ONE_W(w, k): the weight of tap k for a
+// texel pair (float8) or one texel, w naming the axis's one-sigma weights.
 #if PER_TEXEL
 #define WEIGHTS __global const float4 *wut, __global const float4 *wvt, \
                 __global const ushort *iu, __global const ushort *iv
 #define AT_PAIR(t, idx, R) __global const float4 *wa = t + (idx)[0] * (R + 1), \
                                          *wb = t + (idx)[1] * (R + 1);
 #define AT_ONE(t, idx, R) __global const float4 *wa = t + (idx)[0] * (R + 1);
-#define PAIR_W(k) both(wa, wb, k)
-#define ONE_W(k) wa[k]
+#define PAIR_W(w, k) both(wa, wb, k)
+#define ONE_W(w, k) wa[k]
 #else
 #define WEIGHTS __constant float *wuc, __constant float *wvc
 #define AT_PAIR(t, idx, R)
 #define AT_ONE(t, idx, R)
-#define PAIR_W(k) w[k]
-#define ONE_W(k) w[k]
+#define PAIR_W(w, k) w[k]
+#define ONE_W(w, k) w[k]
 #endif
 __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIGHTS,
                           __local float8 *ring, const int width, const int height,
@@ -264,9 +261,6 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
     __local float4 *ring4 = (__local float4 *)ring;
     for (int yy = y0 - RV; yy < y1 + RV; ++yy) {
         const int slot = SLOT(yy);
-#if !PER_TEXEL
-#define w wu
-#endif
         if (yy < 0 || yy >= height) {
             for (int c = 0; c < nx; ++c) ring4[slot * B + c] = 0.0f;
         } else if (interior) {
@@ -278,10 +272,10 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
             for (int c = 0; c < B / 2; ++c) {
                 const int x = x0 + 2 * c;
                 AT_PAIR(wut, ir + x, RU)
-                float8 h = PAIR_W(0) * pair(row, x);
+                float8 h = PAIR_W(wu, 0) * pair(row, x);
 #pragma unroll
                 for (int k = 1; k <= RU; ++k)
-                    h += PAIR_W(k) * (pair(row, x - k) + pair(row, x + k));
+                    h += PAIR_W(wu, k) * (pair(row, x - k) + pair(row, x + k));
                 out[c] = h;
             }
         } else {
@@ -292,16 +286,12 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
             for (int c = 0; c < nx; ++c) {
                 const int x = x0 + c;
                 AT_ONE(wut, ir + x, RU)
-                float4 h = ONE_W(0) * row[x];
+                float4 h = ONE_W(wu, 0) * row[x];
                 for (int k = 1; k <= RU; ++k)
-                    h += ONE_W(k) * (tex0(row, x - k, width) + tex0(row, x + k, width));
+                    h += ONE_W(wu, k) * (tex0(row, x - k, width) + tex0(row, x + k, width));
                 ring4[slot * B + c] = h;
             }
         }
-#if !PER_TEXEL
-#undef w
-#define w wv
-#endif
         if (yy < y0 + RV) continue;
         const int yo = yy - RV;
         int rows[2 * RV + 1];
@@ -318,9 +308,10 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
             __global float4 *out = dst + (size_t)yo * width + x0;
             for (int c = 0; c < B / 2; ++c) {
                 AT_PAIR(wvt, ir_v + 2 * c, RV)
-                float8 v = PAIR_W(0) * rk[RV][c];
+                float8 v = PAIR_W(wv, 0) * rk[RV][c];
 #pragma unroll
-                for (int k = 1; k <= RV; ++k) v += PAIR_W(k) * (rk[RV - k][c] + rk[RV + k][c]);
+                for (int k = 1; k <= RV; ++k)
+                    v += PAIR_W(wv, k) * (rk[RV - k][c] + rk[RV + k][c]);
                 STORE(v.lo, out + 2 * c);
                 STORE(v.hi, out + 2 * c + 1);
             }
@@ -328,15 +319,12 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
             __global float4 *out = dst + (size_t)yo * width + x0;
             for (int c = 0; c < nx; ++c) {
                 AT_ONE(wvt, ir_v + c, RV)
-                float4 v = ONE_W(0) * ring4[rows[RV] * B + c];
+                float4 v = ONE_W(wv, 0) * ring4[rows[RV] * B + c];
                 for (int k = 1; k <= RV; ++k)
-                    v += ONE_W(k) * (ring4[rows[RV - k] * B + c] + ring4[rows[RV + k] * B + c]);
+                    v += ONE_W(wv, k) * (ring4[rows[RV - k] * B + c] + ring4[rows[RV + k] * B + c]);
                 out[c] = v;
             }
         }
-#if !PER_TEXEL
-#undef w
-#endif
     }
 }
 #undef WEIGHTS

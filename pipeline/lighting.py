@@ -333,13 +333,16 @@ class LightSampler:
 
     With ``interleave`` (one class 0-3 per point, from the texel's parity), point i
     traces only the strata ``interleaved_strata(samples)[interleave[i]]``: a quarter of
-    the rays, the rest borrowed from its neighbours by ``filter_interleaved``."""
+    the rays, the rest borrowed from its neighbours by ``filter_interleaved``.
+    ``point_buffers`` (a dict, empty at first) lets the samplers of several lights over
+    the same points share one device copy of the origins and normals."""
 
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
                  dome_texture: NDArray[np.float32] | None = None,
                  interleave: NDArray[Any] | None = None, roughness: float = DEFAULT_ROUGHNESS,
-                 rho_s: float = DEFAULT_RHO_S, device: bool = True) -> None:
+                 rho_s: float = DEFAULT_RHO_S, device: bool = True,
+                 point_buffers: dict[str, Any] | None = None) -> None:
         self.light = light
         self.roughness, self.rho_s = float(roughness), float(rho_s)
         self.origins = origins
@@ -381,21 +384,25 @@ class LightSampler:
         else:
             raise InputError(f"unsupported light kind {light.kind!r} at {light.path}")
         self._sphere = [np.float32(x) for x in (*np.asarray(light.position)[:3], radius)]
-        self.device = self._device_setup() if on_device else None
+        self.device = self._device_setup({} if point_buffers is None else point_buffers) \
+            if on_device else None
 
-    def _device_setup(self) -> dict[str, Any]:
-        """The device buffers :meth:`entering_sample` reads (uploaded once per sampler)."""
+    def _device_setup(self, points: dict[str, Any]) -> dict[str, Any]:
+        """The device buffers :meth:`entering_sample` reads, uploaded once per sampler;
+        the origins and normals once into ``points``, which samplers of the same points
+        share."""
         from .opencl import device_buffer
 
         def buf(a: Any, dtype: Any = np.float32) -> Any:
             return device_buffer(np.asarray(a, dtype))
 
+        if not points:
+            points.update(origin=buf(self.origins), normal=buf(self.normals))
         n = self.origins.shape[0]
         table = _rho_dt_table(self.roughness, self.rho_s)
         u, v = self.grid[:, 0], self.grid[:, 1]
         strata_uv = np.stack([u, np.cos(2 * math.pi * v), np.sin(2 * math.pi * v), 0 * u], 1)
-        return {"origin": buf(self.origins), "normal": buf(self.normals),
-                "strata_uv": buf(strata_uv),
+        return {**points, "strata_uv": buf(strata_uv),
                 "strata": buf([0] if self.strata is None else self.strata, np.int32),
                 "table": buf(table), "table_n": np.int32(table.size),
                 "dir": device_buffer(n * 12), "weight": device_buffer(n * 4),
@@ -614,12 +621,14 @@ def irradiance_texture(
     skipped: list[str] = []
     n_rays = 0
     rng = np.random.default_rng(seed)
+    point_buffers: dict[str, Any] = {}  # origins and normals on the device, for every light
     for light in lights:
         if not np.any(light.radiance > 0):
             skipped.append(f"light {light.path}: zero radiance")
             continue
         sampler = LightSampler(light, origins, nrm, samples, rng,
-                               (dome_textures or {}).get(light.path), classes, roughness, rho_s)
+                               (dome_textures or {}).get(light.path), classes, roughness, rho_s,
+                               point_buffers=point_buffers)
 
         def one(k: int, sampler: LightSampler = sampler) -> tuple[Any, Any, int]:
             # light the specular lobe reflects does not enter the skin

@@ -101,30 +101,36 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
     return cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=view)
 
 
-def host_buffer(array: NDArray[Any]) -> Any:
-    """A read-only device buffer over ``array``: on a CPU device the array's own memory
-    (``USE_HOST_PTR``: no second copy of, say, 100 MB of region weights; pyopencl keeps
-    the array alive as long as the buffer, and nothing may write to it meanwhile),
-    elsewhere a copy."""
+def _over_host(array: NDArray[Any], access: Any) -> Any:
+    """A buffer over ``array``'s memory on a CPU device (``USE_HOST_PTR``), else a copy of
+    it; an empty array gets a one-element buffer (OpenCL has no empty buffers)."""
     import pyopencl as cl
 
     ctx, _ = cl_context()
-    data = np.ascontiguousarray(array)
+    data = array if array.size else np.zeros(1, array.dtype)
     how = cl.mem_flags.USE_HOST_PTR if _host_memory_device() else cl.mem_flags.COPY_HOST_PTR
-    return cl.Buffer(ctx, cl.mem_flags.READ_ONLY | how, hostbuf=data)
+    return cl.Buffer(ctx, access | how, hostbuf=data)
+
+
+def host_buffer(array: NDArray[Any]) -> Any:
+    """A read-only device buffer over ``array`` (made C-contiguous): on a CPU device the
+    array's own memory (no second copy of, say, 100 MB of region weights; pyopencl
+    keeps the array alive as long as the buffer, and nothing may write to it
+    meanwhile), elsewhere a copy."""
+    import pyopencl as cl
+
+    return _over_host(np.ascontiguousarray(array), cl.mem_flags.READ_ONLY)
 
 
 def host_output(array: NDArray[Any]) -> Any:
     """A device buffer holding ``array``'s values that kernels write the array's new
-    contents into: on a CPU device the array's own memory (``USE_HOST_PTR``: no copy
-    either way; :func:`read_output` makes the array current), elsewhere a copy."""
+    contents into: on a CPU device the array's own memory (no copy either way;
+    :func:`read_output` makes the array current), elsewhere a copy."""
     import pyopencl as cl
 
-    ctx, _ = cl_context()
     if not array.flags.c_contiguous:
         raise InputError("host_output: the array must be C-contiguous")
-    how = cl.mem_flags.USE_HOST_PTR if _host_memory_device() else cl.mem_flags.COPY_HOST_PTR
-    return cl.Buffer(ctx, cl.mem_flags.READ_WRITE | how, hostbuf=array)
+    return _over_host(array, cl.mem_flags.READ_WRITE)
 
 
 def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:

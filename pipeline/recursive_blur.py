@@ -249,7 +249,6 @@ class IIRKernels:
     (:func:`iir_kernels`)."""
 
     def __init__(self) -> None:
-
         self.ctx, self.queue = cl_context()
         self.max_line = int(self.ctx.devices[0].local_mem_size) // (16 * LINES_PER_ITEM)
 

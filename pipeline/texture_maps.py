@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import build, cl_context, host_output, read_output
+from .opencl import build, cl_context, host_buffer, host_output, read_output
 
 CHUNK_CANDIDATES = 4_000_000
 
@@ -255,21 +255,18 @@ def rasterize(
     """Rasterise triangles (vertex indices ``tris``, UV indices ``uv_tris``) at ``size``
     on the OpenCL device: the maps of :func:`rasterize_reference` (the same float64
     coverage test and float32 interpolation; normals within float32 rounding)."""
-    import pyopencl as cl
-
     tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
                                                       meters_per_unit)
-    ctx, queue = cl_context()
+    _, queue = cl_context()
     claim, attributes = _kernels()
     n_tris = tq.shape[0]
     n_regions = 0 if region_weights is None else int(np.shape(region_weights)[1])
-    ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
 
-    def const(a: NDArray[Any], dtype: Any) -> Any:
-        return cl.Buffer(ctx, ro, hostbuf=np.ascontiguousarray(a, dtype).reshape(-1)
-                         if np.size(a) else np.zeros(1, dtype))
-
-    tq_buf, det_buf = const(tq, np.float64), const(det, np.float64)
+    # over the host arrays: each is kept (named) until the queue is done with it
+    tq_buf, det_buf = (host_buffer(np.asarray(a, np.float64)) for a in (tq, det))
+    corner_buf = host_buffer(np.asarray(tris, np.int32))
+    table_buf = host_buffer(_attribute_table(points, normals, region_weights))
+    tri_mm_buf = host_buffer(np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32))
     triangle = np.full((size, size), -1, np.int32)
     tri_buf = host_output(triangle)
     if n_tris:
@@ -280,9 +277,8 @@ def rasterize(
            "mm_u": np.empty((size, size), np.float32), "mm_v": np.empty((size, size), np.float32),
            "regions": np.empty((size, size, n_regions) if n_regions else 1, np.float32)}
     bufs = {k: host_output(v) for k, v in out.items()}
-    attributes(queue, (size, size), None, tri_buf, tq_buf, det_buf, const(tris, np.int32),
-               const(_attribute_table(points, normals, region_weights), np.float32),
-               const(np.stack([tri_mm_u, tri_mm_v], 1), np.float32), bufs["position"],
+    attributes(queue, (size, size), None, tri_buf, tq_buf, det_buf, corner_buf, table_buf,
+               tri_mm_buf, bufs["position"],
                bufs["normal"], bufs["mm_u"], bufs["mm_v"], bufs["regions"], np.int32(size),
                np.int32(n_regions))
     read_output(queue, tri_buf, triangle)
