@@ -2,10 +2,14 @@
 
     python benchmarks/bench_blur.py [--size 1024] [--sigmas 1,4,16,64]
 
+On the OpenCL device skinpipe chooses ($SKINPIPE_OPENCL_DEVICE names another;
+benchmarks/bench_devices.py runs this on every device).
+
 Same input, same run; ours and cv2 are timed in turn, seven rounds, each its best:
 
-- ours: what skinpipe runs for one sigma (`pipeline.direct_blur.prefers_direct`): the
-  one-pass direct kernel (pipeline/direct_blur.py) up to radius 16, else the
+- ours: what skinpipe runs for one sigma (`pipeline.blur_switch.prefers_direct`): the
+  one-pass direct kernel (pipeline/direct_blur.py) up to the radius measured for this
+  device (pipeline/blur_switch.py; 17 on PoCL here, 8 on Intel's runtime), else the
   recursive Gaussian (pipeline/recursive_blur.py); both are timed at every sigma
   where they apply (direct up to radius 32), and the recursive one with a per-texel
   sigma map too (quantised, indexed and uploaded on every call);
@@ -27,6 +31,7 @@ import argparse
 import json
 import time
 from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -81,8 +86,10 @@ def main() -> None:
     import cv2
     from scipy.ndimage import gaussian_filter
 
+    from pipeline.blur_switch import direct_limits, prefers_direct
     from pipeline.diffusion import OpenCLBlur
-    from pipeline.direct_blur import DirectBlur, fir_radius, prefers_direct
+    from pipeline.direct_blur import DirectBlur, fir_radius
+    from pipeline.opencl import device_choice
     from pipeline.recursive_blur import RecursiveBlur
 
     parser = argparse.ArgumentParser(description=__doc__,
@@ -180,7 +187,8 @@ def main() -> None:
     for row in rows:
         row["ours_vs_floor"] = row["ours_s"] / floor_s
         row["recursive_uniform_vs_floor"] = row["recursive_uniform_s"] / floor_s
-    doc = {"benchmark": "blur", "size": n, "channels": 4, "dtype": "float32",
+    doc = {"benchmark": "blur", "device": device_choice().summary(),
+           "blur_switch": asdict(direct_limits()), "size": n, "channels": 4, "dtype": "float32",
            "copy_bandwidth_gbps": bandwidth / 1e9, "floor_s": floor_s,
            "one_pass_floor_s": floor_s / 2, "rows": rows}
     args.output.parent.mkdir(parents=True, exist_ok=True)

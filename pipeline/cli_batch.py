@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Any
 
 from .cli_render import _eprint
 from .errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
+from .opencl import DEVICE_ENV, DEVICE_HELP
 
 
 def _stages(text: str) -> tuple[str, ...]:
@@ -47,6 +49,9 @@ def add_batch(sub: argparse._SubParsersAction) -> None:
                                        "(no work when their outputs are current)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_ROOT",
                    help="output root, one directory per subject")
+    p.add_argument("--device", default=None, metavar="SPEC",
+                   help=f"OpenCL device of the local workers ({DEVICE_HELP}); workers of "
+                        f"your own cluster read ${DEVICE_ENV} from their environment")
     p.set_defaults(handler=cmd_batch)
 
 
@@ -71,6 +76,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if args.scheduler is None and not 1 <= args.local_workers <= 256:
         raise InputError(f"--local-workers must be 1-256, got {args.local_workers}")
     cluster = None
+    if args.device:  # worker processes inherit it (each chooses its device in its process)
+        os.environ[DEVICE_ENV] = args.device
     if args.scheduler:
         client = Client(args.scheduler, timeout="30s")
     else:

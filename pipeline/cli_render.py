@@ -80,6 +80,13 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--ocio", default=None,
                    help="OCIO config for the display PNG (default: $OCIO, else "
                         "ocio://default)")
+    add_device_option(p)
+
+
+def add_device_option(p: argparse.ArgumentParser) -> None:
+    from .opencl import DEVICE_HELP
+
+    p.add_argument("--device", default=None, metavar="SPEC", help=DEVICE_HELP)
 
 
 def render_options(args: argparse.Namespace) -> Any:
@@ -91,7 +98,7 @@ def render_options(args: argparse.Namespace) -> Any:
         roughness=args.roughness, rho_s=args.rho_s,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
-        camera=args.camera, write_uvs=not args.no_write_uvs)
+        camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device)
 
 
 def ocio_source(args: argparse.Namespace) -> str:

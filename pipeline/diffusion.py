@@ -20,19 +20,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter, prefers_direct
+from .blur_switch import prefers_direct
+from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter
 from .errors import InputError
 from .opencl import (
     DeviceTexture,
+    Kernel,
     build,
     cl_context,
     device_buffer,
+    device_cache,
     host_buffer,
     host_output,
     read_output,
@@ -113,7 +115,7 @@ def _pass_reference(src: NDArray[np.float64], sigma: NDArray[np.float64],
     return dst
 
 
-@lru_cache(maxsize=1)
+@device_cache()
 def _cl_state() -> tuple[Any, Any, Any]:
     """Context, queue and the gather blur's program."""
     ctx, queue = cl_context()
@@ -145,7 +147,7 @@ class OpenCLBlur(DeviceTexture):
 
         super().__init__(*coverage.shape)
         _, _, program = _cl_state()
-        self.kernel = cl.Kernel(program, "blur_axis")
+        self.kernel = Kernel(program, "blur_axis")
         mf = cl.mem_flags
         cov = np.ascontiguousarray(coverage, dtype=np.float32)
         self.cover_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cov)
@@ -416,18 +418,17 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 """
 
 
-@lru_cache(maxsize=64)
+@device_cache(maxsize=64)
 def _pyramid_kernels(regions: int, levels: tuple[int, ...], acc_in: bool) -> dict[str, Any]:
     """The pack, downsample and accumulation kernels, the last for one batch of jobs on
     these pyramid levels (-1: the unblurred irradiance) and ``regions`` region weights
     a texel (0: one region); in one program, built when first needed (each build costs
     PoCL about 60 ms, and a diffusion needs the first batch's program anyway)."""
-    import pyopencl as cl
 
     options = [f"-DREGIONS={regions}", f"-DN_JOBS={len(levels)}",
                "-DLEVELS=" + ",".join(map(str, levels)), f"-DACC_IN={int(acc_in)}"]
     program = build(_PACK_KERNEL + _PYRAMID_KERNEL, options)
-    return {name: cl.Kernel(program, name)
+    return {name: Kernel(program, name)
             for name in ("pack_coverage", "downsample_tent", "accumulate_terms")}
 
 

@@ -31,20 +31,36 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import STORE_MACRO, STREAM_MIN_BYTES, DeviceTexture, build, cl_context
+from .opencl import (
+    STORE_MACRO,
+    STREAM_MIN_BYTES,
+    DeviceTexture,
+    Kernel,
+    build,
+    cl_context,
+    device_cache,
+)
 
 FIR_MAX_ERROR = 6e-4
 """Truncation error budget of the direct kernel, relative to the 2D peak (the recursive
 blur's own error is 5.5e-4 to 8.5e-4): radius 3 at sigma 1, 7 at sigma 2, 15 at 4."""
 FIR_MAX_RADIUS = 16
-"""Widest direct kernel the dispatcher picks (:func:`prefers_direct`): measured at
-2048^2 on two cores, the direct blur at radius 16 costs about what the recursive one
-does (about 35 ms), and each unit of radius adds about 1.5 ms."""
+"""Where the one-sigma direct kernel stopped paying on PoCL (2048^2, two cores: radius
+16 costs about what the recursive blur does, 35 ms, and each unit of radius adds about
+1.5 ms). The dispatcher uses the switch measured on the device it runs on
+(:mod:`.blur_switch`); this value is the one tests pin for device-independent results."""
 FIR_MAX_RADIUS_PER_TEXEL = 11
-"""Widest per-texel direct kernel the dispatcher picks: each tap loads the weights of
+"""Widest per-texel direct kernel built (the tuner's cap; on PoCL also where it stops
+paying, :mod:`.blur_switch`): each tap loads the weights of
 both texels of a pair (measured at 2048^2 on the demo face's layout: radius 4 18 ms
 against 43-45 ms for the per-texel recursive blur, radius 9 34 against 43-47, radius
 14 50-64 against 45-51)."""
+BUILT_RADII = (2, 4, 7, 11, 16, 24, 32)
+"""Radii the direct kernels are built for: a blur runs the smallest at least its own,
+its weights padded with zeros (adding zero taps changes no value). A render then
+builds a few programs instead of one per radius met (the demo met eight per-texel
+radii: on Intel's CPU runtime about 0.8 s a program cold), for a few taps more
+(about 1.5 ms a unit of radius at 2048^2)."""
 RING_BYTES = 20 * 1024
 """Local-memory ring of 2R + 1 filtered rows of a band: kept inside a 32 KiB L1 cache
 (measured at 2048^2, radius 8: 128 KiB ring 68 ms, 17 KiB ring 23.5 ms)."""
@@ -152,6 +168,14 @@ def fir_weight_table(sigma_texels: NDArray[Any]) -> NDArray[np.float64]:
     return w / (w[:, :1] + 2 * w[:, 1:].sum(axis=1, keepdims=True))
 
 
+def built_radius(radius: int) -> int:
+    """The :data:`BUILT_RADII` member a blur of ``radius`` runs with."""
+    for r in BUILT_RADII:
+        if r >= radius:
+            return r
+    raise InputError(f"direct blur: radius {radius} is wider than {BUILT_RADII[-1]}")
+
+
 def band_columns(radius_v: int) -> int:
     """Band width B (texels, a power of two in 16..256) whose ring of 2 radius_v + 1
     rows of float4 fits :data:`RING_BYTES`."""
@@ -159,13 +183,6 @@ def band_columns(radius_v: int) -> int:
     while b > 16 and (2 * radius_v + 1) * b * 16 > RING_BYTES:
         b //= 2
     return b
-
-
-def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False) -> bool:
-    """Whether the direct blur is the faster one for these sigmas (texels; per texel: the
-    widest): both radii at most :data:`FIR_MAX_RADIUS` (:data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
-    limit = FIR_MAX_RADIUS_PER_TEXEL if per_texel else FIR_MAX_RADIUS
-    return max(direct_radius(sigma_u), direct_radius(sigma_v)) <= limit
 
 
 def direct_reference(image: NDArray[Any], sigma_u: float, sigma_v: float) -> NDArray[np.float64]:
@@ -335,50 +352,49 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
 """
 
 
-def _texel_source() -> str:
-    """One program with the per-texel kernel for every radius 1 ..
-    :data:`FIR_MAX_RADIUS_PER_TEXEL` (the same on both axes) and both kinds of store:
-    PoCL's cost to build a program (about 60 ms from its cache) is per program, not per
-    kernel (measured: five kernels 43 ms, one 58 ms), and a diffusion uses several."""
+def _texel_source(radius: int) -> str:
+    """One program with the per-texel kernel of ``radius`` (the same on both axes) for
+    both kinds of store. One program a radius, not one for every radius: PoCL's cost
+    to build a program is per program (about 60 ms from its cache, measured: five
+    kernels 43 ms, one 58 ms), but Intel's CPU runtime compiles every kernel of it
+    (cold: 8.4 s for all 22 kernels of radii 1-11, against 0.4 s for two), and a
+    render uses only a few radii."""
     parts = [_HELPERS]
     for stream in (0, 1):
-        for r in range(1, FIR_MAX_RADIUS_PER_TEXEL + 1):
-            parts += [f"#define RU {r}\n#define RV {r}\n#define B {band_columns(r)}\n"
-                      f"#define STREAM {stream}\n#define PER_TEXEL 1\n"
-                      f"#define KERNEL_NAME fir_band_texel_{r}_{stream}\n", STORE_MACRO,
-                      _KERNEL, "#undef RU\n#undef RV\n#undef B\n#undef STREAM\n#undef STORE\n"
-                      "#undef PER_TEXEL\n#undef KERNEL_NAME\n"]
+        parts += [f"#define RU {radius}\n#define RV {radius}\n#define B {band_columns(radius)}\n"
+                  f"#define STREAM {stream}\n#define PER_TEXEL 1\n"
+                  f"#define KERNEL_NAME fir_band_texel_{radius}_{stream}\n", STORE_MACRO,
+                  _KERNEL, "#undef RU\n#undef RV\n#undef B\n#undef STREAM\n#undef STORE\n"
+                  "#undef PER_TEXEL\n#undef KERNEL_NAME\n"]
     return "".join(parts)
 
 
 class DirectKernels:
     """Built direct-blur kernels: one program per (RU, RV) radius pair for one sigma per
-    axis, one program for every per-texel radius; one per process
+    axis, one per per-texel radius; one per device
     (:func:`direct_kernels`)."""
 
     def __init__(self) -> None:
         self.ctx, self.queue = cl_context()
         self._kernels: dict[tuple[int, int, bool, bool], Any] = {}
-        self._texel_program: Any = None
+        self._texel_programs: dict[int, Any] = {}
 
     def kernel(self, ru: int, rv: int, stream: bool, per_texel: bool = False) -> Any:
-        import pyopencl as cl
-
         key = (ru, rv, stream, per_texel)
         if key not in self._kernels:
             if per_texel:
                 if ru != rv or not 1 <= ru <= FIR_MAX_RADIUS_PER_TEXEL:
                     raise InputError(f"per-texel direct blur: radius {ru}, {rv} (one radius "
                                      f"1-{FIR_MAX_RADIUS_PER_TEXEL} for both axes)")
-                if self._texel_program is None:
-                    self._texel_program = build(_texel_source())
-                self._kernels[key] = cl.Kernel(self._texel_program,
-                                               f"fir_band_texel_{ru}_{int(stream)}")
+                if ru not in self._texel_programs:
+                    self._texel_programs[ru] = build(_texel_source(ru))
+                self._kernels[key] = Kernel(self._texel_programs[ru],
+                                            f"fir_band_texel_{ru}_{int(stream)}")
             else:
                 options = [f"-DRU={ru}", f"-DRV={rv}", f"-DB={band_columns(rv)}",
                            f"-DSTREAM={int(stream)}", "-DPER_TEXEL=0", "-DKERNEL_NAME=fir_band"]
-                self._kernels[key] = cl.Kernel(build(STORE_MACRO + _HELPERS + _KERNEL,
-                                                     options), "fir_band")
+                self._kernels[key] = Kernel(build(STORE_MACRO + _HELPERS + _KERNEL,
+                                                  options), "fir_band")
         return self._kernels[key]
 
     def weights(self, sigma: float) -> tuple[int, Any]:
@@ -416,11 +432,11 @@ class DirectKernels:
         """Enqueue one 2D blur with per-texel weights: texel t uses row index_u[t] of
         ``table_u`` (N, RU + 1) along u and row index_v[t] of ``table_v`` along v (both
         index buffers uint16 in row layout; tables from :func:`fir_weight_table`). The
-        narrower table is padded with zero weights to the wider one's radius, which
-        both axes then use (at most :data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
+        tables are padded with zero weights to the :func:`built_radius` of the wider
+        one, which both axes then use (at most :data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
         import pyopencl as cl
 
-        r = max(table_u.shape[1], table_v.shape[1]) - 1
+        r = built_radius(max(table_u.shape[1], table_v.shape[1]) - 1)
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         bufs = []
         for t in (table_u, table_v):
@@ -431,16 +447,18 @@ class DirectKernels:
         self._run(r, r, True, src, dst, height, width, *bufs, index_u, index_v)
 
 
-@lru_cache(maxsize=256)
+@device_cache(maxsize=256)
 def _weights_buffer(sigma: float) -> tuple[int, Any]:
     import pyopencl as cl
 
-    w = fir_weights(sigma).astype(np.float32)
+    taps = fir_weights(sigma)
+    w = np.zeros(built_radius(taps.size - 1) + 1, np.float32)
+    w[:taps.size] = taps
     return w.size - 1, cl.Buffer(cl_context()[0], cl.mem_flags.READ_ONLY
                                  | cl.mem_flags.COPY_HOST_PTR, hostbuf=w)
 
 
-@lru_cache(maxsize=1)
+@device_cache()
 def direct_kernels() -> DirectKernels:
     return DirectKernels()
 

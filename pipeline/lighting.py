@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .opencl import Kernel, device_cache
 from .raytrace import RayScene, morton_order
 from .scene import Light
 
@@ -313,15 +314,14 @@ entering weight 0.26-0.41 s in numpy, 21-23 ms on the device with the download."
 _SAMPLE_LOCK = threading.Lock()
 
 
-@lru_cache(maxsize=8)
+@device_cache(maxsize=8)
 def _sample_kernel(kind: str, count: int, interleaved: bool) -> Any:
-    import pyopencl as cl
 
     from .opencl import build
 
     options = [f"-DKIND={1 if kind == 'sphere' else 2}", f"-DCOUNT={count}",
                f"-DINTERLEAVED={int(interleaved)}"]
-    return cl.Kernel(build(_SAMPLE_KERNEL, options), "sample_entering")
+    return Kernel(build(_SAMPLE_KERNEL, options), "sample_entering")
 
 
 class LightSampler:
@@ -520,14 +520,13 @@ MAX_FILTER_LIGHTS = 4
 go in further launches."""
 
 
-@lru_cache(maxsize=MAX_FILTER_LIGHTS)
+@device_cache(maxsize=MAX_FILTER_LIGHTS)
 def _interleave_kernel(lights: int) -> Any:
-    import pyopencl as cl
 
     from .opencl import build
 
     program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}"])
-    return cl.Kernel(program, "filter_interleaved")
+    return Kernel(program, "filter_interleaved")
 
 
 def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],

@@ -9,14 +9,22 @@ Covered texels are returned unchanged. :func:`push_pull` runs on the OpenCL devi
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import build, cl_context, device_buffer, host_buffer, host_output, read_output
+from .opencl import (
+    Kernel,
+    build,
+    cl_context,
+    device_buffer,
+    device_cache,
+    host_buffer,
+    host_output,
+    read_output,
+)
 
 
 def _checked(values: NDArray[Any], coverage: NDArray[Any]
@@ -117,12 +125,11 @@ __kernel void normalise(__global float *lvl, __global const float *lvl_c, const 
 """
 
 
-@lru_cache(maxsize=1)
+@device_cache()
 def _kernels() -> tuple[Any, Any, Any]:
-    import pyopencl as cl
 
     program = build(_KERNEL)
-    return tuple(cl.Kernel(program, name) for name in ("pull", "push", "normalise"))
+    return tuple(Kernel(program, name) for name in ("pull", "push", "normalise"))
 
 
 def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float32]:

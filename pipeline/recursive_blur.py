@@ -27,7 +27,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import STORE_MACRO, STREAM_MIN_BYTES, DeviceTexture, build, cl_context
+from .opencl import (
+    STORE_MACRO,
+    STREAM_MIN_BYTES,
+    DeviceTexture,
+    Kernel,
+    build,
+    cl_context,
+    device_cache,
+)
 
 # Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
 # sum over the pairs of (a cos(w x) + b sin(w x)) exp(-lam x)
@@ -233,15 +241,14 @@ def quantized_sigma(sigma: NDArray[Any]) -> NDArray[np.float64]:
     return 2.0 ** (quantized_log2(s) / QUANT_STEPS_PER_OCTAVE)
 
 
-@lru_cache(maxsize=4)
+@device_cache(maxsize=4)
 def _iir_kernel(uniform: bool, stream: bool) -> Any:
     """The recursive pass for one sigma or per-texel coefficients, with or without
     streaming stores: built when first needed."""
-    import pyopencl as cl
 
     options = [f"-DUNIFORM={int(uniform)}", f"-DLINES={LINES_PER_ITEM}",
                f"-DSTREAM={int(stream)}"]
-    return cl.Kernel(build(STORE_MACRO + _KERNEL, options), "iir_rows_transposed")
+    return Kernel(build(STORE_MACRO + _KERNEL, options), "iir_rows_transposed")
 
 
 class IIRKernels:
@@ -287,7 +294,7 @@ class IIRKernels:
         self.run_pass(tmp, dst, height, width, coefs_v, index_v_t)
 
 
-@lru_cache(maxsize=1)
+@device_cache()
 def iir_kernels() -> IIRKernels:
     return IIRKernels()
 

@@ -15,13 +15,14 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .blur_switch import direct_limits
 from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
 from .errors import InputError, SkinpipeError
 from .fit import FitResult
@@ -35,6 +36,7 @@ from .lighting import (
     specular_albedo,
     torrance_sparrow,
 )
+from .opencl import LEDGER, KernelLedger, device_choice, set_device
 from .push_pull import push_pull
 from .raytrace import RayScene
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
@@ -75,6 +77,9 @@ class RenderOptions:
     camera: str | None = None
     write_uvs: bool = True
     seed: int = 0
+    device: str | None = None
+    """OpenCL device (:data:`~.opencl.DEVICE_HELP`); None: ``$SKINPIPE_OPENCL_DEVICE``,
+    else auto."""
 
     def __post_init__(self) -> None:
         w, h = self.resolution
@@ -400,6 +405,8 @@ class Renderer:
                  progress: Callable[[str], None] | None = None) -> None:
         self.stage = stage
         self.options = options
+        if options.device:
+            set_device(options.device)
         self.delegate = SceneDelegate(stage, options.camera)
         self.progress = progress or (lambda _msg: None)
         self._cache: dict[str, Any] = {}
@@ -777,6 +784,9 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
     if renderer is None:
         renderer = Renderer(open_stage_guarded(scene_path), options, progress)
     renderer.options = options
+    if options.device:
+        set_device(options.device)
+    ledger = LEDGER.copy()
     out_dir.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {"scene": str(scene_path), "options": _options_json(options),
                            "ocio": ocio, "frames": []}
@@ -800,11 +810,19 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
         if own:
             renderer.close()
     doc["total_seconds"] = time.perf_counter() - start
+    doc["opencl"] = opencl_summary(ledger)
     atomic_write_json(out_dir / "render.json", doc)
     return doc
 
 
-def _options_json(options: RenderOptions) -> dict[str, Any]:
-    from dataclasses import asdict
+def opencl_summary(before: KernelLedger) -> dict[str, Any]:
+    """The device, why the others were not used, the programs built and their seconds,
+    the kernels launched since ``before``, and the direct/recursive blur switch used."""
+    doc = {**device_choice().summary(), **LEDGER.since(before)}
+    if direct_limits.cache_info().currsize:  # only if a blur asked for it
+        doc["blur_switch"] = asdict(direct_limits())
+    return doc
 
+
+def _options_json(options: RenderOptions) -> dict[str, Any]:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(options).items()}

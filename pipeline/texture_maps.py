@@ -15,14 +15,13 @@ the numpy version's last write does; one per texel interpolates the attributes);
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .opencl import build, cl_context, host_buffer, host_output, read_output
+from .opencl import Kernel, build, cl_context, device_cache, host_buffer, host_output, read_output
 
 CHUNK_CANDIDATES = 4_000_000
 
@@ -239,12 +238,11 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
 """
 
 
-@lru_cache(maxsize=1)
+@device_cache()
 def _kernels() -> tuple[Any, Any]:
-    import pyopencl as cl
 
     program = build(_KERNEL)
-    return cl.Kernel(program, "claim_texels"), cl.Kernel(program, "texel_attributes")
+    return Kernel(program, "claim_texels"), Kernel(program, "texel_attributes")
 
 
 def rasterize(

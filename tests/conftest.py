@@ -2,11 +2,43 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
+from pipeline import opencl
+from pipeline.blur_switch import SWITCH_ENV
+from pipeline.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
 from pipeline.fit import MeasuredProfile
 
 from .reference_profiles import deon_profile
+
+# Which blur runs is measured per device (pipeline.blur_switch); tests that count blur
+# passes pin it to the values measured on PoCL. tests/test_blur_switch.py measures.
+os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
+
+
+def _working_devices() -> list[opencl.Candidate]:
+    """Every OpenCL device here that passes skinpipe's probe (one runtime each once)."""
+    out: list[opencl.Candidate] = []
+    for cand, device in opencl.candidates():
+        if opencl.probe(device) is None and cand.runtime not in [c.runtime for c in out]:
+            out.append(cand)
+    return out
+
+
+OPENCL_DEVICES = _working_devices()
+
+
+@pytest.fixture(scope="session", params=OPENCL_DEVICES, ids=lambda c: c.runtime)
+def cl_device(request: pytest.FixtureRequest) -> opencl.Candidate:
+    """Runs a test on each OpenCL device that passes the probe (pocl-cpu, intel-cpu, a
+    GPU): a runtime-specific failure shows by name. Session scope, so pytest groups the
+    tests by device and each device's programs are built once."""
+    cand: opencl.Candidate = request.param
+    opencl.set_device(cand.runtime)
+    yield cand
+    opencl.set_device(None)
 
 
 @pytest.fixture

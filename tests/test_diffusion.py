@@ -19,6 +19,9 @@ from pipeline.errors import InputError
 from pipeline.profiles import fit_error_eq2c, sum_of_gaussians
 from pipeline.reference_data import DEON_2007_SKIN
 
+# every test here runs on each OpenCL device that passes the probe (conftest)
+pytestmark = pytest.mark.usefixtures("cl_device")
+
 
 def test_opencl_matches_float64_reference() -> None:
     rng = np.random.default_rng(0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.blur_switch import prefers_direct
 from pipeline.direct_blur import (
     FIR_MAX_ERROR,
     DirectBlur,
@@ -17,10 +18,12 @@ from pipeline.direct_blur import (
     fir_radius,
     fir_weight_table,
     fir_weights,
-    prefers_direct,
     truncation_error,
 )
 from pipeline.errors import InputError
+
+# every test here runs on each OpenCL device that passes the probe (conftest)
+pytestmark = pytest.mark.usefixtures("cl_device")
 
 
 def test_radius_rule_reference_values() -> None:

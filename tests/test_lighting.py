@@ -21,6 +21,9 @@ from pipeline.lighting import (
 from pipeline.raytrace import RayScene, morton_order
 from pipeline.scene import Light
 
+# every test here runs on each OpenCL device that passes the probe (conftest)
+pytestmark = pytest.mark.usefixtures("cl_device")
+
 
 def test_fresnel_schlick_reference_values() -> None:
     # F0 = ((1.4 - 1) / (1.4 + 1))^2 = 0.02778 for skin (eta 1.4); 1 at grazing

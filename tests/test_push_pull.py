@@ -9,6 +9,9 @@ import pytest
 from pipeline.errors import InputError
 from pipeline.push_pull import push_pull, push_pull_reference
 
+# every test here runs on each OpenCL device that passes the probe (conftest)
+pytestmark = pytest.mark.usefixtures("cl_device")
+
 
 @pytest.mark.parametrize(("shape", "channels"), [
     ((33, 47), 3), ((64, 64), 5), ((1, 9), 2), ((7, 1), 1), ((1, 1), 3), ((513, 300), 4),

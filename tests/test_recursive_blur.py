@@ -14,6 +14,9 @@ from pipeline.recursive_blur import (
     recursive_reference,
 )
 
+# every test here runs on each OpenCL device that passes the probe (conftest)
+pytestmark = pytest.mark.usefixtures("cl_device")
+
 
 def _impulse_response(sigma: float) -> tuple[np.ndarray, np.ndarray]:
     half = int(8 * sigma) + 8

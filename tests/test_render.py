@@ -289,6 +289,12 @@ def test_turntable_frames_compute_diffusion_once(tmp_path: Path) -> None:
     assert (tmp_path / "out" / "scene.0003.exr").is_file()
     saved = json.loads((tmp_path / "out" / "render.json").read_text())
     assert saved["frames"][0]["measures"]["diffusion"]["blur_passes"] > 0
+    # which device ran, what was built and which kernels ran (all three frames)
+    cl_doc = saved["opencl"]
+    assert cl_doc["device"] and cl_doc["tried"][cl_doc["device"]] == "passed"
+    assert cl_doc["build_seconds"] >= 0 and cl_doc["programs_built"] >= 0
+    assert cl_doc["kernel_launches"].get("claim_texels", 0) >= 1
+    assert cl_doc["blur_switch"]["max_radius"] >= 0
 
 
 def test_output_has_aov_layers_and_colour_space(lit_patch: Path, tmp_path: Path) -> None:

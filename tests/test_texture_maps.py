@@ -11,6 +11,9 @@ from pipeline.mesh import MeshData
 from pipeline.texture_maps import rasterize, rasterize_reference
 from pipeline.unwrap import triangulate, unwrap
 
+# every test here runs on each OpenCL device that passes the probe (conftest)
+pytestmark = pytest.mark.usefixtures("cl_device")
+
 
 def _grid(n: int, size_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1))

@@ -1,0 +1,146 @@
+"""OpenCL runtimes that skinpipe installs, registered with the ICD loader before the first
+platform query.
+
+pyopencl's wheel brings PoCL 3.0 (LLVM 14), which cannot build a program on CPUs newer
+than its LLVM (AMD Zen 5: "unknown target CPU 'generic'", pocl/pocl issue 1049). The
+second CPU runtime is Intel's (``intel-opencl-rt`` on the package index; Intel's EULA,
+not open source), which pip installs into ``<prefix>/lib`` without an ICD entry the
+loader can use (its ``.icd`` files hold a build machine's path). This module writes a
+vendors folder holding an entry with the library's absolute path plus the machine's own
+entries (``/etc/OpenCL/vendors``: GPU drivers), and points ``OCL_ICD_VENDORS`` at it.
+The loader reads that variable once per process, before the first platform query, and
+child processes (Dask workers) inherit it; pyopencl's loader adds its own PoCL whatever
+the folder holds. Nothing here imports pyopencl.
+
+Intel's runtime needs a TBB newer than the one pymeshlab ships (2021.5): whichever
+``libtbb.so.12`` is loaded first serves the process, and with pymeshlab's the runtime
+fails to load and its platform silently disappears. The ``tbb`` package's library is
+therefore loaded first (pymeshlab runs on the newer one: TBB keeps its ABI within a
+major version).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+ICD_ENV = "OCL_ICD_VENDORS"
+SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
+INTEL_DIST, INTEL_LIBRARY = "intel-opencl-rt", "libintelocl.so"
+TBB_DIST, TBB_LIBRARY = "tbb", "libtbb.so.12"
+
+
+@dataclass
+class RuntimeSetup:
+    """What :func:`register_runtimes` did: the vendors folder used and one note per
+    runtime that could not be registered (shown by ``skinpipe env``)."""
+
+    vendors: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _dist_file(dist: str, name: str) -> Path | None:
+    """Absolute path of the file ``name`` installed by distribution ``dist``, if any."""
+    try:
+        files = metadata.distribution(dist).files or []
+    except metadata.PackageNotFoundError:
+        return None
+    for f in files:
+        if f.name == name:
+            path = Path(str(f.locate())).resolve()
+            if path.is_file():
+                return path
+    return None
+
+
+def _cache_root() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "skinpipe"
+
+
+def _write_vendors(entries: dict[str, str]) -> Path:
+    """A folder of ``.icd`` files (name -> library path), made once per content and
+    written atomically (many processes may start at once)."""
+    digest = hashlib.sha256(repr(sorted(entries.items())).encode()).hexdigest()[:16]
+    for root in (_cache_root() / "opencl", Path(tempfile.gettempdir()) / "skinpipe-opencl"):
+        folder = root / f"vendors-{digest}"
+        if folder.is_dir():
+            return folder
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            tmp = Path(tempfile.mkdtemp(prefix=".vendors-", dir=root))
+            for name, library in entries.items():
+                (tmp / name).write_text(library + "\n")
+            try:
+                tmp.rename(folder)
+            except OSError:  # another process made it first
+                for f in tmp.iterdir():
+                    f.unlink()
+                tmp.rmdir()
+            return folder
+        except OSError:
+            continue
+    raise OSError("no writable folder for the OpenCL vendors list")
+
+
+def register_runtimes() -> RuntimeSetup:
+    """Make Intel's CPU runtime (if installed) and the system's ICDs visible to the ICD
+    loader; call before pyopencl's first platform query. Leaves a user's own
+    ``OCL_ICD_VENDORS`` alone."""
+    setup = RuntimeSetup()
+    # PoCL compiles each kernel again at its first launch: keep those on disk too
+    os.environ.setdefault("POCL_CACHE_DIR", str(_cache_root() / "pocl"))
+    intel = _dist_file(INTEL_DIST, INTEL_LIBRARY)
+    if intel is None:
+        setup.notes.append(f"Intel CPU runtime: not installed (pip install {INTEL_DIST} "
+                           f"intel-cmplr-lib-rt {TBB_DIST})")
+    else:
+        tbb = _dist_file(TBB_DIST, TBB_LIBRARY)
+        if "pymeshlab" in sys.modules:
+            setup.notes.append("Intel CPU runtime: pymeshlab was loaded first with its older "
+                               "TBB; import skinpipe before pymeshlab")
+        elif tbb is not None:
+            try:
+                ctypes.CDLL(str(tbb), mode=ctypes.RTLD_GLOBAL)
+            except OSError as exc:
+                setup.notes.append(f"Intel CPU runtime: cannot load {tbb}: {exc}")
+    if os.environ.get(ICD_ENV):
+        setup.vendors = os.environ[ICD_ENV]
+        if intel is not None and not any(
+                Path(setup.vendors, f).is_file() and INTEL_LIBRARY in Path(
+                    setup.vendors, f).read_text(errors="replace")
+                for f in _listdir(setup.vendors)):
+            setup.notes.append(f"Intel CPU runtime: {ICD_ENV} is set by you "
+                               f"({setup.vendors}) and does not list {intel}")
+        return setup
+    if intel is None:
+        return setup
+    entries = {f.name: f.read_text(errors="replace").strip()
+               for f in sorted(SYSTEM_VENDORS.glob("*.icd")) if f.is_file()} \
+        if SYSTEM_VENDORS.is_dir() else {}
+    entries["skinpipe-intel-cpu.icd"] = str(intel)
+    try:
+        folder = _write_vendors(entries)
+    except OSError as exc:
+        setup.notes.append(f"Intel CPU runtime: {exc}")
+        return setup
+    os.environ[ICD_ENV] = str(folder)
+    setup.vendors = str(folder)
+    return setup
+
+
+def _listdir(folder: str) -> list[str]:
+    try:
+        return os.listdir(folder)
+    except OSError:
+        return []
+
+
+SETUP = register_runtimes()
+"""Done once, when skinpipe is imported (``pipeline/__init__.py`` imports this first)."""

@@ -1,0 +1,152 @@
+"""OpenCL device choice: candidate order, the probe on every real device, the fallback
+when a runtime cannot build (PoCL 3.0 on a CPU newer than its LLVM), the error when no
+device works, the runtimes' registration with the ICD loader, and the kernel ledger."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from pipeline import opencl
+from pipeline.errors import InputError
+from pipeline.opencl import Candidate, choose_device, order_candidates
+
+POCL = Candidate("Portable Computing Language", "pthread-AMD EPYC", "cpu", 1, 0)
+INTEL = Candidate("Intel(R) OpenCL", "AMD EPYC", "cpu", 0, 0)
+GPU = Candidate("NVIDIA CUDA", "NVIDIA H200", "gpu", 2, 0)
+FOUND = [(INTEL, "intel"), (GPU, "gpu"), (POCL, "pocl")]
+ZEN5 = "build failed: error: unknown target CPU 'generic'"
+
+
+def _intel_installed() -> bool:
+    try:
+        metadata.distribution("intel-opencl-rt")
+    except metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+def _order(spec: str) -> list[str]:
+    return [c.runtime for c, _ in order_candidates(FOUND, spec)]
+
+
+def test_candidate_order_for_each_spec() -> None:
+    assert _order("auto") == ["pocl-cpu", "intel-cpu", "nvidia-gpu"]
+    assert _order("gpu") == ["nvidia-gpu", "pocl-cpu", "intel-cpu"]
+    assert _order("cpu") == ["pocl-cpu", "intel-cpu"]
+    assert _order("intel") == ["intel-cpu"]
+    assert _order("pocl") == ["pocl-cpu"]
+    assert _order("H200") == ["nvidia-gpu"]
+    assert _order("nothing-like-it") == []
+
+
+def test_a_runtime_that_cannot_build_falls_back_to_the_next() -> None:
+    # PoCL 3.0 on Zen 5: every build fails; Intel's runtime is used instead
+    def probe(device: Any, nt_store: bool) -> str | None:
+        return ZEN5 if device == "pocl" else None
+
+    choice = choose_device("auto", FOUND, probe)
+    assert choice.candidate == INTEL and choice.nontemporal_stores
+    tried = dict(choice.tried)
+    assert tried[POCL] == ZEN5
+    assert tried[GPU].startswith("not tried")
+
+
+def test_a_device_without_streaming_stores_is_used_with_plain_stores() -> None:
+    def probe(device: Any, nt_store: bool) -> str | None:
+        return "build failed: no __builtin_nontemporal_store" if nt_store else None
+
+    choice = choose_device("gpu", FOUND, probe)
+    assert choice.candidate == GPU and not choice.nontemporal_stores
+
+
+def test_no_working_device_names_each_one_and_what_to_install() -> None:
+    with pytest.raises(InputError) as err:
+        choose_device("auto", FOUND, lambda device, nt: ZEN5)
+    msg = str(err.value)
+    for cand in (POCL, INTEL, GPU):
+        assert f"{cand.label}: {ZEN5}" in msg
+    assert "intel-opencl-rt" in msg and "--device" in msg
+    with pytest.raises(InputError, match="no OpenCL device found"):
+        choose_device("auto", [], lambda device, nt: None)
+    with pytest.raises(InputError, match="matches 'amd-gpu'"):
+        choose_device("amd-gpu", FOUND, lambda device, nt: None)
+
+
+def test_every_device_here_passes_the_probe_or_says_why() -> None:
+    found = opencl.candidates()
+    assert found, "pyopencl[pocl] brings at least PoCL"
+    for cand, device in found:
+        reason = opencl.probe(device)
+        assert reason is None or reason.count("\n") == 0, (cand.label, reason)
+
+
+@pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
+def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
+    # skinpipe first (it loads the newer TBB), pymeshlab after: Intel's platform stays
+    code = ("import pipeline, pymeshlab, pyopencl as cl;"
+            "print('|'.join(p.name for p in cl.get_platforms()))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert "Intel(R) OpenCL" in out and "Portable Computing Language" in out
+    vendors = Path(os.environ["OCL_ICD_VENDORS"])
+    icd = (vendors / "skinpipe-intel-cpu.icd").read_text().strip()
+    assert Path(icd).is_absolute() and Path(icd).name == "libintelocl.so"
+
+
+@pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
+def test_pymeshlab_first_is_reported() -> None:
+    code = "import pymeshlab, pipeline.opencl_runtimes as r; print(r.SETUP.notes)"
+    env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True, env=env).stdout
+    assert "pymeshlab was loaded first" in out
+
+
+def _skinpipe(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, **env})
+
+
+def test_env_names_the_chosen_device_and_why_not_the_others() -> None:
+    r = _skinpipe("env")
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("#")]
+    assert lines[0].startswith("# OpenCL device ('auto'): ")
+    assert len(lines) - 1 >= len(opencl.candidates()) - 1
+
+
+def test_unknown_device_is_one_clear_error_without_traceback() -> None:
+    r = _skinpipe("env", SKINPIPE_OPENCL_DEVICE="no-such-device")
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and "no OpenCL device matches 'no-such-device'" in err[0]
+
+
+def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
+    import pyopencl as cl
+
+    assert opencl.device_choice().candidate.runtime == cl_device.runtime
+    before = opencl.LEDGER.copy()
+    program = opencl.build("__kernel void twice(__global float *a)"
+                           "{ a[get_global_id(0)] *= 2.0f; }")
+    kernel = opencl.Kernel(program, "twice")
+    ctx, queue = opencl.cl_context()
+    a = np.arange(8, dtype=np.float32)
+    buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+    kernel(queue, (8,), None, buf)
+    kernel(queue, (8,), None, buf)
+    out = np.empty_like(a)
+    cl.enqueue_copy(queue, out, buf)
+    np.testing.assert_array_equal(out, 4 * a)
+    since = opencl.LEDGER.since(before)
+    assert since["programs_built"] == 1 and since["build_seconds"] >= 0
+    assert since["kernel_launches"] == {"twice": 2}
