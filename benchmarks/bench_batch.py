@@ -23,9 +23,9 @@ from pathlib import Path
 
 from distributed import Client, LocalCluster
 
-from pipeline.batch import read_batch, run_batch
-from pipeline.fit import FitOptions, fit_sum_of_gaussians
-from pipeline.profile_io import read_profile_csv
+from pipeline.profile.fit import FitOptions, fit_sum_of_gaussians
+from pipeline.profile.io import read_profile_csv
+from pipeline.workflow.batch import read_batch, run_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -37,7 +37,7 @@ def _run(cmd: list[str], env: dict[str, str]) -> None:
 
 def working_devices() -> list[str]:
     """Runtime ids of the devices that pass the probe (one per runtime)."""
-    from pipeline import opencl
+    from pipeline.render import opencl
 
     out: list[str] = []
     for cand, device in opencl.candidates():

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.fit import FitOptions, MeasuredProfile, fit_multistart, fit_sum_of_gaussians
-from pipeline.profiles import dipole_profile, dipole_total_reflectance, sum_of_gaussians
-from pipeline.reference_data import DEON_2007_SKIN, JENSEN_2001
+from pipeline.profile.fit import FitOptions, MeasuredProfile, fit_multistart, fit_sum_of_gaussians
+from pipeline.profile.models import dipole_profile, dipole_total_reflectance, sum_of_gaussians
+from pipeline.profile.reference_data import DEON_2007_SKIN, JENSEN_2001
 
 
 def profiles() -> list[MeasuredProfile]:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 # Before anything loads pymeshlab (its older TBB) or queries OpenCL platforms: the
 # runtimes skinpipe installs are registered with the ICD loader (opencl_runtimes).
-from . import opencl_runtimes  # noqa: F401  (import for its effect)
-from .usd_schema import register_schema_plugin
+from .render import opencl_runtimes  # noqa: F401  (import for its effect)
+from .usd.schema import register_schema_plugin
 
 __version__ = "0.1.0"
 

@@ -6,14 +6,14 @@ import os
 
 import pytest
 
-from pipeline import opencl
-from pipeline.blur_switch import SWITCH_ENV
-from pipeline.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
-from pipeline.fit import MeasuredProfile
+from pipeline.profile.fit import MeasuredProfile
+from pipeline.render import opencl
+from pipeline.render.blur_switch import SWITCH_ENV
+from pipeline.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
 
 from .reference_profiles import deon_profile
 
-# Which blur runs is measured per device (pipeline.blur_switch); tests that count blur
+# Which blur runs is measured per device (pipeline.render.blur_switch); tests that count blur
 # passes pin it to the values measured on PoCL. tests/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
 

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.author import RegionAssignment, author_asset
-from pipeline.fit import FitResult
-from pipeline.mesh import MeshData
-from pipeline.reference_data import DEON_2007_SKIN
+from pipeline.profile.fit import FitResult
+from pipeline.profile.reference_data import DEON_2007_SKIN
+from pipeline.usd.author import RegionAssignment, author_asset
+from pipeline.usd.mesh import MeshData
 
 
 def exact_fit(name: str, variances_mm2: Any, weights: Any) -> FitResult:

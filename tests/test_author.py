@@ -9,20 +9,20 @@ import numpy as np
 import pytest
 from pxr import Kind, Sdf, Usd, UsdGeom
 
-from pipeline.author import (
+from pipeline.cli import main
+from pipeline.errors import InputError
+from pipeline.profile.fit import fit_sum_of_gaussians
+from pipeline.profile.io import read_fit_json, write_fit_json
+from pipeline.usd.author import (
     RegionAssignment,
     assign_regions_from_landmarks,
     author_asset,
     read_landmarks,
     read_profiles,
 )
-from pipeline.cli import main
-from pipeline.errors import InputError
-from pipeline.fit import fit_sum_of_gaussians
-from pipeline.mesh import MeshData, load_mesh, pymeshlab_face_scan
-from pipeline.profile_io import read_fit_json, write_fit_json
-from pipeline.usd_schema import schema_is_registered
-from pipeline.validate import validate_file
+from pipeline.usd.mesh import MeshData, load_mesh, pymeshlab_face_scan
+from pipeline.usd.schema import schema_is_registered
+from pipeline.usd.validate import validate_file
 
 from .reference_profiles import deon_profile, dipole_normalised
 

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.batch import read_batch
 from pipeline.cli import main
 from pipeline.errors import InputError
+from pipeline.workflow.batch import read_batch
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline import blur_switch, opencl
-from pipeline.blur_switch import (
+from pipeline.errors import InputError
+from pipeline.render import blur_switch, opencl
+from pipeline.render.blur_switch import (
     FIR_MAX_RADIUS_TUNED,
     SWITCH_ENV,
     DirectLimits,
@@ -14,8 +15,7 @@ from pipeline.blur_switch import (
     fixed_limits,
     prefers_direct,
 )
-from pipeline.direct_blur import FIR_MAX_RADIUS_PER_TEXEL
-from pipeline.errors import InputError
+from pipeline.render.direct_blur import FIR_MAX_RADIUS_PER_TEXEL
 
 
 def test_crossover_reference_values() -> None:

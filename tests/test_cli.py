@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.profile_io import write_profile_csv
+from pipeline.profile.io import write_profile_csv
 
 from .reference_profiles import deon_profile, dipole_normalised
 

@@ -8,16 +8,16 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.diffusion import (
+from pipeline.errors import InputError
+from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
+from pipeline.profile.reference_data import DEON_2007_SKIN
+from pipeline.render.diffusion import (
     OpenCLBlur,
     _added_variance_texels2,
     blur_reference,
     diffuse,
     diffuse_gather,
 )
-from pipeline.errors import InputError
-from pipeline.profiles import fit_error_eq2c, sum_of_gaussians
-from pipeline.reference_data import DEON_2007_SKIN
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -127,7 +127,7 @@ def test_a_term_on_a_pyramid_level_keeps_its_centre_and_variance(
         level: int, monkeypatch: pytest.MonkeyPatch) -> None:
     # the pyramid's own spread is taken off the blur: through level k an impulse
     # comes back centred where it was, with variance v (averaged over its 2^k phases)
-    import pipeline.diffusion as d
+    import pipeline.render.diffusion as d
 
     assert _added_variance_texels2(0) == 0.0
     n = 96
@@ -225,7 +225,7 @@ def test_a_prepared_layout_serves_many_diffusions_like_a_fresh_one() -> None:
     # the layout keeps its device maps and work buffers between calls: different term
     # sets (other levels, merged equal variances, a sub-texel term) and irradiances
     # on it give what a fresh `diffuse` gives, and a wrong-sized irradiance is refused
-    from pipeline.diffusion import DiffusionLayout, diffuse_prepared
+    from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
 
     rng = np.random.default_rng(5)
     n = 75  # odd: pyramid levels of odd size, rows not a multiple of four
@@ -264,8 +264,8 @@ def _stretched_layout(n: int) -> tuple[np.ndarray, ...]:
 def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> None:
     # per-texel direct blur (one pass a term): each texel's Gaussian of v / (mm per
     # texel)^2 on its own axis, as a normalised convolution, against float64
-    from pipeline.direct_blur import direct_texel_reference, fir_weight_table
-    from pipeline.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
+    from pipeline.render.direct_blur import direct_texel_reference, fir_weight_table
+    from pipeline.render.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
 
     n = 131
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
@@ -309,7 +309,7 @@ def test_a_few_tiny_texels_do_not_set_the_direct_radius() -> None:
 def test_term_batches_add_up_like_one(monkeypatch: pytest.MonkeyPatch) -> None:
     # blurred terms are kept TERM_BUFFER_TEXTURES at a time before they are added up;
     # one at a time (an accumulator pass between batches) gives the same sum
-    import pipeline.diffusion as d
+    import pipeline.render.diffusion as d
 
     n = 96
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.blur_switch import prefers_direct
-from pipeline.direct_blur import (
+from pipeline.errors import InputError
+from pipeline.render.blur_switch import prefers_direct
+from pipeline.render.direct_blur import (
     FIR_MAX_ERROR,
     DirectBlur,
     band_columns,
@@ -20,7 +21,6 @@ from pipeline.direct_blur import (
     fir_weights,
     truncation_error,
 )
-from pipeline.errors import InputError
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")

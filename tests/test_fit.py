@@ -8,15 +8,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.errors import InputError
-from pipeline.fit import (
+from pipeline.profile.fit import (
     FitOptions,
     MeasuredProfile,
     fit_multistart,
     fit_profiles,
     fit_sum_of_gaussians,
 )
-from pipeline.profiles import burley_profile, fit_error_eq2c, sum_of_gaussians
-from pipeline.reference_data import DEON_2007_SKIN, PARK_OH_2009_FOREHEAD, normalized_weights
+from pipeline.profile.models import burley_profile, fit_error_eq2c, sum_of_gaussians
+from pipeline.profile.reference_data import (
+    DEON_2007_SKIN,
+    PARK_OH_2009_FOREHEAD,
+    normalized_weights,
+)
 
 from .reference_profiles import RADIUS_MM, deon_profile, dipole_normalised
 

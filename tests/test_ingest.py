@@ -10,18 +10,18 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError
-from pipeline.fit import fit_sum_of_gaussians
-from pipeline.imageio import write_exr
-from pipeline.ingest import IngestOptions, ingest_capture_set, read_capture_set
-from pipeline.profile_io import read_profile_csv
-from pipeline.simulate import (
+from pipeline.capture.ingest import IngestOptions, ingest_capture_set, read_capture_set
+from pipeline.capture.simulate import (
     CaptureSettings,
     read_truth,
     sample_subject_truths,
     simulate_capture_set,
 )
+from pipeline.cli import main
+from pipeline.errors import InputError
+from pipeline.imageio import write_exr
+from pipeline.profile.fit import fit_sum_of_gaussians
+from pipeline.profile.io import read_profile_csv
 
 TRUTHS = {t.name: t for t in sample_subject_truths()}
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.lighting import (
+from pipeline.render.lighting import (
     LightSampler,
     beckmann_ndf,
     filter_interleaved,
@@ -18,8 +18,8 @@ from pipeline.lighting import (
     irradiance_texture,
     specular_albedo,
 )
-from pipeline.raytrace import RayScene, morton_order
-from pipeline.scene import Light
+from pipeline.render.raytrace import RayScene, morton_order
+from pipeline.render.scene import Light
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")

@@ -8,9 +8,9 @@ import pytest
 import scipy.ndimage as ndi
 from scipy.spatial import cKDTree
 
-from pipeline.mesh import MeshData, load_mesh, prepare_scan, pymeshlab_face_scan, seal_scan
-from pipeline.raytrace import RayScene
-from pipeline.unwrap import triangulate
+from pipeline.render.raytrace import RayScene
+from pipeline.render.unwrap import triangulate
+from pipeline.usd.mesh import MeshData, load_mesh, prepare_scan, pymeshlab_face_scan, seal_scan
 
 
 @pytest.fixture(scope="module")

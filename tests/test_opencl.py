@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline import opencl
 from pipeline.errors import InputError
-from pipeline.opencl import Candidate, choose_device, order_candidates
+from pipeline.render import opencl
+from pipeline.render.opencl import Candidate, choose_device, order_candidates
 
 POCL = Candidate("Portable Computing Language", "pthread-AMD EPYC", "cpu", 1, 0)
 INTEL = Candidate("Intel(R) OpenCL", "AMD EPYC", "cpu", 0, 0)
@@ -103,7 +103,7 @@ def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
 
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_pymeshlab_first_is_reported() -> None:
-    code = "import pymeshlab, pipeline.opencl_runtimes as r; print(r.SETUP.notes)"
+    code = "import pymeshlab, pipeline.render.opencl_runtimes as r; print(r.SETUP.notes)"
     env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True, env=env).stdout

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.fit import MeasuredProfile, fit_sum_of_gaussians
-from pipeline.profile_io import (
+from pipeline.profile.fit import MeasuredProfile, fit_sum_of_gaussians
+from pipeline.profile.io import (
     read_fit_inputs,
     read_fit_json,
     read_profile_csv,

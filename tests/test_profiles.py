@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from pipeline.profiles import (
+from pipeline.profile.models import (
     burley_profile,
     dipole_profile,
     dipole_total_reflectance,
@@ -16,7 +16,7 @@ from pipeline.profiles import (
     sum_of_gaussians,
     total_reflectance_numeric,
 )
-from pipeline.reference_data import (
+from pipeline.profile.reference_data import (
     DEON_2007_SKIN,
     JENSEN_2001,
     PARK_OH_2009_FOREHEAD,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.recursive_blur import (
+from pipeline.render.recursive_blur import (
     RecursiveBlur,
     coefficient_table,
     deriche_coefficients,

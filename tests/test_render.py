@@ -11,14 +11,13 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main
-from pipeline.diffusion import diffuse
 from pipeline.errors import InputError
-from pipeline.lighting import irradiance_texture, specular_albedo
-from pipeline.mesh import MeshData
-from pipeline.profiles import fit_error_eq2c, sum_of_gaussians
-from pipeline.raytrace import RayScene
-from pipeline.reference_data import DEON_2007_SKIN
-from pipeline.render import (
+from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
+from pipeline.profile.reference_data import DEON_2007_SKIN
+from pipeline.render.diffusion import diffuse
+from pipeline.render.lighting import irradiance_texture, specular_albedo
+from pipeline.render.raytrace import RayScene
+from pipeline.render.renderer import (
     Renderer,
     RenderOptions,
     bilinear,
@@ -26,10 +25,11 @@ from pipeline.render import (
     render_files,
     resample_bilinear,
 )
-from pipeline.scene import Light
-from pipeline.texture_maps import rasterize
-from pipeline.unwrap import triangulate, unwrap
-from pipeline.usd_io import open_stage_guarded
+from pipeline.render.scene import Light
+from pipeline.render.texture_maps import rasterize
+from pipeline.render.unwrap import triangulate, unwrap
+from pipeline.usd.io import open_stage_guarded
+from pipeline.usd.mesh import MeshData
 
 from .render_scenes import (
     deon_fit,
@@ -135,7 +135,7 @@ def test_occluder_shadow_lands_where_geometry_says() -> None:
 def test_embree_agrees_with_brute_force_on_the_cleaned_scan() -> None:
     """Embree drops bad triangles silently (light leaks); on the cleaned scan every
     shadow ray must agree with a brute-force ray/triangle test."""
-    from pipeline.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
+    from pipeline.usd.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
 
     mesh = prepare_scan(load_mesh(pymeshlab_face_scan()), 20000)
     tris = triangulate(mesh)

@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.report import pareto_front, render_tradeoff, write_render_report, write_report_page
+from pipeline.workflow.report import (
+    pareto_front,
+    render_tradeoff,
+    write_render_report,
+    write_report_page,
+)
 from tests.render_scenes import deon_fit, distant_down, patch_asset, scene_over, top_camera
 
 
@@ -80,10 +85,10 @@ def test_report_page_needs_a_measured_stage(tmp_path: Path) -> None:
 
 def test_report_cli_fit_writes_the_page(tmp_path: Path, capsys) -> None:
     from pipeline.cli import main
-    from pipeline.fit import MeasuredProfile
-    from pipeline.profile_io import write_profile_csv
-    from pipeline.profiles import sum_of_gaussians
-    from pipeline.reference_data import DEON_2007_SKIN
+    from pipeline.profile.fit import MeasuredProfile
+    from pipeline.profile.io import write_profile_csv
+    from pipeline.profile.models import sum_of_gaussians
+    from pipeline.profile.reference_data import DEON_2007_SKIN
 
     r = np.linspace(0.0, 4.0, 120)
     csv = tmp_path / "deon.csv"

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.mesh import MeshData
-from pipeline.texture_maps import rasterize, rasterize_reference
-from pipeline.unwrap import triangulate, unwrap
+from pipeline.render.texture_maps import rasterize, rasterize_reference
+from pipeline.render.unwrap import triangulate, unwrap
+from pipeline.usd.mesh import MeshData
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -125,7 +125,7 @@ def test_device_rasteriser_equals_the_numpy_reference_on_awkward_triangles() -> 
 
 def test_device_rasteriser_equals_the_numpy_reference_on_the_face_scan() -> None:
     # the real scan (holes, noise), decimated as the demo prepares it
-    from pipeline.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
+    from pipeline.usd.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
 
     mesh = prepare_scan(load_mesh(pymeshlab_face_scan()), 20000)
     layout = unwrap(mesh, resolution=512, timeout_s=120)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.validate import RULES, validate_file
+from pipeline.usd.validate import RULES, validate_file
 
 FIXTURES = Path(__file__).parent / "fixtures" / "usd"
 BAD = sorted((FIXTURES / "bad").glob("*.usda"))

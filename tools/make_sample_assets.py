@@ -4,7 +4,7 @@
 
 Deterministic (fixed seed). The forehead follows the seed paper's fitted table; the
 other regions are dipoles from Jensen et al. 2001's measured skin coefficients, varied
-per region (see pipeline.simulate.sample_subject_truths). Lips and chin have hair strands
+per region (see pipeline.capture.simulate.sample_subject_truths). Lips and chin have hair strands
 across the spot; nose and cheek carry their exposure times in EXIF only.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from pipeline.simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
+from pipeline.capture.simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
 
 ROOT = Path(__file__).resolve().parents[1] / "sample_assets" / "captures"
 

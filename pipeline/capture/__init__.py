@@ -1,0 +1,2 @@
+"""Captures of a lit skin point: the ingest stage (brackets -> HDR -> radial profiles)
+and the capture simulator."""

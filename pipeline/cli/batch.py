@@ -1,0 +1,108 @@
+"""``skinpipe batch``: many subjects through the stages on Dask distributed."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
+from ..render.opencl import DEVICE_ENV, DEVICE_HELP
+from .render_verbs import _eprint
+
+
+def _stages(text: str) -> tuple[str, ...]:
+    from ..workflow.batch import STAGES
+
+    stages = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [s for s in stages if s not in STAGES]
+    if bad or not stages:
+        raise argparse.ArgumentTypeError(f"stages from {','.join(STAGES)}, got {text!r}")
+    return stages
+
+
+def add_batch(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "batch",
+        help="run many subjects through ingest/fit/author/render on Dask distributed",
+        description=(
+            "Run every subject of BATCH.json (docs/batch.md) as a Dask distributed graph: "
+            "one task per subject and stage, one per region for the fits. Each task is "
+            "keyed by a hash of its inputs and options and writes OUT_ROOT/<subject>/"
+            "<stage>/ atomically with a done.json: re-running a finished batch does no "
+            "work, changing one subject's capture re-runs only that subject. A failing "
+            "subject is reported and the others go on. Writes OUT_ROOT/batch.json."
+        ),
+        epilog="Exit codes: 0 every subject done, 1 a subject failed, 2 bad input.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("batch", type=Path, metavar="BATCH.json", help="the subjects to run")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", metavar="tcp://HOST:8786",
+                       help="address of a running Dask scheduler (your cluster)")
+    where.add_argument("--local-workers", type=int, default=2, metavar="N",
+                       help="without --scheduler: worker processes of a LocalCluster here")
+    p.add_argument("--stages", type=_stages, default=("ingest", "fit", "author", "render"),
+                   metavar="A,B", help="stages to run; those before the last one run too "
+                                       "(no work when their outputs are current)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_ROOT",
+                   help="output root, one directory per subject")
+    p.add_argument("--device", default=None, metavar="SPEC",
+                   help=f"OpenCL device of the local workers ({DEVICE_HELP}); workers of "
+                        f"your own cluster read ${DEVICE_ENV} from their environment")
+    p.set_defaults(handler=cmd_batch)
+
+
+def _bar(done: int, total: int, res: dict[str, Any]) -> None:
+    width = 30
+    fill = int(width * done / max(total, 1))
+    unit = res["unit"] if res["stage"] == "fit" else ""
+    line = (f"[{'#' * fill}{'.' * (width - fill)}] {done}/{total} {res['subject']} "
+            f"{res['stage']} {unit} {res['status']} {res['seconds']:.1f}s")
+    _eprint(line)
+    if res["status"] == "failed":
+        _eprint(f"  error: {res.get('error', '').splitlines()[0]}")
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from distributed import Client, LocalCluster
+
+    from ..fileio import atomic_write_json
+    from ..workflow.batch import batch_document, read_batch, run_batch, summary_table
+
+    subjects = read_batch(args.batch)
+    if args.scheduler is None and not 1 <= args.local_workers <= 256:
+        raise InputError(f"--local-workers must be 1-256, got {args.local_workers}")
+    cluster = None
+    if args.device:  # worker processes inherit it (each chooses its device in its process)
+        os.environ[DEVICE_ENV] = args.device
+    if args.scheduler:
+        client = Client(args.scheduler, timeout="30s")
+    else:
+        cluster = LocalCluster(n_workers=args.local_workers, threads_per_worker=1,
+                               processes=True, dashboard_address=None)
+        client = Client(cluster)
+    try:
+        _eprint(f"batch: {len(subjects)} subject(s), stages {','.join(args.stages)}, "
+                f"{len(client.scheduler_info().get('workers', {}))} worker(s)")
+        result = run_batch(client, subjects, args.output, args.stages, progress=_bar)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    doc = batch_document(result, args.output, args.stages)
+    atomic_write_json(args.output / "batch.json", doc)
+    print(summary_table(result))
+    print(f"wrote {args.output / 'batch.json'} ({result.seconds:.1f} s, "
+          f"{result.workers} workers; tasks: "
+          + ", ".join(f"{n} {s}" for s, n in sorted(doc["tasks"].items())) + ")")
+    if result.failed:
+        for subject in result.failed:
+            for t in result.tasks:
+                if t["subject"] == subject and t["status"] == "failed":
+                    print(f"FAILED {subject} {t['stage']} {t['unit']}: "
+                          f"{t.get('error', '').splitlines()[0]}", file=sys.stderr)
+        return EXIT_CHECK_FAILED
+    return EXIT_OK

@@ -1,0 +1,959 @@
+"""Fit stage: sum-of-Gaussians diffusion profiles (Park & Oh 2009, eq. 1 and 2).
+
+Model: f_c(r) = sum_j w_jc G(v_j, r), with G the normalised 2D Gaussian, per channel c
+weights w_jc >= 0 summing to 1 (eq. 2b). Objective: eq. 2a with the r (area) weighting
+of eq. 2c and optional per-sample standard deviations. A genetic algorithm over the
+log-variances seeds casadi's IPOPT, which refines log-variances and weights together.
+
+The problem is split into independent *groups*: a group is a set of curves (one curve
+= one channel of one profile) that share one variance grid. ``share="channels"`` makes
+one group per profile, ``"none"`` one per channel, ``"profiles"`` one for a whole face.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Literal
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import FitError, InputError
+from .models import fit_error_eq2c, ring_widths_mm, sum_of_gaussians
+
+FloatArray = NDArray[np.float64]
+Share = Literal["channels", "none", "profiles"]
+Solver = Literal["ipopt", "slsqp"]
+Init = Literal["ga", "naive", "random"]
+CHANNELS = ("R", "G", "B")
+ACCEPTED_IPOPT_STATUS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+HESS_REG = 1e-8
+"""Levenberg term added to the Gauss-Newton Hessian: keeps it regular where a term's
+weight is zero in every channel (its variance is then unidentifiable)."""
+IPOPT_OPTIONS: dict[str, Any] = {
+    "print_level": 0,
+    "sb": "yes",
+    "tol": 1e-8,
+    "acceptable_tol": 1e-7,
+    "max_iter": 500,
+    "mu_strategy": "adaptive",
+    # The GA seed is good: start IPOPT at it rather than pushed into the interior.
+    "warm_start_init_point": "yes",
+    "warm_start_bound_push": 1e-9,
+    "warm_start_bound_frac": 1e-9,
+    "warm_start_mult_bound_push": 1e-9,
+    "mu_init": 1e-6,
+}
+
+
+@dataclass(frozen=True)
+class MeasuredProfile:
+    """A radial profile: ``radius_mm`` (n,), ``values`` (n, 3) RGB, optional ``stddev``."""
+
+    radius_mm: FloatArray
+    values: FloatArray
+    stddev: FloatArray | None = None
+    name: str = "profile"
+    source: Path | None = None
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How to fit. Radii in mm, variances in mm^2.
+
+    k: Gaussians per variance grid (1-8). share: which curves share a grid.
+    fixed_variances_mm2: a given grid (e.g. d'Eon's); only weights are solved.
+    min_radius_mm / max_radius_mm: samples outside are left out (the paper drops the
+    entry point, eq. 2 sums from i = 2). free_scale: fit the total diffuse reflectance
+    per channel too (absolute captures, or a profile truncated by the image) instead of
+    sum w = 1. use_stddev: weight samples by 1/std^2 as well as by r dr; off by default
+    because eq. 2c, the error we report, weights by area alone.
+    """
+
+    k: int = 6
+    share: Share = "channels"
+    fixed_variances_mm2: tuple[float, ...] | None = None
+    min_radius_mm: float = 0.0
+    max_radius_mm: float | None = None
+    seed: int = 0
+    generations: int = 40
+    population: int = 32
+    solver: Solver = "ipopt"
+    init: Init = "ga"
+    free_scale: bool = False
+    use_stddev: bool = False
+    max_plausible_radius_mm: float = 100.0
+    merge_log_variance: float = 0.02
+
+
+@dataclass
+class FitResult:
+    """One profile's fit: terms sorted by variance, eq. 2c error per channel."""
+
+    name: str
+    variances_mm2: FloatArray
+    weights: FloatArray
+    error: FloatArray
+    seconds: float
+    status: str
+    solver: str
+    iterations: int
+    objective: float
+    k_requested: int
+    share: str
+    n_samples: int
+    radius_range_mm: tuple[float, float]
+    total_reflectance: FloatArray | None = None
+    warnings: list[str] = field(default_factory=list)
+    source: str | None = None
+
+    def evaluate(self, radius_mm: ArrayLike) -> FloatArray:
+        """The fitted profile f(r) (n, 3), times the total reflectance if one was fitted."""
+        f = sum_of_gaussians(self.variances_mm2, self.weights, radius_mm)
+        return f if self.total_reflectance is None else f * self.total_reflectance
+
+    def to_json(self) -> dict[str, Any]:
+        """The FIT.json document (see docs/fit.md)."""
+        # float32-exact numbers: USD stores them as float/color3f without any change,
+        # so FIT.json -> USD -> read back is an identity.
+        doc: dict[str, Any] = {
+            "name": self.name,
+            "terms": [
+                {"variance_mm2": _f32(v), "weights": [_f32(x) for x in w]}
+                for v, w in zip(self.variances_mm2, self.weights, strict=True)
+            ],
+            "error": [_f32(e) for e in self.error],
+            "error_measure": "Park & Oh 2009 eq. 2c (relative, r-weighted RMS), per channel",
+            "seconds": float(self.seconds),
+            "status": self.status,
+            "solver": self.solver,
+            "iterations": int(self.iterations),
+            "objective": float(self.objective),
+            "k_requested": int(self.k_requested),
+            "share": self.share,
+            "n_samples": int(self.n_samples),
+            "radius_range_mm": [float(x) for x in self.radius_range_mm],
+            "units": {"radius": "mm", "variance": "mm^2"},
+            "channels": list(CHANNELS),
+            "warnings": list(self.warnings),
+        }
+        if self.total_reflectance is not None:
+            doc["total_reflectance"] = [float(x) for x in self.total_reflectance]
+        if self.source is not None:
+            doc["source"] = self.source
+        return doc
+
+
+def _f32(x: float) -> float:
+    return float(np.float32(x))
+
+
+def fit_result_from_json(doc: dict[str, Any], name: str | None = None) -> FitResult:
+    """Read a FIT.json document back (the inverse of :meth:`FitResult.to_json`)."""
+    try:
+        terms = doc["terms"]
+        variances = np.array([float(t["variance_mm2"]) for t in terms])
+        weights = np.array([[float(x) for x in t["weights"]] for t in terms]).reshape(-1, 3)
+        error = np.array([float(x) for x in doc.get("error", [math.nan] * 3)])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"not a fit document: {exc!r}") from exc
+    tr = doc.get("total_reflectance")
+    return FitResult(
+        name=name or str(doc.get("name", "profile")),
+        variances_mm2=variances,
+        weights=weights,
+        error=error,
+        seconds=float(doc.get("seconds", 0.0)),
+        status=str(doc.get("status", "unknown")),
+        solver=str(doc.get("solver", "unknown")),
+        iterations=int(doc.get("iterations", 0)),
+        objective=float(doc.get("objective", math.nan)),
+        k_requested=int(doc.get("k_requested", len(terms))),
+        share=str(doc.get("share", "channels")),
+        n_samples=int(doc.get("n_samples", 0)),
+        radius_range_mm=tuple(doc.get("radius_range_mm", (0.0, 0.0))),  # type: ignore[arg-type]
+        total_reflectance=None if tr is None else np.array(tr, dtype=np.float64),
+        warnings=list(doc.get("warnings", [])),
+        source=doc.get("source"),
+    )
+
+
+# --------------------------------------------------------------------------- data prep
+
+
+@dataclass
+class _Curve:
+    """One channel of one profile, in the group's scaled units (lengths / L)."""
+
+    rho: FloatArray  # radius / L
+    q: FloatArray  # value * L^2 (so that q ~ sum w G(u, rho))
+    a: FloatArray  # sample weight: rho drho / sigma^2, normalised so the curve's sum a q^2 = 1
+    profile: int
+    channel: int
+
+
+def prepare_profile(
+    profile: MeasuredProfile, options: FitOptions
+) -> tuple[MeasuredProfile, list[str]]:
+    """Validate and tidy one profile for fitting; raise :class:`InputError` on bad data.
+
+    Returns the tidied profile and notes on what was changed.
+
+    Drops non-finite samples (with a warning), sorts by radius, averages duplicate
+    radii, applies the fit range, and refuses what no fit can honour: too few samples,
+    an all-zero profile, a silent channel (unless ``free_scale``), radii in the wrong
+    unit, or a profile whose integral is far from 1 when the weights must sum to 1.
+    """
+    src = profile.source
+    notes: list[str] = []
+    r = np.asarray(profile.radius_mm, dtype=np.float64).reshape(-1)
+    p = np.asarray(profile.values, dtype=np.float64)
+    if p.ndim != 2 or p.shape != (r.size, 3):
+        raise InputError(f"values must be (n, 3) for n = {r.size} radii, got {p.shape}", src)
+    s = None if profile.stddev is None else np.asarray(profile.stddev, dtype=np.float64)
+    if s is not None and s.shape != p.shape:
+        raise InputError(f"stddev must have the shape of values {p.shape}, got {s.shape}", src)
+    finite = np.isfinite(r) & np.all(np.isfinite(p), axis=1)
+    if s is not None:
+        finite &= np.all(np.isfinite(s), axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        notes.append(
+            f"dropped {bad.size} non-finite sample(s), first at row {int(bad[0])} "
+            f"(radius {r[bad[0]]!r} mm)"
+        )
+        r, p = r[finite], p[finite]
+        s = None if s is None else s[finite]
+    if r.size and r.min() < 0:
+        raise InputError(f"radius_mm must be >= 0, found {r.min():g}", src)
+    order = np.argsort(r, kind="stable")
+    r, p = r[order], p[order]
+    s = None if s is None else s[order]
+    uniq, inverse, counts = np.unique(r, return_inverse=True, return_counts=True)
+    if uniq.size < r.size:
+        pm = np.zeros((uniq.size, 3))
+        np.add.at(pm, inverse, p)
+        pm /= counts[:, None]
+        if s is not None:
+            sm = np.zeros((uniq.size, 3))
+            np.add.at(sm, inverse, s**2)
+            s = np.sqrt(sm / counts[:, None]) / np.sqrt(counts[:, None])
+        notes.append(f"averaged {r.size - uniq.size} sample(s) at duplicate radii")
+        r, p = uniq, pm
+    keep = r >= options.min_radius_mm
+    if options.max_radius_mm is not None:
+        keep &= r <= options.max_radius_mm
+    r, p = r[keep], p[keep]
+    s = None if s is None else s[keep]
+    if r.size and r.max() > options.max_plausible_radius_mm:
+        raise InputError(
+            f"largest radius is {r.max():g} mm, beyond the plausible "
+            f"{options.max_plausible_radius_mm:g} mm for skin: are the radii in micrometres "
+            "or pixels rather than mm?",
+            src,
+        )
+    k_eff = _k_of(options)
+    needed = 2 * k_eff
+    if r.size < max(needed, 3):
+        raise InputError(
+            f"{r.size} usable samples in the fit range, need at least {max(needed, 3)} for "
+            f"k = {k_eff} (k variances and k-1 weights per channel)",
+            src,
+        )
+    scale = np.max(np.abs(p))
+    if not scale > 0:
+        raise InputError("the profile is zero everywhere: nothing to fit", src)
+    if s is not None:
+        positive = s[s > 0]
+        floor = 1e-3 * float(np.median(positive)) if positive.size else 1.0
+        s = np.maximum(s, floor)
+    integral = 2.0 * np.pi * np.trapezoid(p * r[:, None], r, axis=0)
+    for c in range(3):
+        peak = np.max(np.abs(p[:, c]))
+        if not peak > 1e-12 * scale and not options.free_scale:
+            raise InputError(
+                f"channel {CHANNELS[c]} has no signal (max |value| = {peak:g}): a profile whose "
+                "weights sum to 1 cannot fit it; check the capture or use --free-scale",
+                src,
+            )
+        if not options.free_scale and not 0.2 <= integral[c] <= 5.0:
+            raise InputError(
+                f"channel {CHANNELS[c]} integrates to {integral[c]:.4g} over the plane "
+                "(2 pi int p r dr), not about 1: normalise the profile (skinpipe ingest does), "
+                "check that radii are in mm, or fit with --free-scale",
+                src,
+            )
+    return MeasuredProfile(r, p, s, profile.name, profile.source), notes
+
+
+def _k_of(options: FitOptions) -> int:
+    if options.fixed_variances_mm2 is not None:
+        return len(options.fixed_variances_mm2)
+    if not 1 <= options.k <= 8:
+        raise InputError(f"k must be between 1 and 8, got {options.k}")
+    return options.k
+
+
+def _variance_bounds_mm2(profiles: Sequence[MeasuredProfile]) -> tuple[float, float]:
+    """Search range for variances: from below the sample spacing to beyond the data."""
+    gaps = np.concatenate([np.diff(p.radius_mm) for p in profiles])
+    positive = np.concatenate([p.radius_mm[p.radius_mm > 0] for p in profiles])
+    smallest = min(float(gaps[gaps > 0].min()), float(positive.min()))
+    largest = max(float(p.radius_mm.max()) for p in profiles)
+    lo = (0.5 * smallest) ** 2
+    hi = (2.0 * largest) ** 2
+    return lo, max(hi, 10.0 * lo)
+
+
+def _make_curves(
+    profiles: Sequence[MeasuredProfile], channels: Sequence[tuple[int, int]], length_mm: float,
+    use_stddev: bool = False,
+) -> list[_Curve]:
+    curves = []
+    rhos: dict[int, FloatArray] = {}
+    for pi, c in channels:
+        prof = profiles[pi]
+        rho = rhos.setdefault(pi, prof.radius_mm / length_mm)
+        q = prof.values[:, c] * length_mm**2
+        a = rho * ring_widths_mm(rho)
+        if use_stddev and prof.stddev is not None:
+            inv_var = 1.0 / (prof.stddev[:, c] * length_mm**2) ** 2
+            a = a * inv_var / np.mean(inv_var)
+        norm = float(np.sum(a * q * q))
+        # A silent channel (free_scale only) keeps unit weights; its amplitude goes to 0.
+        a = a / norm if norm > 0 else a / max(float(np.sum(a)), 1e-300)
+        curves.append(_Curve(rho, q, a, pi, c))
+    return curves
+
+
+# ------------------------------------------------------------------------ weight solves
+
+
+def _gram_weights(hess: FloatArray, grad: FloatArray, free_scale: bool) -> FloatArray:
+    """Exact min w'Hw - 2 g'w over the simplex (or w >= 0) for a batch of small systems.
+
+    With H = R'R (Cholesky, jittered for near-equal variances) the problem is the
+    k x k least-squares problem |R w - R^-T g|, solved by NNLS with, unless
+    ``free_scale``, a heavily weighted row for sum w = 1. Cost is independent of the
+    number of samples, which is what makes the GA's fitness cheap.
+    """
+    batch, k = grad.shape
+    jitter = 1e-12 * np.trace(hess, axis1=-2, axis2=-1)[:, None, None] * np.eye(k)
+    chol = np.linalg.cholesky(hess + jitter + 1e-300 * np.eye(k))
+    rhs = np.linalg.solve(chol, grad[..., None])[..., 0]  # R^-T g with R = chol^T
+    a_all = np.swapaxes(chol, -1, -2)
+    if not free_scale:
+        big = 1e3 * np.maximum(np.abs(a_all).max(axis=(1, 2)), 1.0)
+        a_all = np.concatenate([a_all, np.repeat(big[:, None, None], k, axis=2)], axis=1)
+        rhs = np.concatenate([rhs, big[:, None]], axis=1)
+    from scipy.optimize import nnls  # here: the renderer imports this module, not scipy's solvers
+
+    out = np.empty_like(grad)
+    for b in range(batch):
+        out[b], _ = nnls(a_all[b], rhs[b], maxiter=50 * k)
+    if not free_scale:
+        out /= np.maximum(out.sum(axis=1, keepdims=True), 1e-300)
+    return out
+
+
+def _basis(log_u: FloatArray, rho: FloatArray) -> FloatArray:
+    """G(u, rho) for a batch of log-variances (..., k) at radii (n,) -> (..., n, k)."""
+    u = np.exp(log_u)[..., None, :]
+    return np.exp(-(rho[:, None] ** 2) / (2.0 * u)) / (2.0 * np.pi * u)
+
+
+def _fitness(log_u: FloatArray, curves: Sequence[_Curve], free_scale: bool) -> tuple[
+    FloatArray, FloatArray
+]:
+    """Objective of each candidate grid (P, k) with its best weights -> (P,), (P, C, k)."""
+    n_pop, k = log_u.shape
+    hess = np.empty((n_pop, len(curves), k, k))
+    grad = np.empty((n_pop, len(curves), k))
+    const = np.empty(len(curves))
+    basis: dict[int, FloatArray] = {}
+    for ci, cv in enumerate(curves):
+        # Curves of one profile share their radii: evaluate the Gaussians once.
+        b = basis.get(id(cv.rho))
+        if b is None:
+            b = basis[id(cv.rho)] = _basis(log_u, cv.rho)
+        ba = b * cv.a[:, None]
+        bt = np.swapaxes(ba, 1, 2)
+        hess[:, ci] = bt @ b
+        grad[:, ci] = bt @ cv.q
+        const[ci] = float(np.sum(cv.a * cv.q * cv.q))
+    w = _gram_weights(hess.reshape(-1, k, k), grad.reshape(-1, k), free_scale)
+    w = w.reshape(n_pop, len(curves), k)
+    objective = (
+        np.einsum("pck,pckl,pcl->p", w, hess, w) - 2.0 * np.einsum("pck,pck->p", w, grad)
+        + const.sum()
+    )
+    return np.maximum(objective, 0.0), w
+
+
+def simplex_least_squares(
+    basis: FloatArray, target: FloatArray, sample_weight: FloatArray, free_scale: bool = False
+) -> FloatArray:
+    """Exact min sum a (target - B w)^2 with w >= 0 and, unless free_scale, sum w = 1.
+
+    Lawson-Hanson NNLS on the system augmented by a heavily weighted row sum w = 1.
+    """
+    sq = np.sqrt(sample_weight)
+    a_mat = basis * sq[:, None]
+    b_vec = target * sq
+    if not free_scale:
+        big = 1e4 * max(float(np.linalg.norm(a_mat)), 1.0)
+        a_mat = np.vstack([a_mat, np.full((1, basis.shape[1]), big)])
+        b_vec = np.concatenate([b_vec, [big]])
+    from scipy.optimize import nnls
+
+    w, _ = nnls(a_mat, b_vec, maxiter=50 * basis.shape[1])
+    if not free_scale and w.sum() > 0:
+        w = w / w.sum()
+    return w
+
+
+# ----------------------------------------------------------------------------- GA seed
+
+GA_MIN_LOG_SPACING = 0.2
+"""Seeds keep neighbouring variances at least a factor e^0.4 (1.22) apart.
+
+Two nearly equal variances are a saddle of the least-squares problem (the pair can
+trade weight freely), where IPOPT spends a hundred iterations before escaping; the GA
+therefore proposes spread grids and leaves fine placement to IPOPT."""
+
+
+def _spread(pop: FloatArray, lo: float, hi: float) -> FloatArray:
+    """Repair sorted rows so that neighbours are at least GA_MIN_LOG_SPACING apart."""
+    k = pop.shape[1]
+    gap = min(GA_MIN_LOG_SPACING, (hi - lo) / max(k, 1))
+    steps = gap * np.arange(k)
+    # Subtracting the ramp turns the spacing rule into plain monotonicity.
+    flat = np.maximum.accumulate(pop - steps, axis=1)
+    flat = np.minimum(flat, hi - steps[-1])
+    return np.clip(flat + steps, lo, hi)
+
+
+
+def genetic_seed(
+    curves: Sequence[_Curve],
+    k: int,
+    log_bounds: tuple[float, float],
+    rng: np.random.Generator,
+    generations: int,
+    population: int,
+    free_scale: bool,
+) -> tuple[FloatArray, float]:
+    """Genetic algorithm over sorted log-variances (Park & Oh 2009, section 2.2).
+
+    Fitness is the objective with each candidate's best weights (a batched simplex
+    solve), so the GA searches only the nonlinear part. Returns the best grid and its
+    objective. Blend crossover, Gaussian mutation shrinking over the generations,
+    tournament selection, two elites.
+    """
+    lo, hi = log_bounds
+    span = hi - lo
+    pop = _spread(np.sort(rng.uniform(lo, hi, size=(population, k)), axis=1), lo, hi)
+    pop[0] = np.linspace(lo + 0.1 * span, hi - 0.1 * span, k) if k > 1 else 0.5 * (lo + hi)
+    fit, _ = _fitness(pop, curves, free_scale)
+    for gen in range(generations):
+        order = np.argsort(fit)
+        pop, fit = pop[order], fit[order]
+        n_child = population - 2
+        contenders = rng.integers(0, population, size=(2, n_child, 3))
+        parents = np.min(contenders, axis=2)  # sorted by fitness: the smaller index wins
+        alpha = rng.uniform(-0.25, 1.25, size=(n_child, k))
+        child = alpha * pop[parents[0]] + (1.0 - alpha) * pop[parents[1]]
+        sigma = span * (0.25 * (1.0 - gen / generations) + 0.01)
+        mutate = rng.random((n_child, k)) < 0.3
+        child = child + mutate * rng.normal(0.0, sigma, size=(n_child, k))
+        child = _spread(np.sort(np.clip(child, lo, hi), axis=1), lo, hi)
+        child_fit, _ = _fitness(child, curves, free_scale)
+        pop = np.concatenate([pop[:2], child])
+        fit = np.concatenate([fit[:2], child_fit])
+    best = int(np.argmin(fit))
+    return pop[best], float(fit[best])
+
+
+def polish_grid(
+    log_u: FloatArray,
+    curves: Sequence[_Curve],
+    log_bounds: tuple[float, float],
+    free_scale: bool,
+    iterations: int = 40,
+) -> tuple[FloatArray, float]:
+    """Levenberg-Marquardt on the log-variances with the weights projected out.
+
+    Variable projection with Kaufman's Jacobian (Golub & Pereyra 1973; Kaufman 1975):
+    the weights are re-solved exactly for every trial grid, so the search runs in k
+    dimensions only. Several damping factors are tried in one batched evaluation. This
+    takes the GA's best grid into the basin where IPOPT converges in few iterations.
+    """
+    lo, hi = log_bounds
+    damping = np.array([1e-6, 1e-4, 1e-2, 1e-1, 1.0, 10.0])
+    best_obj, best_w = _fitness(log_u[None, :], curves, free_scale)
+    best, obj, w = log_u.copy(), float(best_obj[0]), best_w[0]
+    for _ in range(iterations):
+        jac_rows, res_rows = [], []
+        u = np.exp(best)
+        for ci, cv in enumerate(curves):
+            g = _basis(best, cv.rho)
+            sqrt_a = np.sqrt(cv.a)[:, None]
+            res_rows.append(sqrt_a[:, 0] * (cv.q - g @ w[ci]))
+            dg = g * ((cv.rho[:, None] ** 2) / (2.0 * u) - 1.0)  # dG/dlog u
+            jac_rows.append(-sqrt_a * dg * w[ci])
+        jac = np.vstack(jac_rows)
+        res = np.concatenate(res_rows)
+        jtj = jac.T @ jac
+        jtr = jac.T @ res
+        diag = np.diag(np.diag(jtj) + 1e-12 * np.trace(jtj) + 1e-300)
+        trials = []
+        for lam in damping:
+            try:
+                step = np.linalg.solve(jtj + lam * diag, -jtr)
+            except np.linalg.LinAlgError:
+                continue
+            trials.append(np.sort(np.clip(best + step, lo, hi)))
+        if not trials:
+            break
+        cand = np.array(trials)
+        cand_obj, cand_w = _fitness(cand, curves, free_scale)
+        i = int(np.argmin(cand_obj))
+        if not cand_obj[i] < obj * (1.0 - 1e-4):
+            break
+        best, obj, w = cand[i], float(cand_obj[i]), cand_w[i]
+    return best, obj
+
+
+# ------------------------------------------------------------------------ IPOPT refine
+
+
+@lru_cache(maxsize=64)
+def _ipopt_solver(
+    layout: tuple[tuple[int, int], ...], k: int, fixed: bool, free_scale: bool
+) -> Any:
+    """A casadi IPOPT solver for one group's data layout (cached by structure).
+
+    ``layout`` lists, per radius set, (samples, curves using it): the Gaussians are
+    evaluated once per radius set and shared by its curves. Decision variables are
+    [log-variances (k, unless fixed), weights (k per curve)]; parameters are, per
+    radius set, [rho, then q and a of each curve], then fixed log-variances if any.
+
+    The objective is a weighted sum of squares, so the Lagrangian Hessian given to
+    IPOPT is the Gauss-Newton one, 2 J' diag(a) J (the constraints are linear): exact
+    at a zero-residual fit, always positive semi-definite, and an order of magnitude
+    cheaper to evaluate than the full second derivative.
+    """
+    n_total = sum(n * (1 + 2 * m) for n, m in layout)
+    n_curves = sum(m for _, m in layout)
+    log_u = ca.SX.sym("log_u", k)
+    w = ca.SX.sym("w", k * n_curves)
+    params = ca.SX.sym("p", n_total + (k if fixed else 0))
+    log_v = params[n_total:] if fixed else log_u
+    u = ca.exp(log_v).T
+    residuals, sqrt_a, constraints = [], [], []
+    offset, ci = 0, 0
+    for n, m in layout:
+        rho = params[offset : offset + n]
+        offset += n
+        uu = ca.repmat(u, n, 1)
+        basis = ca.exp(-ca.repmat(rho**2, 1, k) / (2 * uu)) / (2 * math.pi * uu)
+        for _ in range(m):
+            q = params[offset : offset + n]
+            a = params[offset + n : offset + 2 * n]  # sqrt of the sample weights
+            offset += 2 * n
+            wc = w[ci * k : (ci + 1) * k]
+            ci += 1
+            residuals.append(q - ca.mtimes(basis, wc))
+            sqrt_a.append(a)
+            constraints.append(ca.sum1(wc))
+    weighted = ca.vertcat(*residuals) * ca.vertcat(*sqrt_a)
+    x = w if fixed else ca.vertcat(log_u, w)
+    objective = ca.sumsqr(weighted)
+    jac = ca.jacobian(weighted, x)
+    lam_f = ca.SX.sym("lam_f")
+    lam_g = ca.SX.sym("lam_g", 0 if free_scale else n_curves)
+    hess = ca.Function(
+        "gauss_newton_hess", [x, params, lam_f, lam_g],
+        [ca.triu(lam_f * (2 * ca.mtimes(jac.T, jac) + HESS_REG * ca.SX.eye(x.numel())))],
+        ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"],
+    )
+    nlp = {"x": x, "p": params, "f": objective}
+    if not free_scale:
+        nlp["g"] = ca.vertcat(*constraints)
+    opts = {
+        "print_time": False,
+        "error_on_fail": True,
+        "hess_lag": hess,
+        "ipopt": dict(IPOPT_OPTIONS),
+    }
+    return ca.nlpsol("skin_fit", "ipopt", nlp, opts)
+
+
+@dataclass
+class _GroupSolution:
+    log_u: FloatArray
+    weights: FloatArray  # (C, k)
+    objective: float
+    status: str
+    iterations: int
+    solver: str
+
+
+def _objective(log_u: FloatArray, weights: FloatArray, curves: Sequence[_Curve]) -> float:
+    total = 0.0
+    for ci, cv in enumerate(curves):
+        resid = cv.q - _basis(log_u, cv.rho) @ weights[ci]
+        total += float(np.sum(cv.a * resid * resid))
+    return total
+
+
+def _polish_weights(log_u: FloatArray, curves: Sequence[_Curve], free_scale: bool) -> FloatArray:
+    return np.array(
+        [simplex_least_squares(_basis(log_u, cv.rho), cv.q, cv.a, free_scale) for cv in curves]
+    )
+
+
+def _layout(curves: Sequence[_Curve]) -> tuple[tuple[tuple[int, int], ...], list[FloatArray]]:
+    """Group consecutive curves that share radii; return the layout and parameter chunks."""
+    layout: list[tuple[int, int]] = []
+    chunks: list[FloatArray] = []
+    last = None
+    for cv in curves:
+        if cv.rho is not last:
+            layout.append((cv.rho.size, 0))
+            chunks.append(cv.rho)
+            last = cv.rho
+        layout[-1] = (layout[-1][0], layout[-1][1] + 1)
+        chunks.extend([cv.q, np.sqrt(cv.a)])
+    return tuple(layout), chunks
+
+
+def _refine_ipopt(
+    curves: Sequence[_Curve],
+    log_u0: FloatArray,
+    w0: FloatArray,
+    log_bounds: tuple[float, float],
+    fixed: bool,
+    free_scale: bool,
+) -> _GroupSolution:
+    k = log_u0.size
+    layout, chunks = _layout(curves)
+    solver = _ipopt_solver(layout, k, fixed, free_scale)
+    params = np.concatenate(chunks)
+    w_hi = np.inf if free_scale else 1.0
+    if fixed:
+        params = np.concatenate([params, log_u0])
+        x0, lbx, ubx = w0.reshape(-1), np.zeros(w0.size), np.full(w0.size, w_hi)
+    else:
+        x0 = np.concatenate([log_u0, w0.reshape(-1)])
+        lbx = np.concatenate([np.full(k, log_bounds[0]), np.zeros(w0.size)])
+        ubx = np.concatenate([np.full(k, log_bounds[1]), np.full(w0.size, w_hi)])
+    kwargs: dict[str, Any] = {"x0": x0, "p": params, "lbx": lbx, "ubx": ubx}
+    if not free_scale:
+        kwargs["lbg"] = kwargs["ubg"] = np.ones(len(curves))
+    try:
+        sol = solver(**kwargs)
+        x = np.asarray(sol["x"]).reshape(-1)
+    except RuntimeError:
+        x = None  # error_on_fail: the status below says why
+    stats = solver.stats()
+    status = str(stats.get("return_status", "unknown"))
+    iterations = int(stats.get("iter_count", 0))
+    if x is None or not np.all(np.isfinite(x)):
+        start_obj = _objective(log_u0, w0, curves)
+        return _GroupSolution(log_u0, w0, start_obj, status, iterations, "ipopt")
+    log_u = log_u0 if fixed else x[:k]
+    w = np.clip(x[k:] if not fixed else x, 0.0, None).reshape(len(curves), k)
+    if not free_scale:
+        w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    return _GroupSolution(log_u, w, _objective(log_u, w, curves), status, iterations, "ipopt")
+
+
+def _refine_slsqp(
+    curves: Sequence[_Curve],
+    log_u0: FloatArray,
+    w0: FloatArray,
+    log_bounds: tuple[float, float],
+    free_scale: bool,
+) -> _GroupSolution:
+    """scipy's SLSQP on the same problem: the paper's SQP (MATLAB fmincon), for comparison."""
+    k, n_c = log_u0.size, len(curves)
+
+    def unpack(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return x[:k], x[k:].reshape(n_c, k)
+
+    def fun(x: FloatArray) -> float:
+        lu, w = unpack(x)
+        return _objective(lu, w, curves)
+
+    cons = [] if free_scale else [
+        {"type": "eq", "fun": (lambda x, c=c: np.sum(unpack(x)[1][c]) - 1.0)} for c in range(n_c)
+    ]
+    from scipy.optimize import minimize
+
+    bounds = [log_bounds] * k + [(0.0, None if free_scale else 1.0)] * (n_c * k)
+    res = minimize(
+        fun, np.concatenate([log_u0, w0.reshape(-1)]), method="SLSQP", bounds=bounds,
+        constraints=cons, options={"maxiter": 500, "ftol": 1e-14},
+    )
+    lu, w = unpack(np.asarray(res.x))
+    w = np.clip(w, 0.0, None)
+    if not free_scale:
+        w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    return _GroupSolution(lu, w, _objective(lu, w, curves), str(res.message), int(res.nit), "slsqp")
+
+
+def _with_exact_weights(
+    sol: _GroupSolution, curves: Sequence[_Curve], free_scale: bool
+) -> _GroupSolution:
+    """Re-solve the weights exactly for the final grid (the interior point leaves ~1e-9
+    where the optimum is 0); kept only if the objective does not grow."""
+    w_exact = _polish_weights(sol.log_u, curves, free_scale)
+    obj_exact = _objective(sol.log_u, w_exact, curves)
+    if obj_exact <= sol.objective * (1.0 + 1e-9) + 1e-15:
+        return _GroupSolution(sol.log_u, w_exact, obj_exact, sol.status, sol.iterations, sol.solver)
+    return sol
+
+
+def _merge_close_terms(
+    sol: _GroupSolution, curves: Sequence[_Curve], free_scale: bool, tol: float
+) -> tuple[_GroupSolution, int]:
+    """Merge terms whose log-variances differ by less than ``tol``; polish the weights.
+
+    Two nearly equal variances are one blur pass in the renderer; IPOPT splits a
+    component when k exceeds what the data supports. The merge is kept only if the
+    objective does not grow by more than 1e-6 of the data norm.
+    """
+    order = np.argsort(sol.log_u)
+    log_u, w = sol.log_u[order], sol.weights[:, order]
+    merged = 0
+    i = 0
+    while i < log_u.size - 1:
+        if log_u[i + 1] - log_u[i] < tol:
+            ww = w[:, i] + w[:, i + 1]
+            mass = np.sum(w[:, i : i + 2], axis=0)
+            frac = mass[1] / mass.sum() if mass.sum() > 0 else 0.5
+            new_lu = (1 - frac) * log_u[i] + frac * log_u[i + 1]
+            trial_lu = np.concatenate([log_u[:i], [new_lu], log_u[i + 2 :]])
+            trial_w = np.concatenate([w[:, :i], ww[:, None], w[:, i + 2 :]], axis=1)
+            trial_w = _polish_weights(trial_lu, curves, free_scale)
+            trial_obj = _objective(trial_lu, trial_w, curves)
+            if trial_obj <= sol.objective + 1e-6 * len(curves):
+                log_u, w = trial_lu, trial_w
+                merged += 1
+                continue
+        i += 1
+    if merged == 0:
+        return _GroupSolution(log_u, w, sol.objective, sol.status, sol.iterations, sol.solver), 0
+    obj = _objective(log_u, w, curves)
+    return _GroupSolution(log_u, w, obj, sol.status, sol.iterations, sol.solver), merged
+
+
+def _refine(
+    curves: Sequence[_Curve],
+    log_u0: FloatArray,
+    w0: FloatArray,
+    log_bounds: tuple[float, float],
+    options: FitOptions,
+) -> _GroupSolution:
+    if options.solver == "slsqp":
+        return _refine_slsqp(curves, log_u0, w0, log_bounds, options.free_scale)
+    return _refine_ipopt(curves, log_u0, w0, log_bounds, False, options.free_scale)
+
+
+def _solve_group(
+    curves: Sequence[_Curve],
+    k: int,
+    log_bounds: tuple[float, float],
+    options: FitOptions,
+    rng: np.random.Generator,
+    fixed_log_u: FloatArray | None,
+) -> tuple[_GroupSolution, list[str]]:
+    notes: list[str] = []
+    if fixed_log_u is not None:
+        w0 = _polish_weights(fixed_log_u, curves, options.free_scale)
+        sol = _refine_ipopt(curves, fixed_log_u, w0, log_bounds, True, options.free_scale)
+        return _with_exact_weights(sol, curves, options.free_scale), notes
+    lo, hi = log_bounds
+    if options.init == "ga":
+        log_u0, _ = genetic_seed(
+            curves, k, log_bounds, rng, options.generations, options.population,
+            options.free_scale,
+        )
+        log_u0, _ = polish_grid(log_u0, curves, log_bounds, options.free_scale)
+    elif options.init == "naive":
+        log_u0 = np.linspace(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), k)
+    else:
+        log_u0 = np.sort(rng.uniform(lo, hi, size=k))
+    if options.init == "naive":
+        w0 = np.full((len(curves), k), 1.0 / k)
+    else:
+        _, wb = _fitness(log_u0[None, :], curves, options.free_scale)
+        w0 = wb[0]
+    seed_obj = _objective(log_u0, w0, curves)
+    sol = _refine(curves, log_u0, w0, log_bounds, options)
+    if sol.solver == "ipopt" and sol.status not in ACCEPTED_IPOPT_STATUS:
+        notes.append(f"IPOPT returned {sol.status}; the result was judged by its objective")
+    if not np.isfinite(sol.objective) or sol.objective > seed_obj:
+        notes.append("the refinement did not improve on its start; the seed was kept")
+        sol = _GroupSolution(log_u0, w0, seed_obj, sol.status, sol.iterations, sol.solver)
+    sol = _with_exact_weights(sol, curves, options.free_scale)
+    sol, merged = _merge_close_terms(sol, curves, options.free_scale, options.merge_log_variance)
+    if merged:
+        notes.append(
+            f"{merged} term(s) merged with a neighbour of nearly equal variance: the data "
+            f"supports fewer than k = {k} distinct Gaussians"
+        )
+    return sol, notes
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def _groups_for(share: Share, n_profiles: int) -> list[list[tuple[int, int]]]:
+    if share == "channels":
+        return [[(p, c) for c in range(3)] for p in range(n_profiles)]
+    if share == "none":
+        return [[(p, c)] for p in range(n_profiles) for c in range(3)]
+    if share == "profiles":
+        return [[(p, c) for p in range(n_profiles) for c in range(3)]]
+    raise InputError(f"share must be one of channels, none, profiles; got {share!r}")
+
+
+def fit_profiles(
+    profiles: Sequence[MeasuredProfile], options: FitOptions | None = None
+) -> list[FitResult]:
+    """Fit several profiles; with ``share="profiles"`` they share one variance grid.
+
+    Returns one :class:`FitResult` per profile, terms sorted by variance.
+    Raises :class:`InputError` for data no fit can honour, :class:`FitError` if the
+    optimiser produced non-finite numbers.
+    """
+    options = options or FitOptions()
+    if not profiles:
+        raise InputError("no profiles to fit")
+    k = _k_of(options)
+    start = time.perf_counter()
+    prepared, prep_notes = [], []
+    for prof in profiles:
+        tidy, notes = prepare_profile(prof, options)
+        for note in notes:
+            warnings.warn(f"{prof.source or prof.name}: {note}", UserWarning, stacklevel=2)
+        prepared.append(tidy)
+        prep_notes.append(notes)
+    rng = np.random.default_rng(options.seed)
+    lo_v, hi_v = _variance_bounds_mm2(prepared)
+    length_mm = math.sqrt(math.sqrt(lo_v * hi_v))
+    log_bounds = (math.log(lo_v / length_mm**2), math.log(hi_v / length_mm**2))
+    fixed_log_u = None
+    if options.fixed_variances_mm2 is not None:
+        fv = np.sort(np.asarray(options.fixed_variances_mm2, dtype=np.float64))
+        if not np.all(np.isfinite(fv)) or np.any(fv <= 0):
+            raise InputError(f"fixed variances must be finite and > 0 mm^2, got {fv.tolist()}")
+        fixed_log_u = np.log(fv / length_mm**2)
+
+    per_profile: list[dict[str, Any]] = [
+        {"terms": {}, "status": [], "iters": 0, "obj": 0.0, "notes": list(prep_notes[i]),
+         "solver": "", "reflectance": np.zeros(3)}
+        for i in range(len(profiles))
+    ]
+    for group in _groups_for(options.share, len(prepared)):
+        curves = _make_curves(prepared, group, length_mm, options.use_stddev)
+        sol, notes = _solve_group(curves, k, log_bounds, options, rng, fixed_log_u)
+        if not (np.all(np.isfinite(sol.log_u)) and np.all(np.isfinite(sol.weights))):
+            raise FitError(f"the optimiser returned non-finite values (status {sol.status})")
+        variances = np.exp(sol.log_u) * length_mm**2
+        for ci, (pi, c) in enumerate(group):
+            rec = per_profile[pi]
+            w = sol.weights[ci]
+            if options.free_scale:
+                total = float(w.sum())
+                rec["reflectance"][c] = total
+                w = w / total if total > 0 else np.eye(w.size)[0]
+            for v, wj in zip(variances, w, strict=True):
+                key = float(v)
+                rec["terms"].setdefault(key, np.zeros(3))[c] += wj
+            rec["status"].append(sol.status)
+            rec["iters"] += sol.iterations
+            rec["obj"] += sol.objective / len(group)
+            rec["solver"] = ("fixed-grid " if fixed_log_u is not None else "") + (
+                f"{options.init}+{sol.solver}"
+            )
+            rec["notes"].extend(n for n in notes if n not in rec["notes"])
+    seconds = time.perf_counter() - start
+    results = []
+    for pi, prof in enumerate(prepared):
+        rec = per_profile[pi]
+        keys = sorted(rec["terms"])
+        variances = np.array(keys)
+        weights = np.array([rec["terms"][key] for key in keys])
+        weights[weights < 1e-12] = 0.0
+        reflectance = rec["reflectance"] if options.free_scale else None
+        statuses = sorted(set(rec["status"]))
+        result = FitResult(
+            name=prof.name,
+            variances_mm2=variances,
+            weights=weights,
+            error=np.zeros(3),
+            seconds=seconds,
+            status=",".join(statuses),
+            solver=rec["solver"],
+            iterations=rec["iters"],
+            objective=rec["obj"],
+            k_requested=k,
+            share=options.share if options.fixed_variances_mm2 is None else "fixed",
+            n_samples=int(prof.radius_mm.size),
+            radius_range_mm=(float(prof.radius_mm.min()), float(prof.radius_mm.max())),
+            total_reflectance=reflectance,
+            warnings=rec["notes"],
+            source=None if prof.source is None else str(prof.source),
+        )
+        result.error = fit_error_eq2c(prof.radius_mm, prof.values, result.evaluate(prof.radius_mm))
+        results.append(result)
+    return results
+
+
+def fit_sum_of_gaussians(
+    profile: MeasuredProfile | tuple[ArrayLike, ArrayLike],
+    options: FitOptions | None = None,
+    **overrides: Any,
+) -> FitResult:
+    """Fit one RGB profile with a sum of Gaussians (Park & Oh 2009, eq. 1-2).
+
+    ``profile`` is a :class:`MeasuredProfile` or a tuple ``(radius_mm, values)`` of
+    numpy arrays. Keyword overrides set :class:`FitOptions` fields, e.g. ``k=4``.
+    """
+    if not isinstance(profile, MeasuredProfile):
+        r, v = profile
+        profile = MeasuredProfile(np.asarray(r, float), np.asarray(v, float))
+    base = options or FitOptions()
+    if overrides:
+        base = FitOptions(**{**base.__dict__, **overrides})
+    if base.share == "profiles":
+        base = FitOptions(**{**base.__dict__, "share": "channels"})
+    return fit_profiles([profile], base)[0]
+
+
+def fit_multistart(
+    profile: MeasuredProfile, options: FitOptions | None = None, starts: int = 50
+) -> FitResult:
+    """Best of ``starts`` IPOPT runs from random log-uniform grids (a reference optimum)."""
+    base = options or FitOptions()
+    best: FitResult | None = None
+    total = 0.0
+    for s in range(starts):
+        res = fit_sum_of_gaussians(profile, base, init="random", seed=base.seed * 1000 + s)
+        total += res.seconds
+        if best is None or res.objective < best.objective:
+            best = res
+    assert best is not None
+    best.seconds = total
+    best.solver = f"multistart{starts}+ipopt"
+    return best

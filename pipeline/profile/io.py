@@ -1,0 +1,130 @@
+"""Read and write measured profiles (CSV) and fits (JSON) at the stage boundaries."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..fileio import atomic_write_json, atomic_write_text
+from .fit import FitResult, MeasuredProfile, fit_result_from_json
+
+PROFILE_COLUMNS = ("radius_mm", "R", "G", "B")
+STDDEV_COLUMNS = ("std_R", "std_G", "std_B")
+
+
+def read_profile_csv(path: str | Path, name: str | None = None) -> MeasuredProfile:
+    """Read PROFILE.csv: a header, then ``radius_mm,R,G,B`` and optional ``std_R,std_G,std_B``.
+
+    Values may be ``nan``/``inf`` (the fit drops such rows with a warning); anything
+    that is not a number is an :class:`InputError` naming the row and column.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such file", path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read as UTF-8 text: {exc}", path) from exc
+    rows = [row for row in csv.reader(io.StringIO(text)) if row and any(c.strip() for c in row)]
+    if not rows:
+        raise InputError("empty file: expected a header radius_mm,R,G,B", path)
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in PROFILE_COLUMNS if c not in header]
+    if missing:
+        raise InputError(
+            f"missing column(s) {', '.join(missing)} in header {','.join(header)!r} "
+            f"(expected {','.join(PROFILE_COLUMNS)}[,{','.join(STDDEV_COLUMNS)}])",
+            path,
+        )
+    has_std = all(c in header for c in STDDEV_COLUMNS)
+    wanted = PROFILE_COLUMNS + (STDDEV_COLUMNS if has_std else ())
+    index = [header.index(c) for c in wanted]
+    data = np.empty((len(rows) - 1, len(wanted)))
+    for i, row in enumerate(rows[1:], start=2):
+        for j, col in enumerate(index):
+            try:
+                data[i - 2, j] = float(row[col])
+            except (IndexError, ValueError):
+                cell = row[col] if col < len(row) else "<missing>"
+                raise InputError(
+                    f"line {i}, column {wanted[j]}: {cell!r} is not a number", path
+                ) from None
+    if data.shape[0] == 0:
+        raise InputError("header only: no samples", path)
+    return MeasuredProfile(
+        radius_mm=data[:, 0],
+        values=data[:, 1:4],
+        stddev=data[:, 4:7] if has_std else None,
+        name=name or path.stem,
+        source=path,
+    )
+
+
+def write_profile_csv(path: str | Path, profile: MeasuredProfile) -> Path:
+    """Write a profile in the PROFILE.csv format (atomically)."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    std = profile.stddev
+    writer.writerow(PROFILE_COLUMNS + (STDDEV_COLUMNS if std is not None else ()))
+    for i, r in enumerate(profile.radius_mm):
+        row = [r, *profile.values[i]] + ([*std[i]] if std is not None else [])
+        writer.writerow([f"{float(x):.9g}" for x in row])
+    return atomic_write_text(path, out.getvalue())
+
+
+def write_fit_json(path: str | Path, fit: FitResult) -> Path:
+    """Write FIT.json (atomically)."""
+    return atomic_write_json(path, fit.to_json())
+
+
+def read_fit_json(path: str | Path) -> FitResult:
+    """Read FIT.json; :class:`InputError` names the file if it is not a valid fit."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such file", path)
+    try:
+        doc: Any = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"not valid JSON: {exc}", path) from exc
+    if not isinstance(doc, dict):
+        raise InputError("a fit document must be a JSON object", path)
+    try:
+        fit = fit_result_from_json(doc, name=str(doc.get("name") or path.stem))
+    except InputError as exc:
+        raise InputError(str(exc), path) from exc
+    _check_fit(fit, path)
+    return fit
+
+
+def _check_fit(fit: FitResult, path: Path) -> None:
+    if fit.variances_mm2.size == 0:
+        raise InputError("the fit has no terms", path)
+    if not np.all(np.isfinite(fit.variances_mm2)) or np.any(fit.variances_mm2 <= 0):
+        raise InputError(f"variances must be finite and > 0 mm^2: {fit.variances_mm2}", path)
+    if not np.all(np.isfinite(fit.weights)) or np.any(fit.weights < 0):
+        raise InputError("weights must be finite and >= 0", path)
+    sums = fit.weights.sum(axis=0)
+    if not all(math.isclose(s, 1.0, abs_tol=1e-4) for s in sums):
+        raise InputError(f"weights must sum to 1 per channel, got {np.round(sums, 6)}", path)
+
+
+def read_fit_inputs(paths: Sequence[str | Path]) -> list[FitResult]:
+    """Fits from JSON files and/or directories of ``*.json`` (sorted by name)."""
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(q for q in p.glob("*.json") if not q.name.startswith("."))
+            if not found:
+                raise InputError("no *.json fit files in this directory", p)
+            files.extend(found)
+        else:
+            files.append(p)
+    return [read_fit_json(f) for f in files]

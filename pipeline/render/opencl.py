@@ -1,0 +1,486 @@
+"""The OpenCL device every texture-space kernel runs on, chosen by probing every
+candidate (PoCL's, Intel's CPU runtime, any GPU the machine's drivers offer) with a small
+kernel that uses what skinpipe's kernels use; compiled programs are cached on disk for
+every runtime; builds and kernel launches are counted for ``render.json``."""
+
+from __future__ import annotations
+
+import mmap
+import os
+import time
+import warnings
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from .opencl_runtimes import SETUP, _cache_root
+
+STREAM_MIN_BYTES = 16 << 20
+"""Blurs of images this large write their output with streaming (non-temporal) stores:
+a normal store first reads the line it writes, so a texture that will not stay in the
+cache anyway is read twice (measured at 2048^2 RGBA float32, 64 MiB: the one-sigma
+recursive blur 45-47 -> 34-36 ms, the direct blur at sigma 1 17 -> 10 ms). Smaller
+images are left in the cache for the kernel that reads them next."""
+HUGE_PAGE_MIN_BYTES = 4 << 20
+"""Work buffers this large live in host memory backed by 2 MiB pages on a CPU device
+(:func:`device_buffer`)."""
+_HUGE_PAGE = 2 << 20
+STORE_MACRO = r"""
+#if STREAM && NT_STORE
+#define STORE(v, p) __builtin_nontemporal_store((v), (p))
+#else
+#define STORE(v, p) (*(p) = (v))
+#endif
+"""
+
+
+DEVICE_ENV = "SKINPIPE_OPENCL_DEVICE"
+"""Environment variable naming the OpenCL device (same values as ``--device``)."""
+DEVICE_HELP = ("OpenCL device: auto (CPU runtimes first: PoCL, then Intel's, then GPUs), "
+               "cpu, gpu (a GPU first), or part of 'platform: device' (e.g. pocl, intel, "
+               f"nvidia); default ${DEVICE_ENV} or auto")
+MIN_LOCAL_MEM_BYTES = 64 << 10
+"""Local memory a device needs: the direct blur's ring (20 KiB) and the recursive blur's
+lines (64 B a texel of a line: 1024-texel lines at 64 KiB)."""
+PROBE_ITEMS = 256
+_T = TypeVar("_T", bound=Callable[..., Any])
+_DEVICE_CACHES: list[Any] = []
+
+
+def device_cache(maxsize: int = 1) -> Callable[[_T], _T]:
+    """``lru_cache`` for what belongs to the chosen device (contexts, programs, buffers,
+    tuned switches): cleared together when another device is chosen."""
+    def wrap(fn: _T) -> _T:
+        cached = lru_cache(maxsize=maxsize)(fn)
+        _DEVICE_CACHES.append(cached)
+        return cached  # type: ignore[return-value]
+    return wrap
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One OpenCL device as the ICD loader lists it."""
+
+    platform: str
+    name: str
+    kind: str
+    """"cpu", "gpu" or "other"."""
+    platform_index: int
+    device_index: int
+
+    @property
+    def label(self) -> str:
+        return f"{self.platform}: {self.name}"
+
+    @property
+    def runtime(self) -> str:
+        """Short id of the runtime and kind, e.g. ``pocl-cpu``, ``intel-cpu``."""
+        p = self.platform.lower()
+        vendor = ("pocl" if "portable computing" in p or "pocl" in p else
+                  next((v for v in ("intel", "nvidia", "amd", "rusticl", "clover", "apple")
+                        if v in p), "".join(c for c in p.split()[0] if c.isalnum()) or "cl"))
+        return f"{vendor}-{self.kind}"
+
+
+@dataclass
+class DeviceChoice:
+    """The device chosen for this process and every device tried (reason None: passed
+    the probe; ``not tried``: the chosen one came first)."""
+
+    spec: str
+    device: Any
+    candidate: Candidate
+    nontemporal_stores: bool
+    tried: list[tuple[Candidate, str | None]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        return {"device": self.candidate.label, "runtime": self.candidate.runtime,
+                "spec": self.spec, "nontemporal_stores": self.nontemporal_stores,
+                "tried": {c.label: reason or "passed" for c, reason in self.tried}}
+
+
+def candidates() -> list[tuple[Candidate, Any]]:
+    """Every device of every platform, with its pyopencl object; ``[]`` when the loader
+    has no platform at all."""
+    import pyopencl as cl
+
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:  # ocl-icd raises PLATFORM_NOT_FOUND_KHR with no ICD
+        return []
+    out = []
+    for pi, platform in enumerate(platforms):
+        try:
+            devices = platform.get_devices()
+        except cl.Error:
+            continue
+        for di, d in enumerate(devices):
+            kind = ("cpu" if d.type & cl.device_type.CPU else
+                    "gpu" if d.type & cl.device_type.GPU else "other")
+            out.append((Candidate(platform.name.strip(), d.name.strip(), kind, pi, di), d))
+    return out
+
+
+def order_candidates(found: Sequence[tuple[Candidate, Any]], spec: str
+                     ) -> list[tuple[Candidate, Any]]:
+    """The devices to try for ``spec``, in order (see :data:`DEVICE_HELP`)."""
+    s = spec.strip().lower()
+    rank_kind = {"cpu": 0, "gpu": 1, "other": 2}
+    if s == "gpu":
+        rank_kind = {"gpu": 0, "cpu": 1, "other": 2}
+
+    def rank(item: tuple[Candidate, Any]) -> tuple[int, int, int, int]:
+        c = item[0]
+        return (rank_kind[c.kind], 0 if c.runtime.startswith("pocl") else 1,
+                c.platform_index, c.device_index)
+
+    if s in ("auto", "gpu"):
+        pool = list(found)
+    elif s == "cpu":
+        pool = [f for f in found if f[0].kind == "cpu"]
+    else:
+        pool = [f for f in found if s in f[0].label.lower() or s in f[0].runtime]
+    return sorted(pool, key=rank)
+
+
+_PROBE_SOURCE = r"""
+__kernel void probe(__global const float4 *src, __global float4 *dst,
+                    volatile __global int *peak, __local float4 *tile) {
+    const int l = get_local_id(0), n = get_local_size(0), g = get_global_id(0);
+    tile[l] = src[g];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    float4 v = tile[n - 1 - l] * 2.0f;
+#if NT_STORE
+    __builtin_nontemporal_store(v, dst + g);
+#else
+    dst[g] = v;
+#endif
+    atomic_max(peak, (int)src[g].x);
+}
+"""
+
+
+def _first_error_line(exc: BaseException) -> str:
+    """The line of a build log or exception that says what failed."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    for ln in lines:
+        if "error" in ln.lower() and "build_program_failure" not in ln.lower():
+            return ln[:200]
+    return (lines[0] if lines else type(exc).__name__)[:200]
+
+
+def probe(device: Any, nt_store: bool = True) -> str | None:
+    """None if ``device`` builds and runs the probe kernel right (local memory, a barrier,
+    atomics, ``USE_HOST_PTR`` buffers, and with ``nt_store`` the streaming-store builtin),
+    else why not (one line)."""
+    import pyopencl as cl
+
+    try:
+        if int(device.local_mem_size) < MIN_LOCAL_MEM_BYTES:
+            return (f"local memory {int(device.local_mem_size) >> 10} KiB < "
+                    f"{MIN_LOCAL_MEM_BYTES >> 10} KiB")
+        local = int(min(64, device.max_work_group_size))
+        ctx = cl.Context([device])
+        queue = cl.CommandQueue(ctx)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            program = cl.Program(ctx, _PROBE_SOURCE).build(
+                options=[f"-DNT_STORE={int(nt_store)}"], cache_dir=str(program_cache_dir()))
+        src = np.arange(PROBE_ITEMS * 4, dtype=np.float32).reshape(-1, 4)
+        dst = np.zeros_like(src)
+        peak = np.full(1, -1, np.int32)
+        mf = cl.mem_flags
+        b_src = cl.Buffer(ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=src)
+        b_dst = cl.Buffer(ctx, mf.READ_WRITE | mf.USE_HOST_PTR, hostbuf=dst)
+        b_peak = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=peak)
+        program.probe(queue, (PROBE_ITEMS,), (local,), b_src, b_dst, b_peak,
+                      cl.LocalMemory(16 * local))
+        mapped, _ = cl.enqueue_map_buffer(queue, b_dst, cl.map_flags.READ, 0, dst.shape,
+                                          dst.dtype)
+        got = np.array(mapped)
+        mapped.base.release(queue)
+        cl.enqueue_copy(queue, peak, b_peak)
+        queue.finish()
+    except Exception as exc:  # a runtime can fail anywhere: that is what the probe asks
+        return f"{'build' if 'build' in str(exc).lower() else 'run'} failed: " \
+               f"{_first_error_line(exc)}"
+    groups = src.reshape(-1, local, 4)
+    want = (groups[:, ::-1] * 2.0).reshape(-1, 4)
+    if not np.array_equal(got, want):
+        return f"wrong results ({int((got != want).any(axis=1).sum())} of {PROBE_ITEMS} items)"
+    if int(peak[0]) != int(src[:, 0].max()):
+        return f"atomic_max gave {int(peak[0])}, expected {int(src[:, 0].max())}"
+    return None
+
+
+def choose_device(spec: str, found: Sequence[tuple[Candidate, Any]] | None = None,
+                  probe_fn: Callable[..., str | None] = probe,
+                  probe_all: bool = False) -> DeviceChoice:
+    """The first device for ``spec`` that passes :func:`probe` (``probe_all``: every
+    device is probed, for the report of ``skinpipe env``); an :class:`InputError`
+    naming every device tried and why it failed when none does."""
+    found = candidates() if found is None else list(found)
+    ordered = order_candidates(found, spec)
+    tried: list[tuple[Candidate, str | None]] = []
+    chosen: tuple[Candidate, Any, bool] | None = None
+    for cand, device in ordered:
+        if chosen is not None and not probe_all:
+            tried.append((cand, "not tried (an earlier device passed)"))
+            continue
+        reason = probe_fn(device, True)
+        nt = reason is None
+        if reason is not None and probe_fn(device, False) is None:
+            reason = None  # it runs everything but streaming stores: plain stores then
+        tried.append((cand, reason if reason or chosen is None else
+                      "passed (an earlier device was chosen)"))
+        if reason is None and chosen is None:
+            chosen = (cand, device, nt)
+    if chosen is None:
+        raise InputError(no_device_message(spec, found, tried))
+    tried += [(c, f"not matched by '{spec}'") for c, _ in found
+              if all(c != o for o, _ in ordered)]
+    return DeviceChoice(spec, chosen[1], chosen[0], chosen[2], tried)
+
+
+def no_device_message(spec: str, found: Sequence[tuple[Candidate, Any]],
+                      tried: Sequence[tuple[Candidate, str | None]]) -> str:
+    if not found:
+        head = "no OpenCL device found"
+    elif not tried:
+        head = (f"no OpenCL device matches '{spec}' (have: "
+                + ", ".join(c.label for c, _ in found) + ")")
+    else:
+        head = f"no OpenCL device passed skinpipe's probe (device '{spec}'): " + "; ".join(
+            f"{c.label}: {r}" for c, r in tried)
+    notes = "; ".join(SETUP.notes)
+    return (f"{head}. Install a CPU runtime (pip install pyopencl[pocl] intel-opencl-rt "
+            f"intel-cmplr-lib-rt tbb) or a GPU driver's OpenCL ICD, or choose another with "
+            f"--device / ${DEVICE_ENV}" + (f" ({notes})" if notes else ""))
+
+
+_preference: str | None = None
+
+
+def device_spec() -> str:
+    """The device asked for: :func:`set_device` if called, else ``$SKINPIPE_OPENCL_DEVICE``,
+    else ``auto``."""
+    return (_preference or os.environ.get(DEVICE_ENV) or "auto").strip() or "auto"
+
+
+def set_device(spec: str | None) -> None:
+    """Ask for another device (None: back to the environment / auto). Every
+    device-bound cache (:func:`device_cache`) is cleared when the choice changes, so
+    buffers and programs of the old device are never mixed with the new one."""
+    global _preference
+    before = device_spec()
+    _preference = spec
+    if device_spec() != before:
+        for cached in _DEVICE_CACHES:
+            cached.cache_clear()
+
+
+@device_cache()
+def device_choice() -> DeviceChoice:
+    """The device of this process (probed once)."""
+    return choose_device(device_spec())
+
+
+@device_cache()
+def cl_context() -> tuple[Any, Any]:
+    """(context, in-order queue) on the chosen device, made once per device."""
+    import pyopencl as cl
+
+    ctx = cl.Context([device_choice().device])
+    return ctx, cl.CommandQueue(ctx)
+
+
+def program_cache_dir() -> Path:
+    """Where built programs are kept (pyopencl's binary cache, for every runtime)."""
+    return _cache_root() / "opencl" / "programs"
+
+
+@dataclass
+class KernelLedger:
+    """Program builds (count, seconds) and kernel launches by name, for this process:
+    a render reports its difference (:meth:`since`)."""
+
+    builds: int = 0
+    build_seconds: float = 0.0
+    launches: Counter[str] = field(default_factory=Counter)
+
+    def copy(self) -> KernelLedger:
+        return KernelLedger(self.builds, self.build_seconds, Counter(self.launches))
+
+    def since(self, before: KernelLedger) -> dict[str, Any]:
+        launches = self.launches - before.launches
+        return {"programs_built": self.builds - before.builds,
+                "build_seconds": round(self.build_seconds - before.build_seconds, 4),
+                "kernel_launches": dict(sorted(launches.items()))}
+
+
+LEDGER = KernelLedger()
+
+
+def build(source: str, options: list[str] | None = None) -> Any:
+    """A program for the shared context (callers cache what they build), from the disk
+    cache when it was built before; ``NT_STORE`` says whether streaming stores work."""
+    import pyopencl as cl
+
+    ctx, _ = cl_context()
+    opts = [*(options or []), f"-DNT_STORE={int(device_choice().nontemporal_stores)}"]
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        # Intel's runtime writes a build log for every program, errors or not
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        program = cl.Program(ctx, source).build(options=opts,
+                                                cache_dir=str(program_cache_dir()))
+    LEDGER.builds += 1
+    LEDGER.build_seconds += time.perf_counter() - start
+    return program
+
+
+class Kernel:
+    """A kernel of a built program whose launches are counted in :data:`LEDGER`."""
+
+    __slots__ = ("_kernel", "name")
+
+    def __init__(self, program: Any, name: str) -> None:
+        import pyopencl as cl
+
+        self._kernel = cl.Kernel(program, name)
+        self.name = name
+
+    def __call__(self, queue: Any, *args: Any, **kwargs: Any) -> Any:
+        LEDGER.launches[self.name] += 1
+        return self._kernel(queue, *args, **kwargs)
+
+
+@device_cache()
+def _host_memory_device() -> bool:
+    """Whether the device runs on this machine's memory (a CPU device)."""
+    return device_choice().candidate.kind == "cpu"
+
+def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
+    """A read-write device buffer: of that many bytes, or holding that array.
+
+    On a CPU device under Linux, one of :data:`HUGE_PAGE_MIN_BYTES` or more is anonymous
+    memory of its own, which the kernel is asked to back with 2 MiB pages
+    (``madvise(MADV_HUGEPAGE)``: transparent huge pages are often enabled for madvised
+    memory only), used in place (``USE_HOST_PTR``). A recursive pass writes its output
+    transposed, one 64-byte line every row-length bytes, so with 4 KiB pages nearly
+    every write misses the TLB (measured at 2048^2, the one-sigma recursive blur in one
+    process: 47-69 ms with 4 KiB pages, 31-54 ms with 2 MiB pages); and the memory goes
+    back to the system when the buffer goes (a buffer of tens of MB from the allocator
+    stays resident after it is freed). pyopencl keeps the memory alive as long as the
+    buffer; callers finish their queue before they drop a buffer, as every caller here
+    does, since the memory goes with the buffer's last reference.
+    """
+    import pyopencl as cl
+
+    ctx, _ = cl_context()
+    flags = cl.mem_flags.READ_WRITE
+    data = None if isinstance(size_or_contents, int) else \
+        np.ascontiguousarray(size_or_contents).reshape(-1).view(np.uint8)
+    size = size_or_contents if data is None else data.size
+    if size < HUGE_PAGE_MIN_BYTES or not hasattr(mmap, "MADV_HUGEPAGE") \
+            or not _host_memory_device():
+        if data is None:
+            return cl.Buffer(ctx, flags, size)
+        return cl.Buffer(ctx, flags | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
+    region = mmap.mmap(-1, size + _HUGE_PAGE, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    region.madvise(mmap.MADV_HUGEPAGE)
+    raw = np.frombuffer(region, dtype=np.uint8)
+    start = (-raw.ctypes.data) % _HUGE_PAGE  # whole huge pages from the first byte
+    view = raw[start:start + size]
+    if data is not None:
+        view[:] = data
+    return cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=view)
+
+
+def _over_host(array: NDArray[Any], access: Any) -> Any:
+    """A buffer over ``array``'s memory on a CPU device (``USE_HOST_PTR``), else a copy of
+    it; an empty array gets a one-element buffer (OpenCL has no empty buffers)."""
+    import pyopencl as cl
+
+    ctx, _ = cl_context()
+    data = array if array.size else np.zeros(1, array.dtype)
+    how = cl.mem_flags.USE_HOST_PTR if _host_memory_device() else cl.mem_flags.COPY_HOST_PTR
+    return cl.Buffer(ctx, access | how, hostbuf=data)
+
+
+def host_buffer(array: NDArray[Any]) -> Any:
+    """A read-only device buffer over ``array`` (made C-contiguous): on a CPU device the
+    array's own memory (no second copy of, say, 100 MB of region weights; pyopencl
+    keeps the array alive as long as the buffer, and nothing may write to it
+    meanwhile), elsewhere a copy."""
+    import pyopencl as cl
+
+    return _over_host(np.ascontiguousarray(array), cl.mem_flags.READ_ONLY)
+
+
+def host_output(array: NDArray[Any]) -> Any:
+    """A device buffer holding ``array``'s values that kernels write the array's new
+    contents into: on a CPU device the array's own memory (no copy either way;
+    :func:`read_output` makes the array current), elsewhere a copy."""
+    import pyopencl as cl
+
+    if not array.flags.c_contiguous:
+        raise InputError("host_output: the array must be C-contiguous")
+    return _over_host(array, cl.mem_flags.READ_WRITE)
+
+
+def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:
+    """Bring ``array`` up to date with the :func:`host_output` buffer over it: a map and
+    unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue)."""
+    import pyopencl as cl
+
+    if _host_memory_device():
+        mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
+                                          array.dtype)
+        mapped.base.release(queue)
+        queue.finish()
+    else:
+        cl.enqueue_copy(queue, array, buffer)
+
+
+class DeviceTexture:
+    """An RGBA float32 texture on the device (``buf_a``) and a second buffer of its size
+    (``buf_b``) for the work between passes: what every blur class holds. Subclasses
+    implement ``blur_in_place`` (sigmas in texels), leaving the result in ``buf_a``."""
+
+    def __init__(self, height: int, width: int) -> None:
+        self.ctx, self.queue = cl_context()
+        self.height, self.width = height, width
+        self.buf_a = device_buffer(height * width * 16)
+        self.buf_b = device_buffer(height * width * 16)
+
+    def upload(self, image: NDArray[Any]) -> None:
+        import pyopencl as cl
+
+        rgba = np.ascontiguousarray(image, dtype=np.float32)
+        if rgba.shape != (self.height, self.width, 4):
+            raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
+        cl.enqueue_copy(self.queue, self.buf_a, rgba)
+
+    def download(self) -> NDArray[np.float32]:
+        import pyopencl as cl
+
+        out = np.empty((self.height, self.width, 4), dtype=np.float32)
+        cl.enqueue_copy(self.queue, out, self.buf_a)
+        return out
+
+    def blur_in_place(self, sigma_u: Any, sigma_v: Any) -> None:
+        raise NotImplementedError
+
+    def blur(self, image: NDArray[Any], sigma_u: Any, sigma_v: Any) -> NDArray[np.float32]:
+        """Upload ``image``, blur it, return the result."""
+        self.upload(image)
+        self.blur_in_place(sigma_u, sigma_v)
+        return self.download()

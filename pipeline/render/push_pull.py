@@ -1,0 +1,166 @@
+"""Push-pull hole filling of texture maps (Gortler et al. 1996, "The Lumigraph", sec. 3.4).
+
+Texels outside the charts are filled from their surroundings so that bilinear lookups
+near a seam never blend in black: a pyramid of coverage-weighted 2 x 2 sums (pull),
+then each level's empty texels take their coarser parent's normalised value (push).
+Covered texels are returned unchanged. :func:`push_pull` runs on the OpenCL device;
+:func:`push_pull_reference` is the numpy version it is tested against.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from .opencl import (
+    Kernel,
+    build,
+    cl_context,
+    device_buffer,
+    device_cache,
+    host_buffer,
+    host_output,
+    read_output,
+)
+
+
+def _checked(values: NDArray[Any], coverage: NDArray[Any]
+             ) -> tuple[NDArray[np.float32], NDArray[np.float32], bool]:
+    """(H, W, C) float32 values, (H, W) coverage, and whether the values were (H, W)."""
+    v = np.asarray(values, dtype=np.float32)
+    c = np.asarray(coverage, dtype=np.float32)
+    squeeze = v.ndim == 2
+    if squeeze:
+        v = v[..., None]
+    if v.ndim != 3 or c.shape != v.shape[:2]:
+        raise InputError(f"push-pull: values (H, W[, C]) and coverage (H, W) must match, "
+                         f"got {np.shape(values)} and {np.shape(coverage)}")
+    return v, c, squeeze
+
+
+def push_pull_reference(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float32]:
+    """:func:`push_pull` in numpy (one thread): the reference for its tests."""
+    v, c, squeeze = _checked(values, coverage)
+    levels = [(v * c[..., None], c)]
+    while min(levels[-1][1].shape) > 1:
+        pv, pc = levels[-1]
+        h, w = pc.shape
+        if h % 2 or w % 2:
+            pv = np.pad(pv, ((0, h % 2), (0, w % 2), (0, 0)))
+            pc = np.pad(pc, ((0, h % 2), (0, w % 2)))
+        sv = pv[0::2, 0::2] + pv[1::2, 0::2] + pv[0::2, 1::2] + pv[1::2, 1::2]
+        sc = pc[0::2, 0::2] + pc[1::2, 0::2] + pc[0::2, 1::2] + pc[1::2, 1::2]
+        levels.append((sv, sc))
+    # normalised colours per level, each level's holes filled from the coarser one
+    filled = levels[-1][0] / np.maximum(levels[-1][1], 1e-30)[..., None]
+    for sv, sc in reversed(levels[1:-1]):
+        up = np.repeat(np.repeat(filled, 2, axis=0)[:sc.shape[0]], 2, axis=1)[:, :sc.shape[1]]
+        filled = np.divide(sv, sc[..., None], out=up, where=sc[..., None] > 0)
+    if len(levels) > 1:
+        h, w = c.shape
+        filled = np.repeat(np.repeat(filled, 2, axis=0)[:h], 2, axis=1)[:, :w]
+    out = np.where(c[..., None] > 0, v, filled).astype(np.float32, copy=False)
+    return out[..., 0] if squeeze else out
+
+
+_KERNEL = r"""
+// Pull: level k+1 texel = sum of the (up to) 2 x 2 texels of level k it covers, of the
+// values times coverage (premultiplied on level 0, where `weight` is the coverage) and
+// of the coverage. Values are `channels` floats a texel.
+__kernel void pull(__global const float *src, __global const float *src_c,
+                   __global float *dst, __global float *dst_c, const int sw, const int sh,
+                   const int dw, const int dh, const int channels, const int premultiply)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= dw || y >= dh) return;
+    const size_t o = (size_t)y * dw + x;
+    float cs = 0.0f;
+    for (int c = 0; c < channels; ++c) dst[o * channels + c] = 0.0f;
+    for (int j = 0; j < 2; ++j) {
+        const int sy = 2 * y + j;
+        if (sy >= sh) break;
+        for (int i = 0; i < 2; ++i) {
+            const int sx = 2 * x + i;
+            if (sx >= sw) break;
+            const size_t s = (size_t)sy * sw + sx;
+            const float cov = src_c[s];
+            const float m = premultiply ? cov : 1.0f;
+            for (int c = 0; c < channels; ++c) dst[o * channels + c] += m * src[s * channels + c];
+            cs += cov;
+        }
+    }
+    dst_c[o] = cs;
+}
+
+// Push: a texel of level k keeps its normalised value where it has coverage and takes
+// its parent's filled value (level k+1, already pushed) where it has none. On level 0
+// (`keep`) a covered texel keeps its own value, unnormalised.
+__kernel void push(__global float *lvl, __global const float *lvl_c,
+                   __global const float *parent, __global float *out, const int w,
+                   const int h, const int pw, const int channels, const int keep)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= w || y >= h) return;
+    const size_t o = (size_t)y * w + x;
+    const size_t p = (size_t)(y / 2) * pw + x / 2;
+    const float cov = lvl_c[o];
+    for (int c = 0; c < channels; ++c) {
+        const float v = lvl[o * channels + c];
+        out[o * channels + c] = cov > 0.0f ? (keep ? v : v / cov) : parent[p * channels + c];
+    }
+}
+
+// The coarsest level's normalised value (zero where nothing is covered).
+__kernel void normalise(__global float *lvl, __global const float *lvl_c, const int texels,
+                        const int channels)
+{
+    const int i = get_global_id(0);
+    if (i >= texels) return;
+    const float cov = lvl_c[i] > 1e-30f ? lvl_c[i] : 1e-30f;
+    for (int c = 0; c < channels; ++c) lvl[(size_t)i * channels + c] /= cov;
+}
+"""
+
+
+@device_cache()
+def _kernels() -> tuple[Any, Any, Any]:
+
+    program = build(_KERNEL)
+    return tuple(Kernel(program, name) for name in ("pull", "push", "normalise"))
+
+
+def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float32]:
+    """Fill texels outside the charts (``coverage`` 0) of (H, W[, C]) ``values`` from
+    their surroundings, on the OpenCL device; covered texels are returned unchanged.
+    The same maps as :func:`push_pull_reference` within float32 rounding."""
+    pull, push, normalise = _kernels()
+    v, c, squeeze = _checked(values, coverage)
+    _, queue = cl_context()
+    h, w, ch = v.shape
+    shapes = [(h, w)]
+    while min(shapes[-1]) > 1:
+        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+    if len(shapes) == 1:  # a single row or column: nothing coarser to fill from
+        out = np.where(c[..., None] > 0, v, np.float32(0.0))
+        return out[..., 0] if squeeze else out
+    out = np.empty_like(v)
+    out_buf = host_output(out)
+    levels = [(host_buffer(v), host_buffer(c))]
+    for k in range(1, len(shapes)):
+        (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
+        levels.append((device_buffer(dh * dw * ch * 4), device_buffer(dh * dw * 4)))
+        pull(queue, (dw, dh), None, *levels[k - 1], *levels[k], np.int32(sw), np.int32(sh),
+             np.int32(dw), np.int32(dh), np.int32(ch), np.int32(k == 1))
+    top_h, top_w = shapes[-1]
+    normalise(queue, (top_h * top_w,), None, *levels[-1], np.int32(top_h * top_w),
+              np.int32(ch))
+    for k in range(len(shapes) - 2, -1, -1):
+        lh, lw = shapes[k]
+        target = out_buf if k == 0 else levels[k][0]  # in place: a texel reads only itself
+        push(queue, (lw, lh), None, *levels[k], levels[k + 1][0], target, np.int32(lw),
+             np.int32(lh), np.int32(shapes[k + 1][1]), np.int32(ch), np.int32(k == 0))
+    read_output(queue, out_buf, out)
+    return out[..., 0] if squeeze else out

@@ -1,0 +1,828 @@
+"""Render stage: texture-space diffusion of a face from a USD asset (paper, sections 3-4).
+
+Tasks, each cached on the content of its inputs (so a turntable computes the
+texture-space work once and re-runs only the camera's shading):
+
+    uvs -> texture maps -> albedo map -> irradiance -> diffusion -> shade -> output
+
+Units: texture-space radii and variances in mm (the stretch map turns scene units into
+mm with the stage's metersPerUnit); colours linear in the stage's working space
+(ACEScg, OCIO ``lin_ap1_scene``) until the display PNG.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError, SkinpipeError
+from ..profile.fit import FitResult
+from .blur_switch import direct_limits
+from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
+from .lighting import (
+    DEFAULT_RHO_S,
+    DEFAULT_ROUGHNESS,
+    IrradianceResult,
+    filter_interleaved,
+    irradiance_texture,
+    light_direction,
+    specular_albedo,
+    torrance_sparrow,
+)
+from .opencl import LEDGER, KernelLedger, device_choice, set_device
+from .push_pull import push_pull
+from .raytrace import RayScene
+from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
+from .texture_maps import TextureMaps, rasterize, vertex_normals
+from .unwrap import triangulate, unwrap
+
+AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
+BLURS = ("recursive", "gather")
+SHADOW_SAMPLING = ("interleaved", "full")
+MERGE_RELATIVE = 1e-3
+"""Variances closer than this (relative) share one blur."""
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Everything a render depends on besides the stage."""
+
+    resolution: tuple[int, int] = (1024, 1024)
+    texture_size: int = 1024
+    aovs: tuple[str, ...] = AOVS
+    light_samples: int = 16
+    shadow_sampling: str = "interleaved"
+    """'interleaved': each texel traces a quarter of the light samples and borrows the
+    rest from its 3 x 3 neighbours; 'full': every texel traces all of them."""
+    roughness: float = DEFAULT_ROUGHNESS
+    rho_s: float = DEFAULT_RHO_S
+    albedo_split: float = 0.5
+    """Exponent of the albedo applied before scattering (0.5: sqrt before and after)."""
+    variance_grid: int = 12
+    """0: every region's own variances (merged where equal); N > 0: all regions
+    re-expressed on N shared variances (fewer blurs; the error is reported)."""
+    scattering: bool = True
+    blur: str = "recursive"
+    """'recursive': Deriche IIR on a pyramid (cost independent of width); 'gather': the
+    first per-tap kernel (cost grows with width), kept to compare against."""
+    single_profile: str | None = None
+    """None: each region its own profile; 'mean' or a region name: one for the face."""
+    camera: str | None = None
+    write_uvs: bool = True
+    seed: int = 0
+    device: str | None = None
+    """OpenCL device (:data:`~.opencl.DEVICE_HELP`); None: ``$SKINPIPE_OPENCL_DEVICE``,
+    else auto."""
+
+    def __post_init__(self) -> None:
+        w, h = self.resolution
+        if not (1 <= w <= 16384 and 1 <= h <= 16384):
+            raise InputError(f"resolution must be 1-16384 on each side, got {w}x{h}")
+        bad = [a for a in self.aovs if a not in AOVS]
+        if bad or not self.aovs:
+            raise InputError(f"unknown AOV(s) {bad}; choose from {', '.join(AOVS)}")
+        if not 1 <= self.light_samples <= 1024:
+            raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
+        if not 0.0 <= self.albedo_split <= 1.0:
+            raise InputError(f"albedo split must be in [0, 1], got {self.albedo_split}")
+        if self.shadow_sampling not in SHADOW_SAMPLING:
+            raise InputError(f"unknown shadow sampling {self.shadow_sampling!r}; choose from "
+                             f"{', '.join(SHADOW_SAMPLING)}")
+        if self.blur not in BLURS:
+            raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
+        if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
+            raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")
+
+
+# ------------------------------------------------------------------------ profiles
+
+
+@dataclass(frozen=True)
+class DiffusionTerms:
+    """Variances (K,) mm^2 shared by all regions and each region's weights (R, K, 3),
+    with the eq. 2c error of re-expressing each region's fit on them."""
+
+    variances_mm2: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    error: dict[str, float]
+    notes: list[str]
+
+
+def _normalised(fit: FitResult) -> NDArray[np.float64]:
+    s = fit.weights.sum(axis=0, keepdims=True)
+    return fit.weights / np.where(s > 0, s, 1.0)
+
+
+def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0,
+                    single: str | None = None, floor_mm2: float = 0.0) -> DiffusionTerms:
+    """The blur schedule for a set of region fits.
+
+    ``grid`` = 0 keeps every fit's own variances (equal ones merged). ``grid`` = N
+    re-expresses each region and channel on the smallest variance plus N - 1 log-spaced
+    ones from ``floor_mm2`` (narrower blurs are sub-texel and cost nothing) to the
+    largest, by
+    non-negative least squares on the r-weighted profile (the fit's eq. 2c objective),
+    then renormalises the weights to sum to 1. ``single`` = 'mean' or a region name
+    gives every region the same profile (the paper's comparison with one profile).
+    """
+    from scipy.optimize import nnls
+
+    from ..profile.models import fit_error_eq2c, sum_of_gaussians
+
+    fits = list(fits)
+    notes: list[str] = []
+    if single is not None:
+        names = [f.name for f in fits]
+        if single != "mean" and single not in names:
+            raise InputError(f"single profile {single!r}: not one of {names} or 'mean'")
+    all_v = np.concatenate([f.variances_mm2 for f in fits])
+    if grid > 0:
+        lo, hi = float(all_v.min()), float(all_v.max())
+        start = min(max(lo, floor_mm2), hi)
+        variances = np.unique(np.concatenate([[lo], np.geomspace(start, hi, grid - 1)])) \
+            if grid > 1 and hi > lo * 1.0001 else np.array([lo])
+    else:
+        variances = np.sort(all_v)
+        keep = np.concatenate([[True], np.diff(variances) > MERGE_RELATIVE * variances[1:]])
+        merged = int((~keep).sum())
+        if merged:
+            notes.append(f"{merged} equal variance(s) merged into one blur")
+        variances = variances[keep]
+    weights = np.zeros((len(fits), variances.size, 3))
+    error: dict[str, float] = {}
+    for r, fit in enumerate(fits):
+        w = _normalised(fit)
+        if grid > 0:
+            radius = np.linspace(0.0, 4.0 * math.sqrt(variances.max()), 400)[1:]
+            basis = np.stack([sum_of_gaussians([v], [[1, 1, 1]], radius)[:, 0]
+                              for v in variances], axis=1)
+            target = sum_of_gaussians(fit.variances_mm2, w, radius)
+            sw = np.sqrt(radius)[:, None]
+            for c in range(3):
+                a, _ = nnls(basis * sw, target[:, c] * sw[:, 0])
+                weights[r, :, c] = a / max(a.sum(), 1e-30)
+            approx = sum_of_gaussians(variances, weights[r], radius)
+            error[fit.name] = float(fit_error_eq2c(radius, approx, target).max())
+        else:
+            for v, row in zip(fit.variances_mm2, w, strict=True):
+                k = int(np.argmin(np.abs(variances - v)))
+                weights[r, k] += row
+            error[fit.name] = 0.0
+    if single is not None:
+        shared = weights.mean(axis=0) if single == "mean" else \
+            weights[[f.name for f in fits].index(single)]
+        weights[:] = shared
+        notes.append(f"one profile ({single}) for every region")
+    return DiffusionTerms(variances, weights, error, notes)
+
+
+# ------------------------------------------------------------------------ helpers
+
+
+def interleaved_visibility(res: IrradianceResult, maps: TextureMaps
+                           ) -> dict[str, NDArray[np.float32]]:
+    """Each light's per-texel visibility from interleaved shadow rays, reconstructed in
+    texture space (``filter_interleaved``) and returned per covered texel."""
+    covered = maps.triangle >= 0
+    paths = list(res.visibility)
+    vis = np.zeros((len(paths), *covered.shape), np.float32)
+    traced = np.zeros_like(vis)
+    for i, p in enumerate(paths):
+        vis[i][covered] = res.visibility[p]
+        traced[i][covered] = res.unshadowed[p].sum(axis=1) > 0
+    filtered = filter_interleaved(vis, traced, maps.normal)
+    return {p: filtered[i][covered] for i, p in enumerate(paths)}
+
+
+def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
+    """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
+    size_v, size_u = texture.shape[:2]
+    x = np.clip(np.asarray(uv[:, 0], np.float32) * size_u - 0.5, 0, size_u - 1)
+    y = np.clip(np.asarray(uv[:, 1], np.float32) * size_v - 0.5, 0, size_v - 1)
+    x0 = np.minimum(x.astype(np.int64), size_u - 2 if size_u > 1 else 0)
+    y0 = np.minimum(y.astype(np.int64), size_v - 2 if size_v > 1 else 0)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    dx, dy = int(size_u > 1), (size_u if size_v > 1 else 0)
+    flat = np.asarray(texture, np.float32).reshape(size_v * size_u, -1)
+    i = y0 * size_u + x0
+    top = flat[i] * (1 - fx) + flat[i + dx] * fx
+    bottom = flat[i + dy] * (1 - fx) + flat[i + dy + dx] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def uv_triangles(mesh: SceneMesh) -> NDArray[np.int32] | None:
+    """UV indices per triangle corner (the same fan triangulation as the mesh)."""
+    if mesh.uv is None:
+        return None
+    if mesh.uv_indices is None:
+        return triangulate(mesh.mesh)
+    # triangulate the face-vertex positions exactly as the vertex indices are
+    fv = replace(mesh.mesh, face_indices=np.arange(mesh.mesh.face_indices.size, dtype=np.int32))
+    return mesh.uv_indices[triangulate(fv)]
+
+
+def usable_uvs(mesh: SceneMesh) -> str | None:
+    """None if the mesh's ``st`` can carry texture-space diffusion, else why not."""
+    if mesh.uv is None:
+        return "no st primvar"
+    uv = mesh.uv
+    if not np.all(np.isfinite(uv)):
+        return "non-finite st values"
+    if uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
+        return "st outside [0, 1]"
+    if mesh.uv_indices is not None and (mesh.uv_indices.size != mesh.mesh.face_indices.size or
+                                        mesh.uv_indices.min() < 0 or
+                                        mesh.uv_indices.max() >= uv.shape[0]):
+        return "st indices do not match the faces"
+    if mesh.uv_indices is None and uv.shape[0] != mesh.mesh.points.shape[0]:
+        return "per-vertex st has the wrong length"
+    tq = uv[uv_triangles(mesh)]  # type: ignore[index]
+    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    if np.count_nonzero(area > 0) < 0.95 * area.size:
+        return "more than 5% of the faces have zero UV area"
+    if area.sum() > 1.05:
+        return "UV triangles overlap (total UV area > 1)"
+    return None
+
+
+def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: NDArray[Any]
+                   ) -> str | None:
+    """Author faceVarying indexed ``st`` in the layer that holds the mesh's points and save
+    it atomically; returns the layer path, or None when it cannot be done safely."""
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    from ..usd.io import export_layer_atomic
+
+    if mesh.points_layer is None:
+        return None
+    layer = Sdf.Layer.FindOrOpen(mesh.points_layer)
+    if layer is None or not layer.realPath or layer.anonymous:
+        return None
+    layer_stage = Usd.Stage.Open(layer)
+    prim = layer_stage.GetPrimAtPath(mesh.path)
+    if not prim:
+        return None
+    pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
+    pv.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
+    pv.SetIndices(Vt.IntArray.FromNumpy(np.asarray(uv_indices, np.int32)))
+    export_layer_atomic(layer, layer.realPath)
+    return str(layer.realPath)
+
+
+def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
+                          progress: Callable[[str], None] | None = None
+                          ) -> tuple[NDArray[np.float64], NDArray[np.int32], dict[str, Any]]:
+    """xatlas UVs for a mesh whose ``st`` is unusable (``reason``), rounded to float32 as
+    USD stores them, and written back into the mesh's layer when ``write`` (triangle
+    meshes only: a polygon split across charts has no faceVarying form)."""
+    if progress:
+        progress(f"unwrap {mesh.path} with xatlas ({reason})")
+    layout = unwrap(mesh.mesh)
+    uv = layout.uv.astype(np.float32).astype(np.float64)
+    measures: dict[str, Any] = {"charts": layout.charts, "utilization": layout.utilization,
+                                "seconds": layout.seconds, "reason": reason}
+    if write and np.all(mesh.mesh.face_counts == 3):
+        measures["written_to"] = write_uvs_back(stage, mesh, uv, layout.uv_indices)
+    return uv, layout.uv_indices.reshape(-1, 3), measures
+
+
+class SkinUVs(NamedTuple):
+    stage: Any
+    scene: SceneData
+    mesh: SceneMesh
+    uv: NDArray[np.float64]
+    uv_triangles: NDArray[np.int32]
+    note: str  # "kept" or "unwrapped (why)"
+
+
+def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) -> SkinUVs:
+    """The first skin mesh of ``asset`` with usable UVs: xatlas and written back into the
+    asset's layer when it has none."""
+    from ..usd.io import open_stage_guarded
+    from .scene import SceneDelegate
+
+    stage = open_stage_guarded(asset)
+    delegate = SceneDelegate(stage)
+    try:
+        scene = delegate.sync()
+    finally:
+        delegate.close()
+    if not scene.skin:
+        raise InputError("no skin mesh (SkinProfileRegionsAPI)", asset)
+    mesh = scene.skin[0]
+    why = usable_uvs(mesh)
+    if why is None:
+        uv, uv_tris = mesh.uv, uv_triangles(mesh)
+        assert uv is not None and uv_tris is not None
+        return SkinUVs(stage, scene, mesh, uv, uv_tris, "kept")
+    uv, uv_tris, measures = unwrap_and_write_back(stage, mesh, why, True, progress)
+    if measures.get("written_to") is None:
+        raise InputError(f"cannot write UVs into the layer holding {mesh.path}", asset)
+    return SkinUVs(stage, scene, mesh, uv, uv_tris, f"unwrapped ({why})")
+
+
+def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:
+    """The albedo in texture space (S, S, 3), linear in the working space, and what it
+    came from."""
+    from ..imageio import convert_colorspace, read_image
+
+    albedo = mesh.albedo
+    if albedo.texture is None:
+        return np.broadcast_to(np.asarray(albedo.constant, np.float32),
+                               (size, size, 3)).copy(), "constant diffuseColor"
+    img = read_image(albedo.texture)
+    cs = albedo.colorspace or (working if img.is_float else "srgb_tx")
+    px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
+    # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
+    bottom_up = np.asarray(px[::-1, :, :3], dtype=np.float32)
+    return np.clip(resample_bilinear(bottom_up, size), 0.0, None), f"{albedo.texture} ({cs})"
+
+
+def _axis_weights(n_in: int, n_out: int) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """Left neighbour and weight of the right one for each output texel centre."""
+    x = np.clip((np.arange(n_out) + 0.5) / n_out * n_in - 0.5, 0, n_in - 1)
+    x0 = np.minimum(x.astype(np.int64), max(n_in - 2, 0))
+    return x0, (x - x0).astype(np.float32)
+
+
+def resample_bilinear(image: NDArray[Any], size: int) -> NDArray[np.float32]:
+    """``image`` (H, W, C) at size x size texel centres, bilinear: the same values as
+    ``bilinear`` at those centres, one axis at a time."""
+    img = np.asarray(image, np.float32)
+    h, w = img.shape[:2]
+    if (h, w) == (size, size):
+        return img.copy()
+    x0, fx = _axis_weights(w, size)
+    y0, fy = _axis_weights(h, size)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    rows = img[:, x0] * (1 - fx)[None, :, None] + img[:, x1] * fx[None, :, None]
+    return rows[y0] * (1 - fy)[:, None, None] + rows[y1] * fy[:, None, None]
+
+
+# ------------------------------------------------------------------------ renderer
+
+
+@dataclass
+class TaskLog:
+    seconds: dict[str, float] = field(default_factory=dict)
+    cached: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    measures: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class SkinTextures:
+    """Texture-space results of one skin mesh."""
+
+    mesh: SceneMesh
+    uv: NDArray[np.float64]
+    uv_tris: NDArray[np.int32]
+    tris: NDArray[np.int32]
+    maps: TextureMaps
+    albedo: NDArray[np.float32]
+    irradiance: NDArray[np.float32] | None = None
+    irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
+    visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
+    radiance: NDArray[np.float32] | None = None
+    keys: dict[str, str] = field(default_factory=dict)
+    """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
+    instead of hashing the maps themselves."""
+
+
+class Renderer:
+    """Renders frames of a stage; texture-space work is cached across frames and edits."""
+
+    def __init__(self, stage: Any, options: RenderOptions,
+                 progress: Callable[[str], None] | None = None) -> None:
+        self.stage = stage
+        self.options = options
+        if options.device:
+            set_device(options.device)
+        self.delegate = SceneDelegate(stage, options.camera)
+        self.progress = progress or (lambda _msg: None)
+        self._cache: dict[str, Any] = {}
+
+    def close(self) -> None:
+        self.delegate.close()
+
+    def clear_cache(self) -> None:
+        """Drop every cached task result (texture-space maps, irradiance, diffusion, and
+        the diffusion layout's device buffers): the next frame recomputes them."""
+        self._cache.clear()
+
+    def _cached(self, log: TaskLog, task: str, key: str, compute: Callable[[], Any]) -> Any:
+        full = f"{task}:{key}"
+        if full in self._cache:
+            log.cached.append(task)
+            return self._cache[full]
+        self.progress(task)
+        start = time.perf_counter()
+        value = compute()
+        log.seconds[task] = log.seconds.get(task, 0.0) + time.perf_counter() - start
+        for k in [k for k in self._cache if k.startswith(f"{task}:")]:
+            del self._cache[k]  # one generation per task: memory stays bounded
+        self._cache[full] = value
+        return value
+
+    # ---- texture-space tasks
+    def _uvs(self, log: TaskLog, mesh: SceneMesh) -> tuple[NDArray[Any], NDArray[np.int32]]:
+        why = usable_uvs(mesh)
+        if why is None:
+            return mesh.uv, uv_triangles(mesh)  # type: ignore[return-value]
+
+        def compute() -> tuple[NDArray[Any], NDArray[np.int32]]:
+            uv, uv_tris, measures = unwrap_and_write_back(
+                self.stage, mesh, why, self.options.write_uvs, self.progress)
+            log.measures["unwrap"] = measures
+            return uv, uv_tris
+
+        return self._cached(log, "unwrap", mesh.geometry_key(), compute)
+
+    def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
+        opts = self.options
+        uv, uv_tris = self._uvs(log, mesh)
+        tris = triangulate(mesh.mesh)
+        key = content_hash(mesh.mesh.points, tris, uv, uv_tris, mesh.region_weights
+                           if mesh.region_weights is not None else 0, opts.texture_size,
+                           scene.meters_per_unit)
+        maps = self._cached(log, "texture_maps", key, lambda: rasterize(
+            mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.meters_per_unit,
+            mesh.region_weights))
+        albedo_key = content_hash(key, mesh.albedo, scene.working_colorspace)
+        albedo, source = self._cached(log, "albedo", albedo_key, lambda: albedo_map(
+            mesh, opts.texture_size, scene.working_colorspace))
+        log.measures["albedo_source"] = source
+        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo,
+                            keys={"maps": key, "albedo": albedo_key})
+
+    def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
+                    rays: RayScene, dome_textures: dict[str, NDArray[np.float32]]) -> None:
+        opts = self.options
+        maps = tex.maps
+        covered = maps.triangle >= 0
+        key = content_hash(tex.mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
+                           [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness,
+                           opts.rho_s, opts.seed, opts.shadow_sampling)
+
+        def compute() -> Any:
+            texel_y, texel_x = np.nonzero(covered)
+            interleave = (texel_y % 2) * 2 + texel_x % 2 \
+                if opts.shadow_sampling == "interleaved" else None
+            res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
+                                     rays, opts.light_samples, opts.roughness, opts.rho_s,
+                                     opts.seed, dome_textures, interleave)
+            visibility, entering = res.visibility, res.entering
+            if interleave is not None and visibility:
+                visibility = interleaved_visibility(res, maps)
+                entering = res.entering_with(visibility)
+            e = np.zeros((*covered.shape, 3), np.float32)
+            e[covered] = entering
+            # one push-pull fills the irradiance and the visibility the specular lobe
+            # looks up (dome lights light it unshadowed: theirs is not needed)
+            kinds = {lt.path: lt.kind for lt in scene.lights}
+            spec = [p for p in visibility if kinds.get(p) != "dome"]
+            planes = np.zeros((*covered.shape, 3 + len(spec)), np.float32)
+            planes[..., :3] = e
+            for i, path in enumerate(spec):
+                planes[..., 3 + i][covered] = visibility[path]
+            filled = push_pull(planes, maps.coverage)
+            vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
+            # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
+            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds)
+
+        e, filled, vis, (skipped, rays_cast, seconds) = self._cached(log, "irradiance", key,
+                                                                      compute)
+        tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
+        tex.keys["irradiance"] = key
+        log.skipped += [s for s in skipped if s not in log.skipped]
+        log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
+                                      "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6}
+
+    def _diffusion(self, log: TaskLog, tex: SkinTextures) -> None:
+        opts = self.options
+        maps = tex.maps
+        assert tex.irradiance is not None
+        texel_mm = float(np.median(np.sqrt(maps.mm_per_texel_u * maps.mm_per_texel_v)[
+            maps.triangle >= 0]))
+        # blurs narrower than half a texel change nothing a texture can hold
+        terms = diffusion_terms(tex.mesh.fits, opts.variance_grid, opts.single_profile,
+                                floor_mm2=(0.5 * texel_mm) ** 2)
+        key = content_hash(tex.keys["irradiance"], tex.keys["albedo"], terms.variances_mm2,
+                           terms.weights, opts.albedo_split, opts.scattering, opts.blur)
+
+        recursive = opts.scattering and opts.blur == "recursive"
+
+        def layout() -> tuple[DiffusionLayout | None, NDArray[np.float32]]:
+            # depends on the UV layout only: made once for every frame and light
+            return (DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                                    maps.region_weights) if recursive else None,
+                    (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel())
+
+        if f"diffusion:{key}" not in self._cache:
+            # its own task (not timed inside the diffusion's): a frame's diffusion reuses it
+            prepared, area = self._cached(log, "diffusion_layout",
+                                          content_hash(tex.keys["maps"], recursive), layout)
+
+        def compute() -> Any:
+            a = opts.albedo_split
+            # sqrt before and after (the default) without two general powers
+            before = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, a)
+            pre = tex.irradiance * before
+            cov = maps.coverage
+            # the blur moves flux, it must not create or lose it (chart borders included)
+            flux_in = float((area @ pre.reshape(-1, 3)).sum())
+            skipped: list[str] = []
+            if opts.scattering:
+                if prepared is not None:
+                    out, stats = diffuse_prepared(prepared, pre, terms.variances_mm2,
+                                                  terms.weights)
+                else:
+                    out, stats = diffuse_gather(pre, maps.mm_per_texel_u, maps.mm_per_texel_v,
+                                                cov, terms.variances_mm2, terms.weights,
+                                                maps.region_weights)
+                del pre  # texture-sized arrays go as soon as they are used (peak memory)
+                skipped, passes = stats.skipped, stats.passes
+                work = {"pyramid_levels": stats.levels,
+                        "full_resolution_blurs": stats.full_blurs}
+            else:
+                out, passes, work = pre, 0, {}
+                skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
+            flux_out = float((area @ out.reshape(-1, 3)).sum())
+            energy = flux_out / flux_in if flux_in > 0 else 1.0
+            if a != 0.5:
+                before = np.power(tex.albedo, 1.0 - a)
+            out *= before  # out is this task's own array: in place
+            del before
+            out *= np.float32(1.0 / math.pi)
+            radiance = push_pull(out, cov)
+            return radiance, skipped, passes, energy, work
+
+        radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)
+        tex.radiance = radiance
+        log.skipped += [f"{tex.mesh.path}: {s}" for s in terms.notes + skipped]
+        log.measures["diffusion"] = {
+            "variances_mm2": terms.variances_mm2.tolist(),
+            "blur": opts.blur,
+            "blur_passes": passes,
+            **work,
+            "energy_ratio": energy,
+            "grid_error_eq2c": terms.error,
+            "mm_per_texel_median": texel_mm,
+        }
+
+    # ---- per frame
+    def render(self, time_code: Any = None) -> tuple[dict[str, NDArray[np.float32]], TaskLog]:
+        """One frame: AOV images (H, W, 4 for beauty with alpha; H, W, 3 otherwise)."""
+        from ..imageio import read_image
+
+        log = TaskLog()
+        t0 = time.perf_counter()
+        scene = self.delegate.sync(time_code)
+        log.seconds["sync"] = time.perf_counter() - t0
+        if not scene.meshes:
+            raise InputError("the stage has no visible mesh to render")
+        if not scene.skin:
+            raise InputError("no mesh with skin profiles (SkinProfileRegionsAPI + skin:profiles)"
+                             " on the stage")
+        if not scene.lights:
+            raise InputError("the stage has no UsdLux light (DistantLight, SphereLight, "
+                             "RectLight or DomeLight): nothing would be lit")
+        if scene.camera is None:
+            raise InputError("the stage has no UsdGeomCamera (add one, or pass --camera)")
+        rays = self._cached(log, "bvh", scene_geometry_key(scene), lambda: RayScene(
+            [(m.mesh.points, triangulate(m.mesh)) for m in scene.meshes]))
+        domes = {}
+        for light in scene.lights:
+            if light.kind == "dome" and light.texture:
+                domes[light.path] = self._cached(log, f"dome:{light.path}", str(light.texture),
+                                                 lambda lt=light: read_image(lt.texture).pixels)
+        skins = []
+        for mesh in scene.skin:
+            tex = self._textures(log, scene, mesh)
+            self._irradiance(log, scene, tex, rays, domes)
+            self._diffusion(log, tex)
+            skins.append(tex)
+        t0 = time.perf_counter()
+        images = self._shade(scene, skins, rays, log)
+        log.seconds["shade"] = time.perf_counter() - t0
+        log.measures["rays"] = {"counts": rays.stats.rays,
+                                "mrays_per_s": rays.stats.mrays_per_s()}
+        return images, log
+
+    def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
+               log: TaskLog) -> dict[str, NDArray[np.float32]]:
+        opts = self.options
+        width, height = opts.resolution
+        cam = scene.camera
+        assert cam is not None
+        origins, dirs = cam.rays(width, height)
+        prim, bu, bv, dist = rays.intersect(origins, dirs)
+        n_pix = width * height
+        out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
+        alpha = (prim >= 0).astype(np.float32)
+        mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
+        owner = np.where(prim[:, None] >= 0, rays.owner[np.maximum(prim, 0)], -1)
+        for m_i, mesh in enumerate(scene.meshes):
+            sel = np.flatnonzero(owner[:, 0] == m_i)
+            if sel.size == 0:
+                continue
+            tri_idx = owner[sel, 1]
+            tris = triangulate(mesh.mesh)
+            b = np.stack([1 - bu[sel] - bv[sel], bu[sel], bv[sel]], axis=1)[:, :, None]
+            pos = origins[sel] + dirs[sel] * dist[sel, None]
+            normals = self._cached(log, f"normals:{mesh.path}", mesh.geometry_key(),
+                                   lambda m=mesh, t=tris: vertex_normals(m.mesh.points, t))
+            n = (normals[tris[tri_idx]] * b).sum(axis=1)
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            view = -dirs[sel]
+            # two-sided: a normal facing away from the camera is flipped
+            flip = np.einsum("ij,ij->i", n, view) < 0
+            n[flip] *= -1
+            tex = next((s for s in skins if mesh_index[s.mesh.path] == m_i), None)
+            if tex is None:
+                self._shade_plain(scene, mesh, pos, n, sel, rays, out)
+                continue
+            uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
+            n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
+            leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
+            assert tex.radiance is not None and tex.irradiance_filled is not None
+            out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
+            out["albedo"][sel] = bilinear(tex.albedo, uv)
+            out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
+            if "specular" in opts.aovs or "beauty" in opts.aovs:
+                out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
+        out["beauty"] = out["diffuse"] + out["specular"]
+        images = {}
+        for a in opts.aovs:
+            img = out[a].reshape(height, width, 3)
+            if a == "beauty":
+                img = np.concatenate([img, alpha.reshape(height, width, 1)], axis=2)
+            images[a] = img
+        skipped_aovs = [a for a in AOVS if a not in opts.aovs]
+        if skipped_aovs:
+            log.skipped.append(f"AOVs not asked for: {', '.join(skipped_aovs)}")
+        return images
+
+    def _specular(self, scene: SceneData, tex: SkinTextures, pos: NDArray[Any],
+                  n: NDArray[Any], view: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
+        opts = self.options
+        spec = np.zeros((pos.shape[0], 3))
+        for light in scene.lights:
+            if light.path not in tex.visibility or light.kind == "dome":
+                continue
+            l_dir, e_perp = light_direction(light, pos)
+            h = l_dir + view
+            h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+            nl = np.einsum("ij,ij->i", n, l_dir)
+            f = torrance_sparrow(nl, np.einsum("ij,ij->i", n, view), np.einsum("ij,ij->i", n, h),
+                                 np.einsum("ij,ij->i", view, h), opts.roughness, opts.rho_s)
+            vis = bilinear(tex.visibility[light.path], uv)[:, 0]
+            spec += (f * np.maximum(nl, 0) * vis)[:, None] * e_perp
+        return spec.astype(np.float32)
+
+    def _shade_plain(self, scene: SceneData, mesh: SceneMesh, pos: NDArray[Any],
+                     n: NDArray[Any], sel: NDArray[Any], rays: RayScene,
+                     out: dict[str, NDArray[np.float32]]) -> None:
+        """Meshes without skin profiles: Lambertian in their constant colour, direct light
+        from each light's centre with one shadow ray (dome lights: unshadowed ambient)."""
+        albedo = np.asarray(mesh.albedo.constant, np.float32)
+        e = np.zeros((pos.shape[0], 3))
+        origins = pos + n * (1e-5 * rays.diagonal)
+        for light in scene.lights:
+            if light.kind == "dome":
+                e += light.radiance * math.pi * 0.5
+                continue
+            l_dir, e_perp = light_direction(light, pos)
+            nl = np.maximum(np.einsum("ij,ij->i", n, l_dir), 0)
+            far = np.full(pos.shape[0], np.inf) if light.kind == "distant" else \
+                np.linalg.norm(light.position - pos, axis=1) * (1 - 1e-4)
+            lit = nl > 0
+            blocked = np.zeros(pos.shape[0], bool)
+            blocked[lit] = rays.occluded(origins[lit], l_dir[lit], np.minimum(far[lit], 1e30))
+            e += (nl * ~blocked)[:, None] * e_perp
+        out["diffuse"][sel] = albedo * e / math.pi
+        out["albedo"][sel] = albedo
+        out["irradiance"][sel] = e
+
+
+def scene_geometry_key(scene: SceneData) -> str:
+    return content_hash(*[m.geometry_key() for m in scene.meshes])
+
+
+# ------------------------------------------------------------------------ outputs
+
+
+def display_image(beauty: NDArray[Any], working: str, config_source: str
+                  ) -> tuple[NDArray[np.float32], dict[str, str]]:
+    """Display-referred pixels through the config's default display and view."""
+    import PyOpenColorIO as OCIO
+
+    from ..imageio import check_colorspace, ocio_config
+
+    config = ocio_config(config_source)
+    src = check_colorspace(working, config_source)
+    display = config.getDefaultDisplay()
+    view = config.getDefaultView(display)
+    transform = OCIO.DisplayViewTransform(src=src, display=display, view=view)
+    proc = config.getProcessor(transform).getDefaultCPUProcessor()
+    rgb = np.ascontiguousarray(np.nan_to_num(beauty[..., :3], nan=0.0, posinf=1e4), np.float32)
+    rgb = rgb.copy()
+    proc.applyRGB(rgb.reshape(-1, 3))
+    return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
+
+
+def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32]],
+                  working: str, config_source: str) -> dict[str, Any]:
+    """OUT/<name>.exr (one layer per AOV, colour space in the header) and OUT/<name>.png."""
+    from ..imageio import write_exr, write_ldr
+
+    channels, names = [], []
+    for aov, img in images.items():
+        chans = ("R", "G", "B", "A") if img.shape[2] == 4 else ("R", "G", "B")
+        channels.append(img)
+        names += [c if aov == "beauty" else f"{aov}.{c}" for c in chans]
+    stack = np.concatenate(channels, axis=2)
+    if not np.all(np.isfinite(stack)):
+        raise SkinpipeError(f"{name}: the render produced non-finite pixels")
+    exr = write_exr(out_dir / f"{name}.exr", stack, working, channel_names=tuple(names))
+    result: dict[str, Any] = {"exr": str(exr), "colorspace": working}
+    if "beauty" in images:
+        disp, info = display_image(images["beauty"], working, config_source)
+        alpha = images["beauty"][..., 3:4]
+        png = write_ldr(out_dir / f"{name}.png", np.concatenate([disp, alpha], axis=2), 8,
+                        {"oiio:ColorSpace": f"{info['display']} / {info['view']}"})
+        result.update({"png": str(png), **info})
+    return result
+
+
+def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
+                 frames: tuple[int, int] | None = None, ocio: str = "ocio://default",
+                 name: str | None = None, progress: Callable[[str], None] | None = None,
+                 renderer: Renderer | None = None) -> dict[str, Any]:
+    """Render ``scene_path`` into ``out_dir`` (one EXR + PNG per frame) and write
+    ``render.json``: per frame, each task's seconds, what was cached or skipped, and the
+    error measures. A ``renderer`` passed in is used (and left open) so that its caches
+    serve later renders of the same stage."""
+    from ..fileio import atomic_write_json
+    from ..imageio import check_colorspace
+    from ..usd.io import open_stage_guarded
+
+    start = time.perf_counter()
+    scene_path = Path(scene_path)
+    check_colorspace("lin_ap1_scene", ocio)
+    name = name or scene_path.stem
+    own = renderer is None
+    if renderer is None:
+        renderer = Renderer(open_stage_guarded(scene_path), options, progress)
+    renderer.options = options
+    if options.device:
+        set_device(options.device)
+    ledger = LEDGER.copy()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    doc: dict[str, Any] = {"scene": str(scene_path), "options": _options_json(options),
+                           "ocio": ocio, "frames": []}
+    try:
+        times = [None] if frames is None else list(range(frames[0], frames[1] + 1))
+        for t in times:
+            t0 = time.perf_counter()
+            if progress and t is not None:
+                progress(f"frame {t}")
+            images, log = renderer.render(t)
+            if own and t == times[-1]:
+                renderer.clear_cache()  # no frame follows: its textures go before the writes
+            working = renderer.delegate.working_colorspace
+            frame_name = name if t is None else f"{name}.{t:04d}"
+            outputs = write_outputs(out_dir, frame_name, images, working, ocio)
+            doc["frames"].append({"frame": t, "seconds": time.perf_counter() - t0,
+                                  "tasks": log.seconds, "cached": log.cached,
+                                  "skipped": log.skipped, "measures": log.measures,
+                                  "outputs": outputs})
+    finally:
+        if own:
+            renderer.close()
+    doc["total_seconds"] = time.perf_counter() - start
+    doc["opencl"] = opencl_summary(ledger)
+    atomic_write_json(out_dir / "render.json", doc)
+    return doc
+
+
+def opencl_summary(before: KernelLedger) -> dict[str, Any]:
+    """The device, why the others were not used, the programs built and their seconds,
+    the kernels launched since ``before``, and the direct/recursive blur switch used."""
+    doc = {**device_choice().summary(), **LEDGER.since(before)}
+    if direct_limits.cache_info().currsize:  # only if a blur asked for it
+        doc["blur_switch"] = asdict(direct_limits())
+    return doc
+
+
+def _options_json(options: RenderOptions) -> dict[str, Any]:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(options).items()}

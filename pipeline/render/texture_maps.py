@@ -1,0 +1,286 @@
+"""Texture-space maps by UV rasterisation (OpenCL; a vectorised numpy reference).
+
+For every texel whose centre falls inside a triangle of the UV layout: the surface
+position, the interpolated normal, the region weights, a coverage flag, and the
+stretch, i.e. how many mm of surface one texel spans along u and along v (d'Eon et al.
+2007's stretch map, inverted): the diffusion blur uses it to be right in mm whatever
+the UV layout. Row j of a map holds v = (j + 0.5) / size; column i holds u.
+
+:func:`rasterize` runs on the OpenCL device (one work item per triangle claims the
+texels whose centres it covers, the highest triangle index winning a shared edge as
+the numpy version's last write does; one per texel interpolates the attributes);
+:func:`rasterize_reference` is the numpy version it is tested against.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from .opencl import Kernel, build, cl_context, device_cache, host_buffer, host_output, read_output
+
+CHUNK_CANDIDATES = 4_000_000
+
+
+@dataclass(frozen=True)
+class TextureMaps:
+    """Maps of one UV layout at ``size`` x ``size`` texels."""
+
+    size: int
+    triangle: NDArray[np.int32]  # (H, W), -1 where no triangle
+    position: NDArray[np.float32]  # (H, W, 3) scene units
+    normal: NDArray[np.float32]  # (H, W, 3) unit length where covered
+    mm_per_texel_u: NDArray[np.float32]  # (H, W)
+    mm_per_texel_v: NDArray[np.float32]  # (H, W)
+    region_weights: NDArray[np.float32] | None  # (H, W, R)
+
+    @property
+    def coverage(self) -> NDArray[np.float32]:
+        return (self.triangle >= 0).astype(np.float32)
+
+
+def vertex_normals(points: NDArray[np.float64], tris: NDArray[np.int32]) -> NDArray[np.float64]:
+    """Area-weighted vertex normals (zero-area neighbourhoods get +z)."""
+    p = points[tris]
+    face_n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 x area
+    n = np.zeros_like(points)
+    for k in range(3):
+        np.add.at(n, tris[:, k], face_n)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.where(length > 0, n / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+
+
+def _triangles(points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
+               uv_tris: NDArray[np.int32], size: int, meters_per_unit: float
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                          NDArray[np.float64], NDArray[np.float64]]:
+    """Checked input; per triangle its UV corners in texel coordinates (T, 3, 2), the
+    determinant of its UV edges, and mm of surface per texel step along u and v (the
+    stretch, J = dP / d texel); the vertex normals."""
+    if not 8 <= size <= 16384:
+        raise InputError(f"texture size must be 8-16384 texels, got {size}")
+    if not np.all(np.isfinite(uv)):
+        raise InputError("non-finite texture coordinates")
+    q = uv * size - 0.5  # texel centres at integer coordinates
+    tq = q[uv_tris]  # (T, 3, 2)
+    tp = points[tris]  # (T, 3, 3)
+    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.abs(det) > 1e-12
+    # stretch: world distance per texel step along u and v (J = dP/d(texel))
+    inv = np.zeros((tris.shape[0], 2, 2))
+    inv[ok, 0, 0], inv[ok, 0, 1] = e2[ok, 1] / det[ok], -e2[ok, 0] / det[ok]
+    inv[ok, 1, 0], inv[ok, 1, 1] = -e1[ok, 1] / det[ok], e1[ok, 0] / det[ok]
+    edges = np.stack([tp[:, 1] - tp[:, 0], tp[:, 2] - tp[:, 0]], axis=2)  # (T, 3, 2)
+    jac = edges @ inv  # (T, 3, 2): columns d P / d u_texel, d P / d v_texel
+    mm = meters_per_unit * 1000.0
+    tri_mm_u = np.linalg.norm(jac[:, :, 0], axis=1) * mm
+    tri_mm_v = np.linalg.norm(jac[:, :, 1], axis=1) * mm
+    return tq, det, tri_mm_u, tri_mm_v, vertex_normals(points, tris)
+
+
+def _attribute_table(points: NDArray[np.float64], normals: NDArray[np.float64],
+                     region_weights: NDArray[np.float64] | None) -> NDArray[np.float32]:
+    """Every per-vertex attribute in one (V, 6 + R) table: position, normal, regions."""
+    return np.concatenate([np.asarray(points, np.float32), normals.astype(np.float32)]
+                          + ([np.asarray(region_weights, np.float32)]
+                             if region_weights is not None else []), axis=1)
+
+
+def rasterize_reference(
+    points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
+    uv_tris: NDArray[np.int32], size: int, meters_per_unit: float,
+    region_weights: NDArray[np.float64] | None = None,
+) -> TextureMaps:
+    """:func:`rasterize` in vectorised numpy (one thread): the reference for its tests."""
+    tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
+                                                      meters_per_unit)
+    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
+    ok = np.abs(det) > 1e-12
+    triangle = np.full((size, size), -1, np.int32)
+    bary = np.zeros((size, size, 2), np.float32)  # b1, b2 (b0 = 1 - b1 - b2)
+    lo = np.ceil(tq.min(axis=1)).astype(np.int64).clip(0, size - 1)
+    hi = np.floor(tq.max(axis=1)).astype(np.int64).clip(0, size - 1)
+    wdt = np.where(ok, hi[:, 0] - lo[:, 0] + 1, 0).clip(0)
+    hgt = np.where(ok, hi[:, 1] - lo[:, 1] + 1, 0).clip(0)
+    counts = wdt * hgt
+    ids = np.flatnonzero(counts > 0)
+    csum = np.cumsum(counts[ids])
+    start = 0
+    while start < ids.size:
+        end = int(np.searchsorted(csum, (csum[start - 1] if start else 0) + CHUNK_CANDIDATES,
+                                  side="right"))
+        end = max(end, start + 1)
+        chunk = ids[start:end]
+        n = counts[chunk]
+        t = np.repeat(chunk, n)
+        k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        row, col = np.divmod(k, wdt[t])
+        x, y = lo[t, 0] + col, lo[t, 1] + row
+        dx, dy = x - tq[t, 0, 0], y - tq[t, 0, 1]
+        inv_det = 1.0 / det[t]
+        b1 = (dx * e2[t, 1] - dy * e2[t, 0]) * inv_det
+        b2 = (e1[t, 0] * dy - e1[t, 1] * dx) * inv_det
+        inside = np.flatnonzero((b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1 + 1e-9))
+        yi, xi = y[inside], x[inside]
+        triangle[yi, xi] = t[inside]
+        bary[yi, xi, 0] = b1[inside]
+        bary[yi, xi, 1] = b2[inside]
+        start = end
+    covered = triangle >= 0
+    tri_c = triangle[covered]
+    corner = tris[tri_c]  # (N, 3) vertex indices
+    b12 = bary[covered]
+    w0 = 1 - b12[:, 0] - b12[:, 1]
+    table = _attribute_table(points, normals, region_weights)  # three gathers of rows
+    attrs = table[corner[:, 0]] * w0[:, None]
+    attrs += table[corner[:, 1]] * b12[:, :1]
+    attrs += table[corner[:, 2]] * b12[:, 1:]
+    position = np.zeros((size, size, 3), np.float32)
+    position[covered] = attrs[:, :3]
+    normal = np.zeros((size, size, 3), np.float32)
+    nrm = attrs[:, 3:6]
+    normal[covered] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    mm_u = np.zeros((size, size), np.float32)
+    mm_v = np.zeros((size, size), np.float32)
+    mm_u[covered], mm_v[covered] = tri_mm_u[tri_c], tri_mm_v[tri_c]
+    regions = None
+    if region_weights is not None:
+        regions = np.zeros((size, size, region_weights.shape[1]), np.float32)
+        regions[covered] = attrs[:, 6:]
+    return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions)
+
+
+_KERNEL = r"""
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+// the numpy reference's arithmetic, in the same order: no fused multiply-adds
+#define CORNERS(t) \
+    const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
+    const double e1x = tq[6 * (t) + 2] - ax, e1y = tq[6 * (t) + 3] - ay; \
+    const double e2x = tq[6 * (t) + 4] - ax, e2y = tq[6 * (t) + 5] - ay;
+
+// One triangle: every texel centre of its bounding box (clipped to the texture) that
+// its barycentrics put inside, with 1e-9 of slack, takes the triangle's index unless
+// a higher one already has it.
+__kernel void claim_texels(__global const double *tq, __global const double *det,
+                           __global int *triangle, const int size, const int n_tris)
+{
+    const int t = get_global_id(0);
+    if (t >= n_tris) return;
+    const double d = det[t];
+    if (!(fabs(d) > 1e-12)) return;
+    CORNERS(t)
+    const double bx = ax + e1x, by = ay + e1y, cx = ax + e2x, cy = ay + e2y;
+    const double top = size - 1;
+    const int x0 = (int)ceil(clamp(fmin(ax, fmin(bx, cx)), 0.0, top));
+    const int x1 = (int)floor(clamp(fmax(ax, fmax(bx, cx)), 0.0, top));
+    const int y0 = (int)ceil(clamp(fmin(ay, fmin(by, cy)), 0.0, top));
+    const int y1 = (int)floor(clamp(fmax(ay, fmax(by, cy)), 0.0, top));
+    const double inv = 1.0 / d;
+    for (int y = y0; y <= y1; ++y) {
+        const double dy = (double)y - ay;
+        for (int x = x0; x <= x1; ++x) {
+            const double dx = (double)x - ax;
+            const double b1 = (dx * e2y - dy * e2x) * inv;
+            const double b2 = (e1x * dy - e1y * dx) * inv;
+            if (b1 >= -1e-9 && b2 >= -1e-9 && b1 + b2 <= 1.0 + 1e-9)
+                atomic_max(triangle + (size_t)y * size + x, t);
+        }
+    }
+}
+
+// One texel: its triangle's barycentrics at the texel centre (float32, as stored by the
+// reference) and the interpolated attributes; zero where no triangle covers it.
+__kernel void texel_attributes(__global const int *triangle, __global const double *tq,
+                               __global const double *det, __global const int *corners,
+                               __global const float *table, __global const float *tri_mm,
+                               __global float *position, __global float *normal,
+                               __global float *mm_u, __global float *mm_v,
+                               __global float *regions, const int size, const int n_regions)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= size || y >= size) return;
+    const size_t i = (size_t)y * size + x;
+    const int t = triangle[i];
+    const int channels = 6 + n_regions;
+    if (t < 0) {
+        for (int c = 0; c < 3; ++c) { position[3 * i + c] = 0.0f; normal[3 * i + c] = 0.0f; }
+        for (int r = 0; r < n_regions; ++r) regions[i * n_regions + r] = 0.0f;
+        mm_u[i] = 0.0f; mm_v[i] = 0.0f;
+        return;
+    }
+    CORNERS(t)
+    const double inv = 1.0 / det[t];
+    const double dx = (double)x - ax, dy = (double)y - ay;
+    const float b1 = (float)((dx * e2y - dy * e2x) * inv);
+    const float b2 = (float)((e1x * dy - e1y * dx) * inv);
+    const float w0 = 1.0f - b1 - b2;
+    __global const float *p0 = table + (size_t)corners[3 * t] * channels;
+    __global const float *p1 = table + (size_t)corners[3 * t + 1] * channels;
+    __global const float *p2 = table + (size_t)corners[3 * t + 2] * channels;
+    float n[3];
+    for (int c = 0; c < 3; ++c) {
+        position[3 * i + c] = p0[c] * w0 + p1[c] * b1 + p2[c] * b2;
+        n[c] = p0[3 + c] * w0 + p1[3 + c] * b1 + p2[3 + c] * b2;
+    }
+    const float len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    const float scale = 1.0f / (len > 1e-12f ? len : 1e-12f);
+    for (int c = 0; c < 3; ++c) normal[3 * i + c] = n[c] * scale;
+    for (int r = 0; r < n_regions; ++r)
+        regions[i * n_regions + r] = p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2;
+    mm_u[i] = tri_mm[2 * t]; mm_v[i] = tri_mm[2 * t + 1];
+}
+"""
+
+
+@device_cache()
+def _kernels() -> tuple[Any, Any]:
+
+    program = build(_KERNEL)
+    return Kernel(program, "claim_texels"), Kernel(program, "texel_attributes")
+
+
+def rasterize(
+    points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
+    uv_tris: NDArray[np.int32], size: int, meters_per_unit: float,
+    region_weights: NDArray[np.float64] | None = None,
+) -> TextureMaps:
+    """Rasterise triangles (vertex indices ``tris``, UV indices ``uv_tris``) at ``size``
+    on the OpenCL device: the maps of :func:`rasterize_reference` (the same float64
+    coverage test and float32 interpolation; normals within float32 rounding)."""
+    tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
+                                                      meters_per_unit)
+    _, queue = cl_context()
+    claim, attributes = _kernels()
+    n_tris = tq.shape[0]
+    n_regions = 0 if region_weights is None else int(np.shape(region_weights)[1])
+
+    # over the host arrays: each is kept (named) until the queue is done with it
+    tq_buf, det_buf = (host_buffer(np.asarray(a, np.float64)) for a in (tq, det))
+    corner_buf = host_buffer(np.asarray(tris, np.int32))
+    table_buf = host_buffer(_attribute_table(points, normals, region_weights))
+    tri_mm_buf = host_buffer(np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32))
+    triangle = np.full((size, size), -1, np.int32)
+    tri_buf = host_output(triangle)
+    if n_tris:
+        claim(queue, (n_tris,), None, tq_buf, det_buf, tri_buf, np.int32(size),
+              np.int32(n_tris))
+    out = {"position": np.empty((size, size, 3), np.float32),
+           "normal": np.empty((size, size, 3), np.float32),
+           "mm_u": np.empty((size, size), np.float32), "mm_v": np.empty((size, size), np.float32),
+           "regions": np.empty((size, size, n_regions) if n_regions else 1, np.float32)}
+    bufs = {k: host_output(v) for k, v in out.items()}
+    attributes(queue, (size, size), None, tri_buf, tq_buf, det_buf, corner_buf, table_buf,
+               tri_mm_buf, bufs["position"],
+               bufs["normal"], bufs["mm_u"], bufs["mm_v"], bufs["regions"], np.int32(size),
+               np.int32(n_regions))
+    read_output(queue, tri_buf, triangle)
+    for k, v in out.items():
+        read_output(queue, bufs[k], v)
+    return TextureMaps(size, triangle, out["position"], out["normal"], out["mm_u"],
+                       out["mm_v"], out["regions"] if n_regions else None)

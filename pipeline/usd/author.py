@@ -1,0 +1,348 @@
+"""Author stage: fitted profiles + a face mesh -> a USD asset (AOUSD asset structure).
+
+```
+ASSET_DIR/asset.usda   defaultPrim /<Name> (kind component), metersPerUnit, upAxis,
+                       colour space; sublayers look.usda and geo.usdc
+ASSET_DIR/geo.usdc     the mesh, st, region primvars, GeomSubsets, SkinProfileRegionsAPI
+ASSET_DIR/look.usda    /<Name>/Looks: SkinDiffusionProfile prims, the Material
+```
+Every layer is exported to a temporary sibling, fsynced and renamed; input layers are
+only read.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from ..profile.fit import FitResult, MeasuredProfile
+from .io import export_layer_atomic
+from .mesh import MeshData
+from .schema import (
+    PROFILE_TYPE,
+    PROFILES_REL,
+    REGION_INDEX_PRIMVAR,
+    REGION_WEIGHTS_PRIMVAR,
+    REGIONS_API,
+    SUBSET_FAMILY,
+    WORKING_COLORSPACE,
+)
+
+DEFAULT_ALBEDO = (0.62, 0.42, 0.33)
+"""A mid skin tone in ACEScg, used for the preview material until a texture exists."""
+
+
+@dataclass(frozen=True)
+class RegionAssignment:
+    """Region ``names`` (index i = region i), a region index per face, optional soft
+    per-vertex weights (N, R) that sum to 1 per vertex."""
+
+    names: tuple[str, ...]
+    face_region: NDArray[np.int32]
+    vertex_weights: NDArray[np.float32] | None = None
+
+
+@dataclass(frozen=True)
+class AssetPaths:
+    asset: Path
+    geo: Path
+    look: Path
+    seconds: float
+
+
+# ------------------------------------------------------------------------------ regions
+
+
+def read_landmarks(path: str | Path) -> dict[str, NDArray[np.float64]]:
+    """Landmarks JSON: ``{"regions": {"forehead": [[x, y, z], ...], ...}}``, mesh units."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such landmarks file", path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        regions = doc["regions"]
+        out = {str(k): np.asarray(v, dtype=np.float64).reshape(-1, 3)
+               for k, v in regions.items()}
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise InputError(f"not a landmarks file ({{'regions': {{name: [[x, y, z], ...]}}}}): "
+                         f"{exc}", path) from exc
+    if not out or any(v.size == 0 or not np.isfinite(v).all() for v in out.values()):
+        raise InputError("every region needs at least one finite 3D point", path)
+    return out
+
+
+def assign_regions_from_landmarks(
+    mesh: MeshData, landmarks: dict[str, NDArray[np.float64]], blend_mm: float = 8.0,
+) -> RegionAssignment:
+    """Soft regions from landmark points: each vertex's weight for a region falls off
+    with its distance beyond the nearest region's, exp(-(d_r - d_min) / blend); each face
+    takes the region with the largest mean weight over its vertices."""
+    from scipy.spatial import cKDTree
+
+    names = tuple(landmarks)
+    blend = blend_mm / (mesh.meters_per_unit * 1000.0)
+    dist = np.stack([cKDTree(landmarks[n]).query(mesh.points)[0] for n in names], axis=1)
+    w = np.exp(-(dist - dist.min(axis=1, keepdims=True)) / max(blend, 1e-12))
+    w /= w.sum(axis=1, keepdims=True)
+    starts = np.concatenate([[0], np.cumsum(mesh.face_counts)[:-1]])
+    face_w = np.add.reduceat(w[mesh.face_indices], starts, axis=0)
+    return RegionAssignment(names, np.argmax(face_w, axis=1).astype(np.int32),
+                            w.astype(np.float32))
+
+
+# ----------------------------------------------------------------------------- authoring
+
+
+def _layer_stage(meters_per_unit: float, up_axis: str, default_prim: str,
+                 layer: Any = None) -> Any:
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(layer) if layer is not None else Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    UsdGeom.SetStageUpAxis(stage, up_axis)
+    stage.SetMetadata("defaultPrim", default_prim)
+    return stage
+
+
+def _f32(values: Any) -> list[float]:
+    return [float(np.float32(x)) for x in np.asarray(values, dtype=np.float64).reshape(-1)]
+
+
+def subsurface_radius_mm(fit: FitResult) -> NDArray[np.float64]:
+    """RMS exit radius of the profile per channel, sqrt(2 sum_i w_i v_i) mm (for a 2D
+    Gaussian E[r^2] = 2 v): the length the OpenPBR approximation is given."""
+    return np.sqrt(2.0 * (fit.weights * fit.variances_mm2[:, None]).sum(axis=0))
+
+
+def _author_profile(stage: Any, path: str, fit: FitResult,
+                    measured: MeasuredProfile | None) -> None:
+    from pxr import Gf, Sdf, Vt
+
+    prim = stage.DefinePrim(path, PROFILE_TYPE)
+    # Author every value, fallbacks included: without the plugin they would vanish.
+    prim.CreateAttribute("region", Sdf.ValueTypeNames.Token).Set(fit.name)
+    prim.CreateAttribute("variances", Sdf.ValueTypeNames.FloatArray).Set(
+        Vt.FloatArray(_f32(fit.variances_mm2)))
+    prim.CreateAttribute("weights", Sdf.ValueTypeNames.Color3fArray).Set(
+        Vt.Vec3fArray([Gf.Vec3f(*_f32(w)) for w in fit.weights]))
+    tr = np.ones(3) if fit.total_reflectance is None else fit.total_reflectance
+    prim.CreateAttribute("totalReflectance", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*_f32(tr)))
+    prim.CreateAttribute("lengthUnit", Sdf.ValueTypeNames.Token, variability=Sdf.VariabilityUniform
+                         ).Set("mm")
+    prim.CreateAttribute("fit:error", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(*_f32(fit.error)))
+    prim.CreateAttribute("fit:solver", Sdf.ValueTypeNames.String).Set(fit.solver)
+    prim.CreateAttribute("fit:status", Sdf.ValueTypeNames.String).Set(fit.status)
+    prim.CreateAttribute("fit:seconds", Sdf.ValueTypeNames.Float).Set(float(fit.seconds))
+    if measured is not None:
+        prim.CreateAttribute("measured:radiusMm", Sdf.ValueTypeNames.FloatArray).Set(
+            Vt.FloatArray(_f32(measured.radius_mm)))
+        prim.CreateAttribute("measured:values", Sdf.ValueTypeNames.Color3fArray).Set(
+            Vt.Vec3fArray.FromNumpy(np.asarray(measured.values, dtype=np.float32)))
+        if measured.stddev is not None:
+            prim.CreateAttribute("measured:stddev", Sdf.ValueTypeNames.Color3fArray).Set(
+                Vt.Vec3fArray.FromNumpy(np.asarray(measured.stddev, dtype=np.float32)))
+
+
+def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: float,
+                     albedo: tuple[float, float, float]) -> str:
+    from pxr import Gf, Sdf, UsdShade
+
+    path = f"{root}/Looks/SkinMaterial"
+    material = UsdShade.Material.Define(stage, path)
+    preview = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
+    preview.CreateIdAttr("UsdPreviewSurface")
+    preview.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+    preview.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.35)
+    preview.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(1.4)
+    material.CreateSurfaceOutput().ConnectToSource(
+        preview.CreateOutput("surface", Sdf.ValueTypeNames.Token))
+    # OpenPBR's subsurface lobe wants one radius with a per-channel scale; we give it the
+    # face's mean RMS exit radius (an approximation: its profile shape is not ours).
+    radii_mm = np.mean([subsurface_radius_mm(f) for f in fits], axis=0)
+    openpbr = UsdShade.Shader.Define(stage, f"{path}/OpenPBR")
+    openpbr.CreateIdAttr("ND_open_pbr_surface_surfaceshader")
+    openpbr.CreateInput("base_color", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+    openpbr.CreateInput("subsurface_weight", Sdf.ValueTypeNames.Float).Set(1.0)
+    openpbr.CreateInput("subsurface_color", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+    openpbr.CreateInput("subsurface_radius", Sdf.ValueTypeNames.Float).Set(
+        float(radii_mm.max() / (mpu * 1000.0)))
+    openpbr.CreateInput("subsurface_radius_scale", Sdf.ValueTypeNames.Color3f).Set(
+        Gf.Vec3f(*_f32(radii_mm / radii_mm.max())))
+    openpbr.CreateInput("specular_roughness", Sdf.ValueTypeNames.Float).Set(0.35)
+    openpbr.GetPrim().SetDocumentation(
+        "Approximation for renderers without skinpipe's profiles: subsurface_radius is the "
+        "mean over regions of the fitted profiles' RMS exit radius sqrt(2 sum w v), in scene "
+        "units, and subsurface_radius_scale its per-channel ratio.")
+    material.CreateSurfaceOutput("mtlx").ConnectToSource(
+        openpbr.CreateOutput("surface", Sdf.ValueTypeNames.Token))
+    return path
+
+
+def _author_seal(stage: Any, path: str, seal: MeshData) -> None:
+    from pxr import Gf, UsdGeom, Vt
+
+    umesh = UsdGeom.Mesh.Define(stage, path)
+    pts = np.asarray(seal.points, dtype=np.float32)
+    umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+    umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(seal.face_counts))
+    umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(seal.face_indices))
+    umesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    umesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])))
+    umesh.CreateDisplayColorAttr([Gf.Vec3f(0.2, 0.2, 0.2)])
+    umesh.GetPrim().SetDocumentation(
+        "Closes the scan's open rim (surface the scanner never saw) so that no light or "
+        "camera ray passes through the face; not skin, no texture space.")
+
+
+def author_asset(
+    fits: Sequence[FitResult],
+    mesh: MeshData,
+    regions: RegionAssignment,
+    out_dir: str | Path,
+    name: str = "Face",
+    measured: dict[str, MeasuredProfile] | None = None,
+    up_axis: str = "Y",
+    albedo: tuple[float, float, float] = DEFAULT_ALBEDO,
+    seal: MeshData | None = None,
+) -> AssetPaths:
+    """Write asset.usda, geo.usdc and look.usda for ``fits`` on ``mesh`` into ``out_dir``.
+
+    ``seal`` (from :func:`pipeline.usd.mesh.seal_scan`) becomes ``Geom/Seal``: geometry the
+    scanner never saw, there to stop light, without skin profiles or texture space."""
+    from pxr import Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
+
+    from .schema import require_schema
+
+    require_schema()
+    start = time.perf_counter()
+    if not name.isidentifier():
+        raise InputError(f"asset name must be a valid prim name, got {name!r}")
+    by_name = {f.name: f for f in fits}
+    missing = [r for r in regions.names if r not in by_name]
+    if missing:
+        raise InputError(f"no fit for region(s) {missing}; fits given: {sorted(by_name)}")
+    if regions.face_region.shape != (mesh.n_faces,):
+        raise InputError(f"{regions.face_region.size} face regions for {mesh.n_faces} faces")
+    out = Path(out_dir)
+    paths = AssetPaths(out / "asset.usda", out / "geo.usdc", out / "look.usda", 0.0)
+    if mesh.source is not None and mesh.source.resolve() in {
+            p.resolve() for p in (paths.asset, paths.geo, paths.look)}:
+        raise InputError("the output would overwrite the input mesh layer", mesh.source)
+    root = f"/{name}"
+    mpu = mesh.meters_per_unit
+    ordered = [by_name[r] for r in regions.names]
+    profile_paths = [f"{root}/Looks/Profiles/{Tf.MakeValidIdentifier(r)}"
+                     for r in regions.names]
+
+    # look.usda: profiles and material
+    look = _layer_stage(mpu, up_axis, name)
+    look.OverridePrim(root)
+    UsdGeom.Scope.Define(look, f"{root}/Looks")
+    UsdGeom.Scope.Define(look, f"{root}/Looks/Profiles")
+    for fit, ppath in zip(ordered, profile_paths, strict=True):
+        _author_profile(look, ppath, fit, (measured or {}).get(fit.name))
+    material_path = _author_material(look, root, ordered, mpu, albedo)
+
+    # geo.usdc: mesh, regions
+    geo = _layer_stage(mpu, up_axis, name)
+    geo.OverridePrim(root)
+    UsdGeom.Scope.Define(geo, f"{root}/Geom")
+    umesh = UsdGeom.Mesh.Define(geo, f"{root}/Geom/Mesh")
+    pts = np.asarray(mesh.points, dtype=np.float32)
+    umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+    umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(mesh.face_counts))
+    umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh.face_indices))
+    umesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    umesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])))
+    pv_api = UsdGeom.PrimvarsAPI(umesh)
+    if mesh.st is not None:
+        pv_api.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
+                             ).Set(Vt.Vec2fArray.FromNumpy(np.asarray(mesh.st, np.float32)))
+    prim = umesh.GetPrim()
+    prim.ApplyAPI(REGIONS_API)
+    prim.CreateRelationship(PROFILES_REL).SetTargets([Sdf.Path(p) for p in profile_paths])
+    pv_api.CreatePrimvar(REGION_INDEX_PRIMVAR, Sdf.ValueTypeNames.IntArray,
+                         UsdGeom.Tokens.uniform).Set(Vt.IntArray.FromNumpy(regions.face_region))
+    if regions.vertex_weights is not None:
+        pv_api.CreatePrimvar(REGION_WEIGHTS_PRIMVAR, Sdf.ValueTypeNames.FloatArray,
+                             UsdGeom.Tokens.vertex, len(regions.names)).Set(
+            Vt.FloatArray.FromNumpy(regions.vertex_weights.reshape(-1)))
+    for i, region in enumerate(regions.names):
+        faces = np.flatnonzero(regions.face_region == i).astype(np.int32)
+        UsdGeom.Subset.CreateGeomSubset(umesh, Tf.MakeValidIdentifier(region),
+                                        UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
+                                        SUBSET_FAMILY, UsdGeom.Tokens.partition)
+    UsdShade.MaterialBindingAPI.Apply(prim).GetDirectBindingRel().SetTargets(
+        [Sdf.Path(material_path)])
+    if seal is not None:
+        _author_seal(geo, f"{root}/Geom/Seal", seal)
+
+    # asset.usda: the interface
+    asset_layer = Sdf.Layer.CreateAnonymous("asset.usda")  # held here, outlives the stage
+    asset = _layer_stage(mpu, up_axis, name, asset_layer)
+    top = UsdGeom.Xform.Define(asset, root).GetPrim()
+    Usd.ModelAPI(top).SetKind(Kind.Tokens.component)
+    Usd.ModelAPI(top).SetAssetName(name)
+    Usd.ModelAPI(top).SetAssetIdentifier(Sdf.AssetPath("./asset.usda"))
+    Usd.ColorSpaceAPI.Apply(top).CreateColorSpaceNameAttr(WORKING_COLORSPACE)
+    del asset  # sublayers are added to the bare layer: no stage tries to compose them here
+    asset_layer.subLayerPaths = ["./look.usda", "./geo.usdc"]
+    asset_layer.customLayerData = {
+        "skinpipe:colorSpace": WORKING_COLORSPACE,
+        "skinpipe:generator": "skinpipe author",
+    }
+
+    export_layer_atomic(geo.GetRootLayer(), paths.geo)
+    export_layer_atomic(look.GetRootLayer(), paths.look)
+    export_layer_atomic(asset_layer, paths.asset)
+    return AssetPaths(paths.asset, paths.geo, paths.look, time.perf_counter() - start)
+
+
+# -------------------------------------------------------------------------------- reading
+
+
+def read_profiles(stage: Any) -> dict[str, tuple[FitResult, MeasuredProfile | None]]:
+    """Every SkinDiffusionProfile on the stage as (fit, measured samples), by prim path."""
+    from pxr import Usd
+
+    out = {}
+    for prim in Usd.PrimRange(stage.GetPseudoRoot()):
+        if prim.GetTypeName() != PROFILE_TYPE:
+            continue
+
+        def get(attr: str, default: Any = None, prim: Any = prim) -> Any:
+            a = prim.GetAttribute(attr)
+            value = a.Get() if a else None
+            return default if value is None else value
+
+        variances = np.array(get("variances", []), dtype=np.float64)
+        weights = np.array(get("weights", []), dtype=np.float64).reshape(-1, 3)
+        tr = np.array(get("totalReflectance", (1.0, 1.0, 1.0)), dtype=np.float64)
+        fit = FitResult(
+            name=str(get("region", prim.GetName())), variances_mm2=variances, weights=weights,
+            error=np.array(get("fit:error", (math.nan,) * 3), dtype=np.float64),
+            seconds=float(get("fit:seconds", 0.0)), status=str(get("fit:status", "")),
+            solver=str(get("fit:solver", "")), iterations=0, objective=math.nan,
+            k_requested=int(variances.size), share="", n_samples=0, radius_range_mm=(0.0, 0.0),
+            total_reflectance=None if np.allclose(tr, 1.0) else tr,
+        )
+        radius = get("measured:radiusMm")
+        measured = None
+        if radius is not None and len(radius):
+            values = np.array(get("measured:values", []), dtype=np.float64).reshape(-1, 3)
+            std = get("measured:stddev")
+            measured = MeasuredProfile(np.array(radius, dtype=np.float64), values,
+                                       None if std is None else
+                                       np.array(std, dtype=np.float64).reshape(-1, 3),
+                                       name=fit.name)
+        out[str(prim.GetPath())] = (fit, measured)
+    return out

@@ -1,0 +1,108 @@
+"""Inspect fitted profiles in a USD asset: text summary and measured-vs-fitted plots.
+
+The usdview plugin (pipeline/usdview_plugin) calls :func:`plot_profile` for the selected
+prim, so the command line and usdview draw the same figure.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..fileio import atomic_path
+from ..profile.fit import FitResult, MeasuredProfile
+from ..profile.models import sum_of_gaussians
+
+CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
+
+
+def describe_profile(path: str, fit: FitResult, measured: MeasuredProfile | None) -> str:
+    """Terms per channel, errors and solver facts of one profile, as text."""
+    lines = [f"{path}  region={fit.name}"]
+    lines.append(f"  {'variance mm^2':>14} {'w_R':>8} {'w_G':>8} {'w_B':>8}")
+    for v, w in zip(fit.variances_mm2, fit.weights, strict=True):
+        lines.append(f"  {v:>14.6g} {w[0]:>8.4f} {w[1]:>8.4f} {w[2]:>8.4f}")
+    sums = fit.weights.sum(axis=0)
+    lines.append(f"  {'sum':>14} {sums[0]:>8.4f} {sums[1]:>8.4f} {sums[2]:>8.4f}")
+    err = " ".join(f"{c}={e:.3e}" for c, e in zip("RGB", fit.error, strict=True))
+    lines.append(f"  eq. 2c error: {err}")
+    lines.append(f"  solver: {fit.solver or '?'}  status: {fit.status or '?'}  "
+                 f"seconds: {fit.seconds:.3f}")
+    if fit.total_reflectance is not None:
+        lines.append("  total reflectance: " + " ".join(f"{x:.4f}" for x in fit.total_reflectance))
+    if measured is not None:
+        lines.append(f"  measured: {measured.radius_mm.size} samples, "
+                     f"{measured.radius_mm.min():.3f}-{measured.radius_mm.max():.3f} mm")
+    return "\n".join(lines)
+
+
+def plot_profile(fit: FitResult, measured: MeasuredProfile | None, out_png: str | Path,
+                 log_radius: bool = False, title: str | None = None) -> Path:
+    """Measured (points) and fitted (lines) profiles per channel, with residuals below."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if measured is not None:
+        r = measured.radius_mm
+    else:
+        r = np.linspace(0.0, 3.0 * float(np.sqrt(fit.variances_mm2.max())), 300)
+    r_plot = np.geomspace(max(r[r > 0].min(), 1e-4), r.max(), 400) if log_radius else \
+        np.linspace(r.min(), r.max(), 400)
+    scale = 1.0 if fit.total_reflectance is None else fit.total_reflectance
+    curve = sum_of_gaussians(fit.variances_mm2, fit.weights, r_plot) * scale
+    rows = 2 if measured is not None else 1
+    fig, axes = plt.subplots(rows, 1, figsize=(7, 6 if rows == 2 else 4), dpi=110,
+                             sharex=True, squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1][:rows]})
+    ax = axes[0, 0]
+    for c in range(3):
+        ax.plot(r_plot, curve[:, c], color=CHANNEL_COLOURS[c], label=f"fit {'RGB'[c]}")
+        if measured is not None:
+            ax.plot(measured.radius_mm, measured.values[:, c], ".", ms=2.5,
+                    color=CHANNEL_COLOURS[c], alpha=0.6, label=f"measured {'RGB'[c]}")
+    ax.set_yscale("log")
+    ax.set_ylabel("R(r)  [mm^-2]")
+    ax.set_title(title or f"{fit.name}: eq. 2c error " +
+                 " ".join(f"{e:.2e}" for e in fit.error))
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    if measured is not None:
+        fitted = sum_of_gaussians(fit.variances_mm2, fit.weights, measured.radius_mm) * scale
+        rel = (measured.values - fitted) / np.maximum(np.abs(fitted), 1e-30)
+        res_ax = axes[1, 0]
+        for c in range(3):
+            res_ax.plot(measured.radius_mm, rel[:, c], ".", ms=2, color=CHANNEL_COLOURS[c])
+        res_ax.axhline(0.0, color="k", lw=0.6)
+        res_ax.set_ylabel("(measured - fit) / fit")
+        res_ax.set_ylim(-0.2, 0.2)
+        res_ax.grid(True, alpha=0.3)
+    axes[-1, 0].set_xlabel("radius from the entry point [mm]")
+    if log_radius:
+        axes[-1, 0].set_xscale("log")
+    fig.tight_layout()
+    out = Path(out_png)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+    return out
+
+
+def profiles_on_stage(stage: Any, prim_path: str | None = None) -> dict[str, tuple]:
+    """The stage's profiles (all, or the one at / bound under ``prim_path``)."""
+    from .author import read_profiles
+
+    found = read_profiles(stage)
+    if prim_path is None:
+        return found
+    if prim_path in found:
+        return {prim_path: found[prim_path]}
+    # a Mesh with the regions API: its targets
+    prim = stage.GetPrimAtPath(prim_path)
+    rel = prim.GetRelationship("skin:profiles") if prim else None
+    if rel:
+        return {str(t): found[str(t)] for t in rel.GetTargets() if str(t) in found}
+    return {}

@@ -1,0 +1,102 @@
+"""A shot layer for an asset: camera and lights, kept out of the asset itself.
+
+``OUT/scene.usda`` sublayers the asset (prim paths stay as authored, so the renderer can
+write UVs back into the asset's geo layer) and adds ``/Shot/Camera`` framing the asset's
+bounds from the front, a key SphereLight (soft shadows) and a dim DomeLight fill. With
+``turntable_frames`` the camera orbits the asset once over frames 1..N.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .io import export_layer_atomic, open_stage_guarded
+
+
+@dataclass(frozen=True)
+class ShotOptions:
+    key_intensity: float = 3.0
+    key_radius_fraction: float = 0.08
+    """Key light radius as a fraction of the asset's bounding diagonal (soft shadows)."""
+    fill_intensity: float = 0.15
+    focal_length: float = 50.0
+    horizontal_aperture: float = 24.0
+    turntable_frames: int = 0
+    margin: float = 1.15
+
+
+def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) -> Path:
+    """Write ``out`` (a .usda shot layer over ``asset``); the asset is only read."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+    asset = Path(asset)
+    out = Path(out)
+    if out.resolve() == asset.resolve():
+        raise InputError("the shot layer would overwrite the asset", out)
+    src = open_stage_guarded(asset)
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_])
+    box = cache.ComputeWorldBound(src.GetPseudoRoot()).ComputeAlignedRange()
+    if box.IsEmpty():
+        raise InputError("the asset has no geometry with extent to frame", asset)
+    lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
+    centre, size = (lo + hi) / 2, hi - lo
+    diag = float(np.linalg.norm(size))
+    up_axis = UsdGeom.GetStageUpAxis(src)
+    if up_axis != UsdGeom.Tokens.y:
+        raise InputError(f"shot framing supports Y-up assets, this one is {up_axis}-up", asset)
+    # distance at which the larger of width/height fills the frame (with a margin)
+    fov = 2 * math.atan(0.5 * options.horizontal_aperture / options.focal_length)
+    dist = options.margin * 0.5 * max(size[0], size[1]) / math.tan(fov / 2) + size[2] / 2
+
+    layer = Sdf.Layer.CreateAnonymous("scene.usda")
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(src))
+    UsdGeom.SetStageUpAxis(stage, up_axis)
+    UsdGeom.Scope.Define(stage, "/Shot")
+    cam = UsdGeom.Camera.Define(stage, "/Shot/Camera")
+    cam.CreateFocalLengthAttr(options.focal_length)
+    cam.CreateHorizontalApertureAttr(options.horizontal_aperture)
+    cam.CreateVerticalApertureAttr(options.horizontal_aperture)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(float(dist * 0.05), float(dist * 10)))
+    orbit = cam.AddRotateYOp(opSuffix="orbit")
+    move = cam.AddTranslateOp(opSuffix="dolly")
+    # ops apply right to left on points: dolly back along +Z, then orbit about the centre
+    pivot = UsdGeom.Xformable(cam).AddTranslateOp(opSuffix="pivot")
+    UsdGeom.Xformable(cam).SetXformOpOrder([pivot, orbit, move])
+    pivot.Set(Gf.Vec3d(*centre))
+    move.Set(Gf.Vec3d(0.0, 0.0, float(dist)))
+    if options.turntable_frames > 0:
+        n = options.turntable_frames
+        for f in range(1, n + 1):
+            orbit.Set(360.0 * (f - 1) / n, Usd.TimeCode(f))
+        stage.SetStartTimeCode(1)
+        stage.SetEndTimeCode(n)
+    else:
+        orbit.Set(0.0)
+    UsdGeom.Scope.Define(stage, "/Shot/Lights")
+    key = UsdLux.SphereLight.Define(stage, "/Shot/Lights/Key")
+    key.CreateIntensityAttr(options.key_intensity)
+    key.CreateRadiusAttr(options.key_radius_fraction * diag)
+    key.CreateColorAttr(Gf.Vec3f(1.0, 0.97, 0.92))
+    key_pos = centre + np.array([-0.8, 0.6, 1.2]) * dist
+    UsdGeom.Xformable(key).AddTranslateOp().Set(Gf.Vec3d(*key_pos))
+    # the sphere's radiance is intensity: scale it so irradiance at the face is ~ intensity
+    solid = 2 * math.pi * (1 - math.sqrt(max(0.0, 1 - (options.key_radius_fraction * diag /
+                                                       np.linalg.norm(key_pos - centre)) ** 2)))
+    key.GetIntensityAttr().Set(float(options.key_intensity / max(solid, 1e-9)))
+    fill = UsdLux.DomeLight.Define(stage, "/Shot/Lights/Fill")
+    fill.CreateIntensityAttr(options.fill_intensity)
+    fill.CreateColorAttr(Gf.Vec3f(0.85, 0.9, 1.0))
+    stage.SetDefaultPrim(stage.GetPrimAtPath("/Shot"))
+    layer.customLayerData = {"skinpipe:colorSpace": "lin_ap1_scene",
+                             "skinpipe:generator": "skinpipe shot"}
+    del stage  # sublayer added to the bare layer: no stage tries to compose it from here
+    layer.subLayerPaths = [os.path.relpath(asset.resolve(), out.resolve().parent)]
+    export_layer_atomic(layer, out)
+    return out

@@ -1,0 +1,408 @@
+"""Error against run time: each stage's trade-off measured in one run (JSON + PNG)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..fileio import atomic_path, atomic_write_json
+from ..profile.fit import FitOptions, MeasuredProfile, fit_sum_of_gaussians
+
+FIT_METHODS: dict[str, dict[str, Any]] = {
+    "ga+ipopt": {"init": "ga", "solver": "ipopt"},
+    "naive+ipopt": {"init": "naive", "solver": "ipopt"},
+    "ga+slsqp": {"init": "ga", "solver": "slsqp"},
+}
+"""The default (GA seed + IPOPT), IPOPT from a log-spaced start, and the paper's
+GA + SQP with scipy's SLSQP standing in for MATLAB's fmincon."""
+
+
+@dataclass
+class TradeoffRow:
+    profile: str
+    method: str
+    k: int
+    seconds: float
+    error_max: float
+    error: list[float]
+    objective: float
+    status: str
+
+
+def fit_tradeoff(
+    profiles: Sequence[MeasuredProfile],
+    ks: Sequence[int] = tuple(range(1, 9)),
+    methods: Sequence[str] = tuple(FIT_METHODS),
+    seed: int = 0,
+    progress: Any = None,
+) -> list[TradeoffRow]:
+    """Fit every profile with every k and method; wall seconds and eq. 2c error per fit."""
+    rows = []
+    for prof in profiles:
+        for method in methods:
+            for k in ks:
+                start = time.perf_counter()
+                fit = fit_sum_of_gaussians(prof, FitOptions(k=k, seed=seed, **FIT_METHODS[method]))
+                seconds = time.perf_counter() - start
+                rows.append(TradeoffRow(prof.name, method, k, seconds, float(fit.error.max()),
+                                        [float(e) for e in fit.error], fit.objective, fit.status))
+                if progress is not None:
+                    progress(f"{prof.name} {method} k={k}: error {fit.error.max():.2e}, "
+                             f"{seconds:.2f} s")
+    return rows
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of points not dominated in (seconds, error), both minimised (per profile)."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], np.inf
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def _plot_tradeoff(
+    points: Sequence[tuple[str, float, float, str]], path: Path, xlabel: str, title: str,
+    ylabel: str = "eq. 2c error (max over R, G, B)",
+) -> None:
+    """Error (log) against seconds (log), one line per series; points labelled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5), dpi=110)
+    for series in dict.fromkeys(p[0] for p in points):
+        sel = [p for p in points if p[0] == series]
+        ax.plot([p[1] for p in sel], [max(p[2], 1e-8) for p in sel], marker="o", alpha=0.8,
+                label=series)
+        for p in sel:
+            ax.annotate(p[3], (p[1], max(p[2], 1e-8)), fontsize=6)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=6)
+    ax.grid(True, which="both", alpha=0.3)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+def write_fit_report(rows: Sequence[TradeoffRow], out_dir: Path, default_k: int = 6) -> dict:
+    """fit_tradeoff.json and fit_tradeoff.png (error vs seconds, log axes) in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    front: set[int] = set()
+    for prof in {r.profile for r in rows}:
+        idx = [i for i, r in enumerate(rows) if r.profile == prof]
+        front.update(idx[j] for j in pareto_front([(rows[i].seconds, rows[i].error_max)
+                                                   for i in idx]))
+    default_rows = [i for i, r in enumerate(rows) if r.method == "ga+ipopt" and r.k == default_k]
+    doc = {
+        "stage": "fit",
+        "error_measure": "max over channels of eq. 2c (Park & Oh 2009)",
+        "rows": [r.__dict__ | {"pareto": i in front} for i, r in enumerate(rows)],
+        "default": {"method": "ga+ipopt", "k": default_k,
+                    "on_pareto_front": [i in front for i in default_rows]},
+    }
+    atomic_write_json(out_dir / "fit_tradeoff.json", doc)
+    _plot_tradeoff(
+        [(f"{r.profile} {r.method}", r.seconds, r.error_max, str(r.k)) for r in rows],
+        out_dir / "fit_tradeoff.png", "wall time per fit (s)", "Fit: error against run time "
+        "(labels: k)",
+    )
+    return doc
+
+
+def ingest_tradeoff(
+    work_dir: Path,
+    regions: Sequence[str] = ("forehead", "cheek"),
+    brackets: Sequence[int] = (1, 3, 5, 7),
+    ring_widths_px: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
+    seed: int = 0,
+    progress: Any = None,
+) -> list[dict[str, Any]]:
+    """Profile error (against the simulator's truth, 0.05-4 mm) and ingest seconds, as
+    the number of brackets and the ring width vary. Captures are simulated in work_dir."""
+    from ..capture.ingest import IngestOptions, ingest_region, read_capture_set
+    from ..capture.simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
+
+    truths = {t.name: t for t in sample_subject_truths() if t.name in regions}
+    cases = [(n, 1.0) for n in brackets] + [(5, w) for w in ring_widths_px if w != 1.0]
+    rows = []
+    for n in sorted({c[0] for c in cases}):
+        caps = work_dir / f"brackets{n}"
+        settings = CaptureSettings(exposures_s=tuple(1 / 500 * 4.0**i for i in range(n)))
+        simulate_capture_set(list(truths.values()), caps, settings, seed=seed)
+        captures = read_capture_set(caps)
+        for _, width in [c for c in cases if c[0] == n]:
+            for name, truth in truths.items():
+                res = ingest_region(captures, name, IngestOptions(ring_width_px=width))
+                err = truth.profile_error(res.profile.radius_mm, res.profile.values)
+                rows.append({"region": name, "brackets": n, "ring_width_px": width,
+                             "seconds": res.seconds, "error_max": float(err.max()),
+                             "error": [float(e) for e in err]})
+                if progress is not None:
+                    progress(f"{name}: {n} brackets, ring {width} px: error {err.max():.2e}, "
+                             f"{res.seconds:.2f} s")
+    return rows
+
+
+def write_ingest_report(rows: Sequence[dict[str, Any]], out_dir: Path) -> dict:
+    """ingest_tradeoff.json and ingest_tradeoff.png in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    default = {"brackets": 5, "ring_width_px": 1.0}
+    front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
+    doc = {"stage": "ingest",
+           "error_measure": "max over channels of eq. 2c, measured profile vs the simulator's "
+                            "truth normalised over the measured disk, 0.05-4 mm",
+           "default": default | {"on_pareto_front": [
+               i in front for i, r in enumerate(rows) if r["brackets"] == default["brackets"]
+               and r["ring_width_px"] == default["ring_width_px"]]},
+           "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)]}
+    atomic_write_json(out_dir / "ingest_tradeoff.json", doc)
+    points = [(f"{r['region']} ring {r['ring_width_px']:g} px", r["seconds"], r["error_max"],
+               f"{r['brackets']}b") for r in rows]
+    _plot_tradeoff(points, out_dir / "ingest_tradeoff.png", "ingest seconds per region",
+                   "Ingest: error against run time (labels: brackets)")
+    return doc
+
+
+# ------------------------------------------------------------------------------ render
+
+
+def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
+                    grids: Sequence[int] = (0, 8, 12), light_samples: int = 8,
+                    points: int = 400, seed: int = 0, progress: Any = None,
+                    blurs: Sequence[str] = ("recursive",)) -> list[dict[str, Any]]:
+    """Texture-space diffusion error against its time, per texture size, variance grid
+    and blur (recursive pyramid or gather).
+
+    The reference is a brute-force convolution on the surface: at ``points`` random
+    surface points p, sum_j E_j A_j R_p(|p - p_j|) over every texel j of the finest
+    irradiance map (E after the albedo split, A_j its area in mm^2, R_p each region's
+    exact fitted profile blended by p's region weights, distances in 3D mm). Each row's
+    diffused radiance is looked up at p's texture coordinates. Error: RMS over points
+    of the relative difference, max over channels. Seconds: texture maps + irradiance +
+    diffusion at that size.
+    """
+    import math
+
+    from scipy.spatial import cKDTree
+
+    from ..errors import InputError
+    from ..render.raytrace import RayScene
+    from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear
+    from ..render.unwrap import triangulate
+    from ..usd.io import open_stage_guarded
+
+    stage = open_stage_guarded(scene)
+    finest: dict[str, Any] = {}
+    results = []
+    cases = [(g, b) for g in grids for b in blurs]
+    for size in sorted(sizes, reverse=True):
+        for grid, blur in cases:
+            opts = RenderOptions(texture_size=size, light_samples=light_samples,
+                                 variance_grid=grid, resolution=(8, 8), blur=blur)
+            renderer = Renderer(stage, opts)
+            try:
+                sc = renderer.delegate.sync()
+                if not sc.skin or not sc.lights:
+                    raise InputError("the scene needs a skin mesh and lights", scene)
+                log = TaskLog()
+                rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
+                mesh = sc.skin[0]
+                tex = renderer._textures(log, sc, mesh)
+                renderer._irradiance(log, sc, tex, rays, {})
+                t0 = time.perf_counter()
+                renderer._diffusion(log, tex)
+                seconds = (log.seconds.get("texture_maps", 0) + log.seconds.get("irradiance", 0)
+                           + time.perf_counter() - t0)
+            finally:
+                renderer.close()
+            if not finest:
+                covered = tex.maps.triangle >= 0
+                a = opts.albedo_split
+                finest = {
+                    "pos": tex.maps.position[covered].astype(np.float64) * sc.meters_per_unit
+                    * 1000.0,
+                    "area": (tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered].astype(
+                        np.float64),
+                    "flux": (tex.irradiance * np.power(tex.albedo, a))[covered] * (
+                        tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered][:, None],
+                }
+                rng = np.random.default_rng(seed)
+                tris = tex.tris
+                pick = rng.integers(0, tris.shape[0], points)
+                b = rng.dirichlet([1, 1, 1], points)[:, :, None]
+                p_mm = (mesh.mesh.points[tris[pick]] * b).sum(axis=1) * sc.meters_per_unit * 1e3
+                uv = (tex.uv[tex.uv_tris[pick]] * b).sum(axis=1)
+                rw = (mesh.region_weights[tris[pick]] * b).sum(axis=1)
+                tree = cKDTree(finest["pos"])
+                ref = np.zeros((points, 3))
+                vmax = max(float(f.variances_mm2.max()) for f in mesh.fits)
+                for n in range(points):
+                    idx = np.asarray(tree.query_ball_point(p_mm[n], 4.0 * math.sqrt(vmax)))
+                    d = np.linalg.norm(finest["pos"][idx] - p_mm[n], axis=1)
+                    # each texel is a small square source: its footprint (variance
+                    # area / 12 per axis) widens every term, or sub-texel terms would
+                    # be point-sampled to nothing
+                    foot = finest["area"][idx] / 12.0
+                    prof = np.zeros((idx.size, 3))
+                    for r, fit in enumerate(mesh.fits):
+                        if rw[n, r] > 0:
+                            w = fit.weights / fit.weights.sum(axis=0, keepdims=True)
+                            for v, wk in zip(fit.variances_mm2, w, strict=True):
+                                vv = v + foot
+                                g = np.exp(-d * d / (2 * vv)) / (2 * math.pi * vv)
+                                prof += rw[n, r] * g[:, None] * wk
+                    ref[n] = (finest["flux"][idx] * prof).sum(axis=0)
+                albedo_at = bilinear(tex.albedo, uv)
+                ref *= np.power(albedo_at, 1.0 - a) / math.pi
+                finest.update(uv=uv, ref=ref)
+            got = bilinear(tex.radiance, finest["uv"]).astype(np.float64)
+            ref = finest["ref"]
+            rel = np.sqrt(((got - ref) ** 2).mean(axis=0)) / np.maximum(ref.mean(axis=0), 1e-30)
+            # per point, relative to its own value but at least 1e-3 of the brightest
+            # point's: deep in a shadow the reference falls to 1e-30 while any blur
+            # (float32, or a recursive filter's exponential tail) leaves ~1e-7
+            point_rel = np.abs(got - ref).max(axis=1) / np.maximum(
+                ref.max(axis=1), 1e-3 * float(ref.max()))
+            diff = log.measures["diffusion"]
+            results.append({"texture_size": size, "variance_grid": grid, "blur": blur,
+                            "seconds": seconds,
+                            "diffusion_seconds": log.seconds.get("diffusion", 0.0),
+                            "error_max": float(rel.max()), "error": rel.tolist(),
+                            "error_median_point": float(np.median(point_rel)),
+                            "error_p90_point": float(np.percentile(point_rel, 90)),
+                            "blur_passes": diff["blur_passes"],
+                            "mm_per_texel": diff["mm_per_texel_median"],
+                            "energy_ratio": diff["energy_ratio"]})
+            if progress:
+                progress(f"texture {size} grid {grid} {blur}: error {rel.max():.2e}, "
+                         f"{seconds:.1f} s")
+    rows = sorted(results, key=lambda r: (r["texture_size"], r["variance_grid"], r["blur"]))
+    return rows
+
+
+def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
+                        default: tuple[int, int, str] = (1024, 12, "recursive")
+                        ) -> dict[str, Any]:
+    """render_tradeoff.json and render_tradeoff.png in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
+    doc = {
+        "stage": "render",
+        "error_measure": "RMS relative difference to a brute-force surface convolution, max "
+                         "over R, G, B",
+        "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
+        "default": {"texture_size": default[0], "variance_grid": default[1],
+                    "blur": default[2],
+                    "on_pareto_front": [i in front for i, r in enumerate(rows)
+                                        if (r["texture_size"], r["variance_grid"],
+                                            r.get("blur", "recursive")) == default]},
+    }
+    atomic_write_json(out_dir / "render_tradeoff.json", doc)
+    _plot_tradeoff([(f"{r.get('blur', 'recursive')}, grid {r['variance_grid'] or 'per-region'}",
+                     r["seconds"], r["error_max"],
+                     str(r["texture_size"])) for r in rows], out_dir / "render_tradeoff.png",
+                   "texture maps + irradiance + diffusion (s)",
+                   "Render: error against run time (labels: texture size)",
+                   "RMS relative error vs brute-force convolution")
+    return doc
+
+
+# --------------------------------------------------------------------- one page
+
+
+def _default_sentence(doc: dict[str, Any], what: str) -> str:
+    flags = doc.get("default", {}).get("on_pareto_front", [])
+    if not flags:
+        return f"The default ({what}) was not among the measured rows."
+    on = sum(bool(f) for f in flags)
+    if on == len(flags):
+        return f"The default ({what}) is on the Pareto front."
+    return (f"The default ({what}) is on the Pareto front for {on} of {len(flags)} "
+            "measured profiles; see the table for where it is not.")
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return out
+
+
+def write_report_page(out_dir: Path) -> Path:
+    """report.md in ``out_dir``: every stage's trade-off found there (fit_tradeoff.json,
+    ingest_tradeoff.json, render_tradeoff.json) with its plot, its table, the Pareto
+    front marked (*) and whether the default sits on it."""
+    import json
+
+    lines = ["# skinpipe: error against run time", "",
+             "Each stage measured in one run; pick an operating point from the plots. "
+             "Rows marked * are on the Pareto front (no other row is both faster and more "
+             "accurate).", ""]
+    found = False
+    fit_path = out_dir / "fit_tradeoff.json"
+    if fit_path.is_file():
+        found = True
+        doc = json.loads(fit_path.read_text())
+        d = doc["default"]
+        lines += ["## Fit", "", f"Error: {doc['error_measure']}. Seconds: wall time per fit.",
+                  "", "![fit](fit_tradeoff.png)", "",
+                  _default_sentence(doc, f"{d['method']}, k = {d['k']}"), ""]
+        lines += _table(["profile", "method", "k", "seconds", "error", ""],
+                        [(r["profile"], r["method"], r["k"], f"{r['seconds']:.2f}",
+                          f"{r['error_max']:.2e}", "*" if r["pareto"] else "")
+                         for r in doc["rows"]])
+        lines.append("")
+    ingest_path = out_dir / "ingest_tradeoff.json"
+    if ingest_path.is_file():
+        found = True
+        doc = json.loads(ingest_path.read_text())
+        d = doc["default"]
+        lines += ["## Ingest", "", f"Error: {doc['error_measure']}. Seconds: ingest per region.",
+                  "", "![ingest](ingest_tradeoff.png)", "",
+                  _default_sentence(doc, f"{d['brackets']} brackets, ring "
+                                    f"{d['ring_width_px']:g} px") + " (front over all regions "
+                  "together)", ""]
+        lines += _table(["region", "brackets", "ring px", "seconds", "error", ""],
+                        [(r["region"], r["brackets"], f"{r['ring_width_px']:g}",
+                          f"{r['seconds']:.3f}", f"{r['error_max']:.2e}",
+                          "*" if r.get("pareto") else "") for r in doc["rows"]])
+        lines.append("")
+    render_path = out_dir / "render_tradeoff.json"
+    if render_path.is_file():
+        found = True
+        doc = json.loads(render_path.read_text())
+        d = doc["default"]
+        lines += ["## Render", "", f"Error: {doc['error_measure']}. Seconds: texture maps + "
+                  "irradiance + diffusion; diffusion alone beside it.", "",
+                  "![render](render_tradeoff.png)", "",
+                  _default_sentence(doc, f"texture {d['texture_size']}, grid "
+                                    f"{d['variance_grid']}, {d.get('blur', 'recursive')}"), ""]
+        lines += _table(["texture", "grid", "blur", "mm/texel", "seconds", "diffusion s",
+                         "RMS error", "median point", ""],
+                        [(r["texture_size"], r["variance_grid"] or "per-region",
+                          r.get("blur", "recursive"), f"{r['mm_per_texel']:.3f}",
+                          f"{r['seconds']:.2f}", f"{r['diffusion_seconds']:.2f}",
+                          f"{r['error_max']:.2e}", f"{r['error_median_point']:.2e}",
+                          "*" if r["pareto"] else "") for r in doc["rows"]])
+        lines.append("")
+    if not found:
+        from ..errors import InputError
+
+        raise InputError("no *_tradeoff.json to gather: run 'skinpipe report fit|ingest|"
+                         "render' into this directory first", out_dir)
+    page = out_dir / "report.md"
+    with atomic_path(page) as tmp:
+        tmp.write_text("\n".join(lines))
+    return page
