@@ -10,7 +10,7 @@ from typing import Any
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from ..render.opencl import DEVICE_ENV, DEVICE_HELP
-from .render_verbs import _eprint
+from .common import _eprint
 
 
 def _stages(text: str) -> tuple[str, ...]:
@@ -23,7 +23,7 @@ def _stages(text: str) -> tuple[str, ...]:
     return stages
 
 
-def add_batch(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "batch",
         help="run many subjects through ingest/fit/author/render on Dask distributed",

@@ -252,7 +252,7 @@ def fit_task(spec: TaskSpec, subject: Subject, ingest: dict[str, Any],
 def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
                 fit_dirs: list[Path], ingest_dir: Path) -> dict[str, Any]:
     def work(tmp: Path) -> dict[str, Any]:
-        from ..cli import author_from_args
+        from ..cli.author import author_from_args
         from ..usd.validate import validate_file
 
         if subject.mesh is None or subject.landmarks is None:

@@ -1,0 +1,140 @@
+"""``skinpipe report``: each stage's error against its run time."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import EXIT_OK, InputError
+from .common import _eprint
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="error against run time per stage (JSON + PNG, gathered on one report.md page)",
+        description=(
+            "Measure a stage's error/time trade-off in one run so that users can pick an "
+            "operating point. 'fit': k = 1..8 with GA+IPOPT (default), IPOPT from a naive "
+            "start, and GA+SLSQP (the paper's SQP), on the given profiles or, without any, "
+            "on reference profiles (d'Eon et al. 2007 skin, Jensen et al. 2001 dipoles). "
+            "'ingest': simulated captures with 1, 3, 5, 7 brackets and ring widths 0.5-4 px, "
+            "profile error against the simulator's truth beside ingest time. "
+            "'render SCENE': texture sizes (--sizes) x variance grids (--grids), the "
+            "diffused radiance against a brute-force convolution on the surface with the "
+            "exact per-region profiles, beside texture-map + irradiance + diffusion time "
+            "(--blurs recursive,gather compares the diffusion blurs). 'all SCENE': the three. "
+            "Every run also (re)writes OUTPUT/report.md, one page with each stage found in "
+            "OUTPUT: plot, table, Pareto front, and whether the default sits on it."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("stage", choices=["fit", "ingest", "render", "all"],
+                   help="which stage to measure ('all': fit, ingest and render)")
+    p.add_argument("profiles", nargs="*", type=Path, metavar="PROFILE.csv|SCENE",
+                   help="fit: profiles to fit (default: built-in reference profiles); "
+                        "render and all: the scene (e.g. demo_out/scene.usda)")
+    p.add_argument("--sizes", type=lambda t: [int(x) for x in t.split(",")],
+                   default=[512, 1024, 2048], metavar="N,N",
+                   help="render: texture sizes (4096 works, needs minutes and ~6 GiB)")
+    p.add_argument("--grids", type=lambda t: [int(x) for x in t.split(",")],
+                   default=[0, 8, 12], metavar="N,N",
+                   help="render: variance grids (0 = each region's own variances)")
+    p.add_argument("--blurs", type=lambda t: [b.strip() for b in t.split(",")],
+                   default=["recursive"], metavar="B,B",
+                   help="render: diffusion blurs to compare (recursive, gather)")
+    p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
+                   help="range of k to try, inclusive")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    p.set_defaults(handler=cmd_report)
+
+
+def _int_range(text: str) -> tuple[int, int]:
+    try:
+        a, _, b = text.partition(":")
+        lo, hi = int(a), int(b or a)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected A:B, got {text!r}") from exc
+    if not 1 <= lo <= hi <= 8:
+        raise argparse.ArgumentTypeError(f"need 1 <= A <= B <= 8, got {text!r}")
+    return lo, hi
+
+
+def _report_render(args: argparse.Namespace, scene: Path) -> None:
+    from ..workflow.report import render_tradeoff, write_render_report
+
+    rows = render_tradeoff(scene, args.sizes, args.grids, progress=_eprint, blurs=args.blurs)
+    doc = write_render_report(rows, args.output)
+    print(f"{'texture':>7} {'grid':>4} {'blur':>9} {'mm/texel':>8} {'passes':>6} {'seconds':>8} "
+          f"{'diffuse s':>9} {'error':>9}  pareto")
+    for r in doc["rows"]:
+        print(f"{r['texture_size']:>7} {r['variance_grid']:>4} {r['blur']:>9} "
+              f"{r['mm_per_texel']:>8.3f} {r['blur_passes']:>6} {r['seconds']:>8.2f} "
+              f"{r['diffusion_seconds']:>9.2f} {r['error_max']:>9.2e}  "
+              f"{'*' if r['pareto'] else ''}")
+
+
+def _report_ingest(args: argparse.Namespace) -> None:
+    import tempfile
+
+    from ..workflow.report import ingest_tradeoff, write_ingest_report
+
+    with tempfile.TemporaryDirectory(prefix="skinpipe-report-") as work:
+        rows = ingest_tradeoff(Path(work), progress=_eprint)
+    write_ingest_report(rows, args.output)
+    print(f"{'region':<10} {'brackets':>8} {'ring px':>7} {'seconds':>8} {'error':>9}")
+    for r in rows:
+        print(f"{r['region']:<10} {r['brackets']:>8} {r['ring_width_px']:>7g} "
+              f"{r['seconds']:>8.3f} {r['error_max']:>9.2e}")
+
+
+def _report_fit(args: argparse.Namespace, profile_paths: list[Path]) -> None:
+    from ..profile.io import read_profile_csv
+    from ..workflow.report import fit_tradeoff, write_fit_report
+
+    profiles = ([read_profile_csv(p) for p in profile_paths] if profile_paths
+                else _reference_profiles())
+    rows = fit_tradeoff(profiles, ks=range(args.k[0], args.k[1] + 1), progress=_eprint)
+    doc = write_fit_report(rows, args.output)
+    print(f"{'profile':<16} {'method':<12} {'k':>2} {'seconds':>8} {'error':>9}  pareto")
+    for row in doc["rows"]:
+        print(f"{row['profile']:<16} {row['method']:<12} {row['k']:>2} {row['seconds']:>8.3f} "
+              f"{row['error_max']:>9.2e}  {'*' if row['pareto'] else ''}")
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from ..workflow.report import write_report_page
+
+    scenes = [p for p in args.profiles if p.suffix in (".usd", ".usda", ".usdc", ".usdz")]
+    if args.stage in ("render", "all"):
+        if len(scenes) != 1:
+            raise InputError(f"report {args.stage} needs exactly one SCENE (.usd/.usda/.usdc)")
+        scene = scenes[0]
+        if not scene.is_file():
+            raise InputError("scene not found", scene)
+    if args.stage in ("fit", "all"):
+        _report_fit(args, [p for p in args.profiles if p not in scenes])
+    if args.stage in ("ingest", "all"):
+        _report_ingest(args)
+    if args.stage in ("render", "all"):
+        _report_render(args, scene)
+    page = write_report_page(args.output)
+    print(f"wrote {args.stage} trade-off JSON and PNG into {args.output}; page: {page}")
+    return EXIT_OK
+
+
+def _reference_profiles() -> list:
+    import numpy as np
+
+    from ..profile.fit import MeasuredProfile
+    from ..profile.models import dipole_profile, dipole_total_reflectance, sum_of_gaussians
+    from ..profile.reference_data import DEON_2007_SKIN, JENSEN_2001
+
+    r = np.linspace(0.0, 4.0, 200)
+    out = [MeasuredProfile(r, sum_of_gaussians(DEON_2007_SKIN.variances_mm2,
+                                               DEON_2007_SKIN.weights, r), name="deon2007")]
+    for name in ("skin1", "skin2"):
+        c = JENSEN_2001[name]
+        out.append(MeasuredProfile(r, dipole_profile(r, c) / dipole_total_reflectance(c),
+                                   name=f"dipole_{name}"))
+    return out

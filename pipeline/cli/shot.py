@@ -1,0 +1,39 @@
+"""``skinpipe shot``: a shot layer (camera, lights) over an asset."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import EXIT_OK
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "shot",
+        help="write a shot layer (camera, key and fill light) over an asset",
+        description=(
+            "Write OUT (.usda) that sublayers ASSET and adds /Shot/Camera framing the "
+            "asset from the front (+Z, Y up), a key SphereLight (soft shadows) and a dim "
+            "DomeLight fill. The asset is only read."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("asset", type=Path)
+    p.add_argument("--turntable", type=int, default=0, metavar="N",
+                   help="animate the camera once around the asset over frames 1..N")
+    p.add_argument("--key-intensity", type=float, default=3.0,
+                   help="irradiance the key light gives a surface facing it")
+    p.add_argument("--fill-intensity", type=float, default=0.15, help="dome radiance")
+    p.add_argument("-o", "--output", type=Path, required=True, help="shot layer to write")
+    p.set_defaults(handler=cmd_shot)
+
+
+def cmd_shot(args: argparse.Namespace) -> int:
+    from ..usd.shot import ShotOptions, author_shot
+
+    out = author_shot(args.asset, args.output, ShotOptions(
+        key_intensity=args.key_intensity, fill_intensity=args.fill_intensity,
+        turntable_frames=args.turntable))
+    print(f"wrote {out}")
+    return EXIT_OK
