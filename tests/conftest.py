@@ -14,7 +14,7 @@ from pipeline.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
 from .reference_profiles import deon_profile
 
 # Which blur runs is measured per device (pipeline.render.blur_switch); tests that count blur
-# passes pin it to the values measured on PoCL. tests/test_blur_switch.py measures.
+# passes pin it to the values measured on PoCL. tests/render/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
 
 

@@ -268,7 +268,7 @@ def test_manifest_reader_rejects_bad_exposure(small_capture: Path, tmp_path: Pat
 
 
 def test_sample_assets_truth_matches_the_simulator() -> None:
-    truth = read_truth(Path(__file__).parents[1] / "sample_assets" / "captures" / "truth.json")
+    truth = read_truth(Path(__file__).parents[2] / "sample_assets" / "captures" / "truth.json")
     assert sorted(truth) == sorted(TRUTHS)
     r = np.linspace(0, 4, 50)
     for name, t in truth.items():

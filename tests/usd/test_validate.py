@@ -14,7 +14,7 @@ import pytest
 from pipeline.cli import main
 from pipeline.usd.validate import RULES, validate_file
 
-FIXTURES = Path(__file__).parent / "fixtures" / "usd"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "usd"
 BAD = sorted((FIXTURES / "bad").glob("*.usda"))
 CLEAN = sorted((FIXTURES / "clean").glob("*.usda"))
 

@@ -24,9 +24,9 @@ from pipeline.usd.mesh import MeshData, load_mesh, pymeshlab_face_scan
 from pipeline.usd.schema import schema_is_registered
 from pipeline.usd.validate import validate_file
 
-from .reference_profiles import deon_profile, dipole_normalised
+from ..reference_profiles import deon_profile, dipole_normalised
 
-SAMPLE_LANDMARKS = Path(__file__).parents[1] / "sample_assets" / "face" / "landmarks.json"
+SAMPLE_LANDMARKS = Path(__file__).parents[2] / "sample_assets" / "face" / "landmarks.json"
 
 
 def _patch() -> MeshData:

@@ -17,7 +17,7 @@ from pipeline.profile.io import (
     write_profile_csv,
 )
 
-from .reference_profiles import deon_profile
+from ..reference_profiles import deon_profile
 
 
 def test_csv_round_trip_with_stddev(tmp_path: Path) -> None:

@@ -12,7 +12,7 @@ import pytest
 from pipeline.cli import main
 from pipeline.profile.io import write_profile_csv
 
-from .reference_profiles import deon_profile, dipole_normalised
+from ..reference_profiles import deon_profile, dipole_normalised
 
 
 def test_help_lists_verbs(capsys: pytest.CaptureFixture[str]) -> None:
@@ -95,7 +95,7 @@ def test_demo_on_sample_assets(tmp_path: Path, capsys: pytest.CaptureFixture[str
 
 
 def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:
-    captures = Path(__file__).parents[1] / "sample_assets" / "captures"
+    captures = Path(__file__).parents[2] / "sample_assets" / "captures"
     assert main(["ingest", str(captures), "--regions", "cheek", "-o", str(tmp_path)]) == 0
     assert main(["fit", str(tmp_path / "cheek.csv"), "-k", "4", "--free-scale",
                  "-o", str(tmp_path / "cheek.json")]) == 0

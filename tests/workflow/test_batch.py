@@ -17,7 +17,7 @@ from pipeline.cli import main
 from pipeline.errors import InputError
 from pipeline.workflow.batch import read_batch
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_assets"
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_assets"
 
 
 def _write_batch(root: Path, names: list[str], **defaults: object) -> Path:

@@ -22,7 +22,7 @@ from pipeline.profile.reference_data import (
     normalized_weights,
 )
 
-from .reference_profiles import RADIUS_MM, deon_profile, dipole_normalised
+from ..reference_profiles import RADIUS_MM, deon_profile, dipole_normalised
 
 
 def _true_error(fit, radius, truth) -> np.ndarray:

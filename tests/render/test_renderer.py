@@ -31,7 +31,7 @@ from pipeline.render.unwrap import triangulate, unwrap
 from pipeline.usd.io import open_stage_guarded
 from pipeline.usd.mesh import MeshData
 
-from .render_scenes import (
+from ..render_scenes import (
     deon_fit,
     distant_down,
     exact_fit,
