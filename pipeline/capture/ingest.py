@@ -32,9 +32,9 @@ from ..imageio import (
     read_image,
     write_exr,
 )
-from ..profile.fit import MeasuredProfile
 from ..profile.io import write_profile_csv
 from ..profile.models import disk_radius_mm
+from ..profile.types import MeasuredProfile
 
 FloatImage = NDArray[np.float32]
 ProfileMode = Literal["rings", "cross_section"]

@@ -126,9 +126,9 @@ def cmd_report(args: argparse.Namespace) -> int:
 def _reference_profiles() -> list:
     import numpy as np
 
-    from ..profile.fit import MeasuredProfile
     from ..profile.models import dipole_profile, dipole_total_reflectance, sum_of_gaussians
     from ..profile.reference_data import DEON_2007_SKIN, JENSEN_2001
+    from ..profile.types import MeasuredProfile
 
     r = np.linspace(0.0, 4.0, 200)
     out = [MeasuredProfile(r, sum_of_gaussians(DEON_2007_SKIN.variances_mm2,

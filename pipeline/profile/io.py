@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fileio import atomic_write_json, atomic_write_text
-from .fit import FitResult, MeasuredProfile, fit_result_from_json
+from .types import FitResult, MeasuredProfile, fit_result_from_json
 
 PROFILE_COLUMNS = ("radius_mm", "R", "G", "B")
 STDDEV_COLUMNS = ("std_R", "std_G", "std_B")

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError, SkinpipeError
-from ..profile.fit import FitResult
+from ..profile.types import FitResult
 from .blur_switch import direct_limits
 from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
 from .lighting import (

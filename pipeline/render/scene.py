@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ..profile.fit import FitResult
+from ..profile.types import FitResult
 from ..usd.mesh import MeshData, validate_mesh
 from ..usd.schema import PROFILES_REL, REGION_INDEX_PRIMVAR, REGION_WEIGHTS_PRIMVAR, REGIONS_API
 

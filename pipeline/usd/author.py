@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ..profile.fit import FitResult, MeasuredProfile
+from ..profile.types import FitResult, MeasuredProfile
 from .io import export_layer_atomic
 from .mesh import MeshData
 from .schema import (

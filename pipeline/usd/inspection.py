@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from ..fileio import atomic_path
-from ..profile.fit import FitResult, MeasuredProfile
 from ..profile.models import sum_of_gaussians
+from ..profile.types import FitResult, MeasuredProfile
 
 CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
 

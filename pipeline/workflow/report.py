@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 from ..fileio import atomic_path, atomic_write_json
-from ..profile.fit import FitOptions, MeasuredProfile, fit_sum_of_gaussians
+from ..profile.fit import FitOptions, fit_sum_of_gaussians
+from ..profile.types import MeasuredProfile
 
 FIT_METHODS: dict[str, dict[str, Any]] = {
     "ga+ipopt": {"init": "ga", "solver": "ipopt"},
