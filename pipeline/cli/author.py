@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import EXIT_OK, InputError
+from ..errors import EXIT_OK
 from .common import _eprint
 
 
@@ -52,78 +52,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=cmd_author)
 
 
-def _measured_for(fits: list, profiles_dir: Path | None) -> dict:
-    from ..profile.io import read_profile_csv
-
-    out = {}
-    for fit in fits:
-        if profiles_dir is not None:
-            csv: Path | None = profiles_dir / f"{fit.name}.csv"
-        else:
-            csv = Path(fit.source) if fit.source else None
-        if csv is not None and csv.is_file():
-            out[fit.name] = read_profile_csv(csv, name=fit.name)
-    return out
-
-
-def author_from_args(fits_paths: list[Path], mesh_path: Path, out: Path, *,
-                     landmarks: Path | None = None, region_primvar: str | None = None,
-                     region_names: list[str] | None = None, blend_mm: float = 8.0,
-                     profiles_dir: Path | None = None, meters_per_unit: float | None = None,
-                     prepare: bool = False, target_faces: int = 60000, name: str = "Face",
-                     mesh_prim: str | None = None):
-    """The author verb as a function (the demo calls it too)."""
-    import numpy as np
-
-    from ..profile.io import read_fit_inputs
-    from ..usd.author import (
-        RegionAssignment,
-        assign_regions_from_landmarks,
-        author_asset,
-        read_landmarks,
-    )
-    from ..usd.mesh import load_mesh, prepare_scan, seal_scan
-
-    fits = read_fit_inputs(fits_paths)
-    mesh = load_mesh(mesh_path, meters_per_unit, mesh_prim)
-    seal = None
-    if prepare:
-        _eprint(f"preparing the scan ({mesh.n_faces} faces -> {target_faces})")
-        mesh = prepare_scan(mesh, target_faces)
-        seal = seal_scan(mesh)
-    if landmarks is not None:
-        regions = assign_regions_from_landmarks(mesh, read_landmarks(landmarks), blend_mm)
-    elif region_primvar is not None:
-        from pxr import UsdGeom
-
-        from ..usd.io import open_stage_guarded
-
-        stage = open_stage_guarded(mesh_path)
-        prim = stage.GetPrimAtPath(mesh_prim) if mesh_prim else next(
-            p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
-        pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(region_primvar)
-        if not pv or not pv.HasValue() or pv.GetInterpolation() != UsdGeom.Tokens.uniform:
-            raise InputError(f"no uniform primvar {region_primvar!r} on {prim.GetPath()}",
-                             mesh_path)
-        idx = np.asarray(pv.Get(), dtype=np.int32)
-        if not region_names:
-            raise InputError("--region-primvar needs --region-names A,B,... (one per value)")
-        if idx.size != mesh.n_faces or idx.min() < 0 or idx.max() >= len(region_names):
-            raise InputError(f"{region_primvar} must hold one index in 0..{len(region_names) - 1}"
-                             f" per face ({mesh.n_faces} faces)", mesh_path)
-        regions = RegionAssignment(tuple(region_names), idx)
-    else:
-        raise InputError("give --landmarks or --region-primvar to place the regions")
-    return author_asset(fits, mesh, regions, out, name=name,
-                        measured=_measured_for(fits, profiles_dir), seal=seal)
-
-
 def cmd_author(args: argparse.Namespace) -> int:
-    paths = author_from_args(
+    from ..workflow.chain import author_from_files
+
+    paths = author_from_files(
         args.fits, args.mesh, args.output, landmarks=args.landmarks,
         region_primvar=args.region_primvar, region_names=args.region_names,
         blend_mm=args.blend_mm, profiles_dir=args.profiles,
         meters_per_unit=args.meters_per_unit, prepare=args.prepare_scan,
-        target_faces=args.target_faces, name=args.name, mesh_prim=args.mesh_prim)
+        target_faces=args.target_faces, name=args.name, mesh_prim=args.mesh_prim,
+        progress=_eprint)
     print(f"wrote {paths.asset} (+ {paths.geo.name}, {paths.look.name}) in {paths.seconds:.2f} s")
     return EXIT_OK

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from .common import (
+    _eprint,
     add_render_options,
     ocio_source,
     render_options,
@@ -45,7 +46,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..capture.simulate import read_truth
     from ..fileio import atomic_write_json
     from ..usd.mesh import pymeshlab_face_scan
-    from .run import run_chain
+    from ..workflow.chain import run_chain
+    from .run import print_chain
 
     captures = sample_captures_dir()
     if not (captures / "capture.json").is_file():
@@ -53,9 +55,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
                          captures)
     out = args.output
     options = render_options(args)
-    report = run_chain(captures, pymeshlab_face_scan(), captures.parent / "face" /
+    result = run_chain(captures, pymeshlab_face_scan(), captures.parent / "face" /
                        "landmarks.json", out, args.k, True, True, options, ocio_source(args),
-                       truth=read_truth(captures / "truth.json"), comparisons=True)
+                       truth=read_truth(captures / "truth.json"), comparisons=True,
+                       progress=_eprint)
+    print_chain(result)
+    report = result.report
     atomic_write_json(out / "report.json", report)
     print(f"wrote {out / 'report.json'} ({report['total_seconds']:.1f} s)")
     return EXIT_OK if report["valid"] else EXIT_CHECK_FAILED

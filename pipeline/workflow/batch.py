@@ -234,13 +234,12 @@ def ingest_task(spec: TaskSpec, subject: Subject) -> dict[str, Any]:
 
 def fit_task(spec: TaskSpec, subject: Subject, ingest: dict[str, Any],
              ingest_dir: Path) -> dict[str, Any]:
-    from ..profile.fit import FitOptions, fit_sum_of_gaussians
     from ..profile.io import read_profile_csv, write_fit_json
+    from .chain import fit_ingested_profile
 
     def work(tmp: Path) -> dict[str, Any]:
-        prof = read_profile_csv(ingest_dir / f"{spec.unit}.csv")
-        # ingested profiles integrate to 1 over the image's disk only: fit the scale too
-        fit = fit_sum_of_gaussians(prof, FitOptions(k=subject.k, free_scale=True))
+        fit = fit_ingested_profile(read_profile_csv(ingest_dir / f"{spec.unit}.csv"),
+                                   subject.k)
         write_fit_json(tmp / f"{spec.unit}.json", fit)
         return {"measures": {"fit_error_eq2c": fit.error.tolist(), "terms": len(fit.weights),
                              "solver_status": fit.status},
@@ -252,12 +251,12 @@ def fit_task(spec: TaskSpec, subject: Subject, ingest: dict[str, Any],
 def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
                 fit_dirs: list[Path], ingest_dir: Path) -> dict[str, Any]:
     def work(tmp: Path) -> dict[str, Any]:
-        from ..cli.author import author_from_args
         from ..usd.validate import validate_file
+        from .chain import author_from_files
 
         if subject.mesh is None or subject.landmarks is None:
             raise InputError(f"subject {subject.name}: author needs \"mesh\" and \"landmarks\"")
-        paths = author_from_args([d / f"{d.name}.json" for d in fit_dirs], subject.mesh, tmp,
+        paths = author_from_files([d / f"{d.name}.json" for d in fit_dirs], subject.mesh, tmp,
                                  landmarks=subject.landmarks, profiles_dir=ingest_dir,
                                  prepare=subject.prepare_scan)
         measures: dict[str, Any] = {}

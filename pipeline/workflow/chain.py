@@ -1,0 +1,249 @@
+"""One subject through the stages: the steps that ``skinpipe run``, ``skinpipe demo`` and
+``skinpipe batch`` share, written once.
+
+ingest -> fit (each region's ingested profile, its scale free) -> author (regions from
+landmarks or a primvar, measured samples embedded) -> (paint) -> validate -> shot ->
+render (-> the demo's comparison renders). Nothing here prints: progress goes to a
+callback, results come back as data for the caller to show.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import OpenImageIO as oiio
+from pxr import UsdGeom
+
+from ..capture.ingest import ingest_capture_set
+from ..errors import InputError
+from ..imageio import write_ldr
+from ..profile.fit import FitOptions, fit_sum_of_gaussians
+from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
+from ..profile.types import FitResult, MeasuredProfile
+from ..render.albedo import bake_sample_albedo
+from ..render.renderer import Renderer, RenderOptions, render_files, write_outputs
+from ..usd.author import (
+    AssetPaths,
+    RegionAssignment,
+    assign_regions_from_landmarks,
+    author_asset,
+    read_landmarks,
+)
+from ..usd.io import open_stage_guarded
+from ..usd.mesh import load_mesh, prepare_scan, seal_scan
+from ..usd.shot import author_shot
+from ..usd.validate import validate_file
+
+Progress = Callable[[str], None]
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+def fit_ingested_profile(profile: MeasuredProfile, k: int) -> FitResult:
+    """Fit ``k`` Gaussians to an ingested profile: it integrates to 1 over the image's disk
+    only, so its total reflectance is fitted too (``free_scale``)."""
+    return fit_sum_of_gaussians(profile, FitOptions(k=k, free_scale=True))
+
+
+def measured_for(fits: list[FitResult], profiles_dir: Path | None
+                 ) -> dict[str, MeasuredProfile]:
+    """Each fit's measured samples: ``profiles_dir/<name>.csv``, else the fit's source CSV
+    (where it exists)."""
+    out = {}
+    for fit in fits:
+        if profiles_dir is not None:
+            csv: Path | None = profiles_dir / f"{fit.name}.csv"
+        else:
+            csv = Path(fit.source) if fit.source else None
+        if csv is not None and csv.is_file():
+            out[fit.name] = read_profile_csv(csv, name=fit.name)
+    return out
+
+
+def _regions_from_primvar(mesh_path: Path, mesh: Any, mesh_prim: str | None,
+                          region_primvar: str, region_names: list[str] | None
+                          ) -> RegionAssignment:
+    stage = open_stage_guarded(mesh_path)
+    prim = stage.GetPrimAtPath(mesh_prim) if mesh_prim else next(
+        p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(region_primvar)
+    if not pv or not pv.HasValue() or pv.GetInterpolation() != UsdGeom.Tokens.uniform:
+        raise InputError(f"no uniform primvar {region_primvar!r} on {prim.GetPath()}",
+                         mesh_path)
+    idx = np.asarray(pv.Get(), dtype=np.int32)
+    if not region_names:
+        raise InputError("--region-primvar needs --region-names A,B,... (one per value)")
+    if idx.size != mesh.n_faces or idx.min() < 0 or idx.max() >= len(region_names):
+        raise InputError(f"{region_primvar} must hold one index in 0..{len(region_names) - 1}"
+                         f" per face ({mesh.n_faces} faces)", mesh_path)
+    return RegionAssignment(tuple(region_names), idx)
+
+
+def author_from_files(fits_paths: list[Path], mesh_path: Path, out: Path, *,
+                      landmarks: Path | None = None, region_primvar: str | None = None,
+                      region_names: list[str] | None = None, blend_mm: float = 8.0,
+                      profiles_dir: Path | None = None, meters_per_unit: float | None = None,
+                      prepare: bool = False, target_faces: int = 60000, name: str = "Face",
+                      mesh_prim: str | None = None, progress: Progress = _quiet
+                      ) -> AssetPaths:
+    """The author stage from files: FIT.json files (or folders of them) and a mesh to a
+    USD asset, regions from landmarks or from a uniform primvar of a USD mesh."""
+    fits = read_fit_inputs(fits_paths)
+    mesh = load_mesh(mesh_path, meters_per_unit, mesh_prim)
+    seal = None
+    if prepare:
+        progress(f"preparing the scan ({mesh.n_faces} faces -> {target_faces})")
+        mesh = prepare_scan(mesh, target_faces)
+        seal = seal_scan(mesh)
+    if landmarks is not None:
+        regions = assign_regions_from_landmarks(mesh, read_landmarks(landmarks), blend_mm)
+    elif region_primvar is not None:
+        regions = _regions_from_primvar(mesh_path, mesh, mesh_prim, region_primvar,
+                                        region_names)
+    else:
+        raise InputError("give --landmarks or --region-primvar to place the regions")
+    return author_asset(fits, mesh, regions, out, name=name,
+                        measured=measured_for(fits, profiles_dir), seal=seal)
+
+
+@dataclass
+class FitRow:
+    """One region's fit, as ``run`` and ``demo`` show it."""
+
+    region: str
+    terms: int
+    error_eq2c: float
+    """Worst channel."""
+    error_vs_truth: float | None
+    seconds: float
+
+
+@dataclass
+class ChainResult:
+    """What :func:`run_chain` did: ``report`` (report.json), one row per region, the
+    render's ``render.json`` document, and whether the asset validated."""
+
+    report: dict[str, Any]
+    fit_rows: list[FitRow] = field(default_factory=list)
+    render_doc: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def valid(self) -> bool:
+        return bool(self.report["valid"])
+
+
+def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
+              prepare: bool, paint: bool, options: RenderOptions, ocio: str,
+              truth: dict[str, Any] | None = None, comparisons: bool = False,
+              progress: Progress = _quiet) -> ChainResult:
+    """ingest -> fit -> author -> (paint) -> validate -> shot -> render (-> the demo's
+    comparison renders, which reuse the render's texture-space work)."""
+    start = time.perf_counter()
+    result = ChainResult({"stages": {}, "regions": {}})
+    report = result.report
+    progress(f"ingest {captures}")
+    ingest = ingest_capture_set(captures, out / "profiles", progress=progress)
+    report["stages"]["ingest"] = {"seconds": time.perf_counter() - start}
+    fit_s = 0.0
+    for name, entry in ingest["regions"].items():
+        prof = read_profile_csv(entry["csv"])
+        fit = fit_ingested_profile(prof, k)
+        write_fit_json(out / "fits" / f"{name}.json", fit)
+        fit_s += fit.seconds
+        row: dict[str, Any] = {"ingest_seconds": entry["seconds"], "fit_seconds": fit.seconds,
+                               "fit_error": fit.error.tolist(),
+                               "fit": str(out / "fits" / f"{name}.json")}
+        vs = None
+        if truth and name in truth:
+            err = truth[name].profile_error(prof.radius_mm, fit.evaluate(prof.radius_mm))
+            row["error_vs_truth"] = err.tolist()
+            vs = float(err.max())
+        report["regions"][name] = row
+        result.fit_rows.append(FitRow(name, len(fit.variances_mm2), float(fit.error.max()), vs,
+                                      fit.seconds))
+        progress(f"fit {name}: eq. 2c error {fit.error.max():.2e}")
+    report["stages"]["fit"] = {"seconds": fit_s}
+    t0 = time.perf_counter()
+    progress(f"author {out / 'asset'}")
+    paths = author_from_files([out / "fits"], mesh, out / "asset", landmarks=landmarks,
+                              profiles_dir=out / "profiles", prepare=prepare,
+                              progress=progress)
+    report["stages"]["author"] = {"seconds": time.perf_counter() - t0, "asset": str(paths.asset)}
+    if paint:
+        t0 = time.perf_counter()
+        texture = bake_sample_albedo(paths.asset, options.texture_size, progress=progress)
+        report["stages"]["paint_albedo"] = {"seconds": time.perf_counter() - t0,
+                                            "texture": str(texture)}
+    t0 = time.perf_counter()
+    check = validate_file(paths.asset)
+    report["stages"]["validate"] = {"seconds": time.perf_counter() - t0,
+                                    "problems": [p.message for p in check.problems]}
+    scene = author_shot(paths.asset, out / "scene.usda")
+    t0 = time.perf_counter()
+    renderer = Renderer(open_stage_guarded(scene), options, progress)
+    try:
+        doc = render_files(scene, out / "render", options, None, ocio, "Face",
+                           progress=progress, renderer=renderer)
+        result.render_doc = doc
+        report["stages"]["render"] = {"seconds": time.perf_counter() - t0,
+                                      "tasks": doc["frames"][0]["tasks"],
+                                      "render_json": str(out / "render" / "render.json")}
+        if comparisons:
+            t0 = time.perf_counter()
+            report["comparisons"] = demo_comparisons(renderer, out / "render", ocio)
+            report["stages"]["comparisons"] = {"seconds": time.perf_counter() - t0}
+    finally:
+        renderer.close()
+    report["valid"] = not check.problems
+    report["total_seconds"] = time.perf_counter() - start
+    return result
+
+
+def side_by_side(left: Path, right: Path, out: Path, labels: tuple[str, str]) -> Path:
+    """Two display PNGs next to each other over a grey backdrop, labelled if OIIO can
+    find a font."""
+    tiles = []
+    for path, label in zip((left, right), labels, strict=True):
+        buf = oiio.ImageBuf(str(path))
+        px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
+        if buf.has_error or px.ndim != 3 or px.shape[2] < 4:
+            raise InputError(f"cannot read {path}: {buf.geterror()}", path)
+        rgb, a = px[..., :3], px[..., 3:4]
+        tile = oiio.ImageBuf(oiio.ImageSpec(px.shape[1], px.shape[0], 3, "float"))
+        tile.set_pixels(oiio.ROI(), np.ascontiguousarray(rgb * a + 0.18 * (1 - a)))
+        oiio.ImageBufAlgo.render_text(tile, 12, 28, label, 22, "", [1.0, 1.0, 1.0])
+        tiles.append(np.asarray(tile.get_pixels(oiio.FLOAT)))
+    return write_ldr(out, np.concatenate(tiles, axis=1), 8)
+
+
+def demo_comparisons(renderer: Renderer, out: Path, ocio: str) -> dict[str, Any]:
+    """The paper's figure 7 (texture-mapped only vs with scattering) and per-region vs one
+    profile, rendered with ``renderer`` (which has rendered the scene with scattering and
+    per-region profiles), so only diffusion and shading run again."""
+    base = replace(renderer.options, aovs=("beauty",), scattering=True, single_profile=None)
+    result: dict[str, Any] = {}
+    pngs = {"scattering": out / "Face.png"}
+    for label, opts in (("texture_only", {"scattering": False}),
+                        ("one_profile", {"single_profile": "mean"})):
+        renderer.options = replace(base, **opts)
+        t0 = time.perf_counter()
+        images, log = renderer.render()
+        written = write_outputs(out, f"Face_{label}", images,
+                                renderer.delegate.working_colorspace, ocio)
+        pngs[label] = Path(written["png"])
+        result[label] = {"seconds": time.perf_counter() - t0, "cached": log.cached,
+                         "png": written["png"]}
+    result["figure7"] = str(side_by_side(pngs["texture_only"], pngs["scattering"],
+                                         out / "figure7_texture_vs_scattering.png",
+                                         ("texture-mapped only", "with scattering")))
+    result["regions_vs_one"] = str(side_by_side(pngs["scattering"], pngs["one_profile"],
+                                                out / "per_region_vs_one_profile.png",
+                                                ("six regional profiles", "one mean profile")))
+    return result
