@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -65,8 +66,6 @@ def atomic_directory(target: str | Path) -> Iterator[Path]:
     process leaves only a ``.name.tmp-*`` sibling, which no reader trusts. An existing
     ``target`` is moved aside first and removed after the new one is in place.
     """
-    import shutil
-
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))

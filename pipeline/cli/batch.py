@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
-from ..render.opencl import DEVICE_ENV, DEVICE_HELP
+from ..render.options import DEVICE_ENV, DEVICE_HELP
 from .common import _eprint
 
 

@@ -40,7 +40,7 @@ def _aovs(text: str) -> tuple[str, ...]:
 
 def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024",
                        texture_size: int = 1024) -> None:
-    from ..render.renderer import AOVS, BLURS, SHADOW_SAMPLING
+    from ..render.options import AOVS, BLURS, SHADOW_SAMPLING
 
     p.add_argument("--camera", default=None, metavar="PRIM",
                    help="UsdGeomCamera prim path (default: the first camera on the stage)")
@@ -81,13 +81,13 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
 
 
 def add_device_option(p: argparse.ArgumentParser) -> None:
-    from ..render.opencl import DEVICE_HELP
+    from ..render.options import DEVICE_HELP
 
     p.add_argument("--device", default=None, metavar="SPEC", help=DEVICE_HELP)
 
 
 def render_options(args: argparse.Namespace) -> Any:
-    from ..render.renderer import RenderOptions
+    from ..render.options import RenderOptions
 
     return RenderOptions(
         resolution=args.resolution, texture_size=args.texture_size, aovs=args.aovs,

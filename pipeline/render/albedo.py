@@ -16,9 +16,16 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pxr import Sdf, Usd, UsdShade
 
 from ..errors import InputError
-from .texture_maps import TextureMaps
+from ..imageio import write_exr
+from ..usd.io import export_layer_atomic
+from ..usd.schema import WORKING_COLORSPACE
+from .push_pull import push_pull
+from .renderer import ensure_skin_uvs
+from .texture_maps import TextureMaps, rasterize
+from .unwrap import triangulate
 
 # Linear ACEScg tones; about sRGB (225, 170, 145) for the face, redder lips and nose.
 REGION_TONES: dict[str, tuple[float, float, float]] = {
@@ -73,7 +80,7 @@ def place_spots(maps: TextureMaps, region_names: tuple[str, ...],
 def paint_skin_albedo(maps: TextureMaps, region_names: tuple[str, ...],
                       meters_per_unit: float, seed: int = 7) -> NDArray[np.float32]:
     """The albedo map (S, S, 3) in linear ACEScg for ``maps``' layout."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
     covered = maps.triangle >= 0
     out = np.zeros((*covered.shape, 3), np.float32)
@@ -103,11 +110,6 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path) -> str:
     """Bind ``texture`` (an ACEScg EXR beside the look layer) to the mesh's material's
     diffuseColor through a UsdUVTexture reading ``st``; saves the material's layer
     atomically and returns its path."""
-    from pxr import Sdf, Usd, UsdShade
-
-    from ..usd.io import export_layer_atomic
-    from ..usd.schema import WORKING_COLORSPACE
-
     prim = stage.GetPrimAtPath(mesh_path)
     material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
     if not material:
@@ -145,13 +147,6 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
                        progress: Any = None) -> Path:
     """Paint the sample albedo for the first skin mesh of ``asset`` (unwrapping it first
     when it has no usable UVs) and bind it; returns the texture's path."""
-    from ..imageio import write_exr
-    from ..usd.schema import WORKING_COLORSPACE
-    from .push_pull import push_pull
-    from .renderer import ensure_skin_uvs
-    from .texture_maps import rasterize
-    from .unwrap import triangulate
-
     stage, scene, mesh, uv, uv_tris, _ = ensure_skin_uvs(asset, progress)
     maps = rasterize(mesh.mesh.points, triangulate(mesh.mesh), uv, uv_tris, size,
                      scene.meters_per_unit, mesh.region_weights)

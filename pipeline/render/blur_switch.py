@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import pyopencl as cl
 
 from .. import __version__
 from ..errors import InputError
@@ -98,8 +99,6 @@ def _sigma_for_radius(radius: int) -> float:
 
 def measure_direct_limits(size: int = TUNE_SIZE) -> DirectLimits:
     """Time the direct and recursive blurs on this device and return where they meet."""
-    import pyopencl as cl
-
     start = time.perf_counter()
     ctx, queue = cl_context()
     rng = np.random.default_rng(0)

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
+import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
@@ -39,6 +40,7 @@ from .opencl import (
     host_output,
     read_output,
 )
+from .recursive_blur import QUANT_STEPS_PER_OCTAVE, TABLE_MIN_SIGMA, iir_kernels, quantized_log2
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -143,8 +145,6 @@ class OpenCLBlur(DeviceTexture):
     """
 
     def __init__(self, coverage: NDArray[Any]) -> None:
-        import pyopencl as cl
-
         super().__init__(*coverage.shape)
         _, _, program = _cl_state()
         self.kernel = Kernel(program, "blur_axis")
@@ -156,8 +156,6 @@ class OpenCLBlur(DeviceTexture):
 
     def blur_in_place(self, sigma_u: NDArray[Any], sigma_v: NDArray[Any]) -> None:
         """Blur the device texture by the given per-texel sigmas (texels), u then v."""
-        import pyopencl as cl
-
         for buf, sig in ((self.sigma_u, sigma_u), (self.sigma_v, sigma_v)):
             s = np.asarray(sig, dtype=np.float64)
             param = np.where(s >= MIN_SIGMA_TEXELS, kernel_parameter(s), s)
@@ -510,8 +508,6 @@ class DiffusionLayout:
 
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None) -> None:
-        from .recursive_blur import iir_kernels
-
         cov = np.asarray(coverage, dtype=np.float32)
         if cov.ndim != 2:
             raise InputError(f"coverage must be (H, W), got {cov.shape}")
@@ -562,8 +558,6 @@ class DiffusionLayout:
     def _level_steps(self, k: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         """Level ``k``'s texel sizes (u, v) on the log2 grid, in finest texels (a
         level-k texel's size is the mean of the finer texels it covers)."""
-        from .recursive_blur import quantized_log2
-
         if k not in self._steps:  # kept until both kinds of index are made from them
             mm_k = self._mm
             for _ in range(k):
@@ -575,8 +569,6 @@ class DiffusionLayout:
         """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
         (int32, row layout), v index buffer (transposed)) of level ``k``'s texel sizes
         on the log2 grid, for the recursive blur; made on first use."""
-        import pyopencl as cl
-
         if k not in self._index:
             qu, qv = self._level_steps(k)
             flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
@@ -597,8 +589,6 @@ class DiffusionLayout:
     def texel_steps(self, k: int) -> TexelSteps | None:
         """Level ``k``'s :class:`TexelSteps` for the per-texel direct blur, made on first
         use; None when the steps span more than a uint16 holds."""
-        import pyopencl as cl
-
         if k not in self._texel_index:
             qu, qv = self._level_steps(k)
             steps, indices, smaller = [], [], 0
@@ -648,8 +638,6 @@ def _blur_job(layout: DiffusionLayout, src: Any, tmp: Any, dst: Any, variance: f
     into ``dst``: sigma per axis less what the pyramid and its bilinear read add; the
     direct kernel for narrow uniform blurs, else the recursive one (per texel where
     the layout's texel sizes vary)."""
-    from .recursive_blur import QUANT_STEPS_PER_OCTAVE
-
     iir = layout.iir
     lh, lw = layout.shapes[k]
     sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2 if k else 0.0),
@@ -725,10 +713,6 @@ def diffuse_prepared(
     texel are skipped; one narrower than a quarter texel everywhere is the unblurred
     irradiance.
     """
-    import pyopencl as cl
-
-    from .recursive_blur import TABLE_MIN_SIGMA
-
     h, w = layout.height, layout.width
     e = _check_irradiance(irradiance)
     if e.shape[:2] != (h, w):

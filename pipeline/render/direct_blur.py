@@ -28,6 +28,7 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
+import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
@@ -403,8 +404,6 @@ class DirectKernels:
 
     def _run(self, ru: int, rv: int, per_texel: bool, src: Any, dst: Any, height: int,
              width: int, *weights: Any) -> None:
-        import pyopencl as cl
-
         if src is dst:
             raise InputError("direct blur: source and destination must differ")
         b = band_columns(rv)
@@ -434,8 +433,6 @@ class DirectKernels:
         index buffers uint16 in row layout; tables from :func:`fir_weight_table`). The
         tables are padded with zero weights to the :func:`built_radius` of the wider
         one, which both axes then use (at most :data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
-        import pyopencl as cl
-
         r = built_radius(max(table_u.shape[1], table_v.shape[1]) - 1)
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         bufs = []
@@ -449,8 +446,6 @@ class DirectKernels:
 
 @device_cache(maxsize=256)
 def _weights_buffer(sigma: float) -> tuple[int, Any]:
-    import pyopencl as cl
-
     taps = fir_weights(sigma)
     w = np.zeros(built_radius(taps.size - 1) + 1, np.float32)
     w[:taps.size] = taps

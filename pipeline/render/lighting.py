@@ -12,21 +12,23 @@ from __future__ import annotations
 
 import math
 import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
+import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .opencl import Kernel, device_cache
+from .opencl import Kernel, build, cl_context, device_buffer, device_cache
+from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS
 from .raytrace import RayScene, morton_order
 from .scene import Light
 
 SKIN_IOR = 1.4
-DEFAULT_ROUGHNESS = 0.35
-DEFAULT_RHO_S = 0.25
 
 
 def fresnel_schlick(cos_theta: NDArray[Any], ior: float = SKIN_IOR) -> NDArray[np.float64]:
@@ -317,8 +319,6 @@ _SAMPLE_LOCK = threading.Lock()
 @device_cache(maxsize=8)
 def _sample_kernel(kind: str, count: int, interleaved: bool) -> Any:
 
-    from .opencl import build
-
     options = [f"-DKIND={1 if kind == 'sphere' else 2}", f"-DCOUNT={count}",
                f"-DINTERLEAVED={int(interleaved)}"]
     return Kernel(build(_SAMPLE_KERNEL, options), "sample_entering")
@@ -391,8 +391,6 @@ class LightSampler:
         """The device buffers :meth:`entering_sample` reads, uploaded once per sampler;
         the origins and normals once into ``points``, which samplers of the same points
         share."""
-        from .opencl import device_buffer
-
         def buf(a: Any, dtype: Any = np.float32) -> Any:
             return device_buffer(np.asarray(a, dtype))
 
@@ -421,10 +419,6 @@ class LightSampler:
             enters = 1 - specular_albedo(np.einsum("ij,ij->i", self.normals, d),
                                          self.roughness, self.rho_s)
             return d, dist, w * (enters if w.ndim == 1 else enters[:, None])
-        import pyopencl as cl
-
-        from .opencl import cl_context
-
         _, queue = cl_context()
         dev, n = self.device, self.origins.shape[0]
         d = np.empty((n, 3), np.float32)
@@ -523,8 +517,6 @@ go in further launches."""
 @device_cache(maxsize=MAX_FILTER_LIGHTS)
 def _interleave_kernel(lights: int) -> Any:
 
-    from .opencl import build
-
     program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}"])
     return Kernel(program, "filter_interleaved")
 
@@ -538,10 +530,6 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
     traced rays towards that light) and their normal (H, W, 3) is within acos(min_cos)
     of the texel's, so that a crease or a chart that happens to touch does not bleed.
     OpenCL, one work-item per texel."""
-    import pyopencl as cl
-
-    from .opencl import cl_context
-
     vis = np.ascontiguousarray(visibility, dtype=np.float32)
     if vis.ndim != 3 or np.shape(traced) != vis.shape or \
             np.shape(normal) != (*vis.shape[1:], 3):
@@ -603,9 +591,6 @@ def irradiance_texture(
     diagonal (against self-shadowing acne) and sorted along a Morton curve; rays whose
     cosine is <= 0 are not cast.
     """
-    import time
-    from concurrent.futures import ThreadPoolExecutor
-
     start = time.perf_counter()
     pos = np.asarray(positions, dtype=np.float32)
     nrm = np.asarray(normals, dtype=np.float32)

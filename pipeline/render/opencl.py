@@ -17,10 +17,12 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
+import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
 from .opencl_runtimes import SETUP, _cache_root
+from .options import DEVICE_ENV
 
 STREAM_MIN_BYTES = 16 << 20
 """Blurs of images this large write their output with streaming (non-temporal) stores:
@@ -41,11 +43,6 @@ STORE_MACRO = r"""
 """
 
 
-DEVICE_ENV = "SKINPIPE_OPENCL_DEVICE"
-"""Environment variable naming the OpenCL device (same values as ``--device``)."""
-DEVICE_HELP = ("OpenCL device: auto (CPU runtimes first: PoCL, then Intel's, then GPUs), "
-               "cpu, gpu (a GPU first), or part of 'platform: device' (e.g. pocl, intel, "
-               f"nvidia); default ${DEVICE_ENV} or auto")
 MIN_LOCAL_MEM_BYTES = 64 << 10
 """Local memory a device needs: the direct blur's ring (20 KiB) and the recursive blur's
 lines (64 B a texel of a line: 1024-texel lines at 64 KiB)."""
@@ -109,8 +106,6 @@ class DeviceChoice:
 def candidates() -> list[tuple[Candidate, Any]]:
     """Every device of every platform, with its pyopencl object; ``[]`` when the loader
     has no platform at all."""
-    import pyopencl as cl
-
     try:
         platforms = cl.get_platforms()
     except cl.Error:  # ocl-icd raises PLATFORM_NOT_FOUND_KHR with no ICD
@@ -180,8 +175,6 @@ def probe(device: Any, nt_store: bool = True) -> str | None:
     """None if ``device`` builds and runs the probe kernel right (local memory, a barrier,
     atomics, ``USE_HOST_PTR`` buffers, and with ``nt_store`` the streaming-store builtin),
     else why not (one line)."""
-    import pyopencl as cl
-
     try:
         if int(device.local_mem_size) < MIN_LOCAL_MEM_BYTES:
             return (f"local memory {int(device.local_mem_size) >> 10} KiB < "
@@ -295,8 +288,6 @@ def device_choice() -> DeviceChoice:
 @device_cache()
 def cl_context() -> tuple[Any, Any]:
     """(context, in-order queue) on the chosen device, made once per device."""
-    import pyopencl as cl
-
     ctx = cl.Context([device_choice().device])
     return ctx, cl.CommandQueue(ctx)
 
@@ -331,8 +322,6 @@ LEDGER = KernelLedger()
 def build(source: str, options: list[str] | None = None) -> Any:
     """A program for the shared context (callers cache what they build), from the disk
     cache when it was built before; ``NT_STORE`` says whether streaming stores work."""
-    import pyopencl as cl
-
     ctx, _ = cl_context()
     opts = [*(options or []), f"-DNT_STORE={int(device_choice().nontemporal_stores)}"]
     start = time.perf_counter()
@@ -352,8 +341,6 @@ class Kernel:
     __slots__ = ("_kernel", "name")
 
     def __init__(self, program: Any, name: str) -> None:
-        import pyopencl as cl
-
         self._kernel = cl.Kernel(program, name)
         self.name = name
 
@@ -382,8 +369,6 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
     buffer; callers finish their queue before they drop a buffer, as every caller here
     does, since the memory goes with the buffer's last reference.
     """
-    import pyopencl as cl
-
     ctx, _ = cl_context()
     flags = cl.mem_flags.READ_WRITE
     data = None if isinstance(size_or_contents, int) else \
@@ -407,8 +392,6 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
 def _over_host(array: NDArray[Any], access: Any) -> Any:
     """A buffer over ``array``'s memory on a CPU device (``USE_HOST_PTR``), else a copy of
     it; an empty array gets a one-element buffer (OpenCL has no empty buffers)."""
-    import pyopencl as cl
-
     ctx, _ = cl_context()
     data = array if array.size else np.zeros(1, array.dtype)
     how = cl.mem_flags.USE_HOST_PTR if _host_memory_device() else cl.mem_flags.COPY_HOST_PTR
@@ -420,8 +403,6 @@ def host_buffer(array: NDArray[Any]) -> Any:
     array's own memory (no second copy of, say, 100 MB of region weights; pyopencl
     keeps the array alive as long as the buffer, and nothing may write to it
     meanwhile), elsewhere a copy."""
-    import pyopencl as cl
-
     return _over_host(np.ascontiguousarray(array), cl.mem_flags.READ_ONLY)
 
 
@@ -429,8 +410,6 @@ def host_output(array: NDArray[Any]) -> Any:
     """A device buffer holding ``array``'s values that kernels write the array's new
     contents into: on a CPU device the array's own memory (no copy either way;
     :func:`read_output` makes the array current), elsewhere a copy."""
-    import pyopencl as cl
-
     if not array.flags.c_contiguous:
         raise InputError("host_output: the array must be C-contiguous")
     return _over_host(array, cl.mem_flags.READ_WRITE)
@@ -439,8 +418,6 @@ def host_output(array: NDArray[Any]) -> Any:
 def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:
     """Bring ``array`` up to date with the :func:`host_output` buffer over it: a map and
     unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue)."""
-    import pyopencl as cl
-
     if _host_memory_device():
         mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
                                           array.dtype)
@@ -462,16 +439,12 @@ class DeviceTexture:
         self.buf_b = device_buffer(height * width * 16)
 
     def upload(self, image: NDArray[Any]) -> None:
-        import pyopencl as cl
-
         rgba = np.ascontiguousarray(image, dtype=np.float32)
         if rgba.shape != (self.height, self.width, 4):
             raise InputError(f"texture must be ({self.height}, {self.width}, 4), got {rgba.shape}")
         cl.enqueue_copy(self.queue, self.buf_a, rgba)
 
     def download(self) -> NDArray[np.float32]:
-        import pyopencl as cl
-
         out = np.empty((self.height, self.width, 4), dtype=np.float32)
         cl.enqueue_copy(self.queue, out, self.buf_a)
         return out

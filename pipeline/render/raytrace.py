@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from embreex import rtcore_scene as rtcs
+from embreex.mesh_construction import TriangleMesh
 from numpy.typing import NDArray
 
 from ..errors import InputError
@@ -97,9 +99,6 @@ class RayScene:
 
     def __init__(self, meshes: list[tuple[NDArray[Any], NDArray[Any]]],
                  threads: int | None = None) -> None:
-        from embreex import rtcore_scene as rtcs
-        from embreex.mesh_construction import TriangleMesh
-
         tri_points, owners = [], []
         for m, (points, tris) in enumerate(meshes):
             pts = np.asarray(points, dtype=np.float64)

@@ -24,6 +24,7 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
+import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
@@ -261,8 +262,6 @@ class IIRKernels:
 
     def coefficients(self, sigma: NDArray[Any]) -> Any:
         """Device buffer of the section coefficients (N, 12) for sigmas (N,) in texels."""
-        import pyopencl as cl
-
         co = _coefficients_at(np.atleast_1d(np.asarray(sigma, np.float64))).astype(np.float32)
         return cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                          hostbuf=np.ascontiguousarray(co))
@@ -271,8 +270,6 @@ class IIRKernels:
                  index: Any = None) -> None:
         """Enqueue one pass over ``lines`` rows of ``n`` float4 texels of ``src`` into
         ``dst``, transposed."""
-        import pyopencl as cl
-
         if n > self.max_line:
             raise InputError(f"recursive blur: lines of {n} texels exceed this device's "
                              f"local memory ({self.max_line} at most)")
@@ -312,8 +309,6 @@ class RecursiveBlur(DeviceTexture):
 
     def _pass(self, sigma: Any, transposed: bool) -> tuple[Any, Any]:
         """(coefficient buffer, index buffer or None) for a scalar sigma or a map."""
-        import pyopencl as cl
-
         if np.ndim(sigma) == 0:
             return self.iir.coefficients(float(sigma)), None
         s = np.asarray(sigma, np.float64)

@@ -20,15 +20,26 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+import PyOpenColorIO as OCIO
 from numpy.typing import NDArray
+from pxr import Sdf, Usd, UsdGeom, Vt
 
 from ..errors import InputError, SkinpipeError
+from ..fileio import atomic_write_json
+from ..imageio import (
+    check_colorspace,
+    convert_colorspace,
+    ocio_config,
+    read_image,
+    write_exr,
+    write_ldr,
+)
+from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
+from ..usd.io import export_layer_atomic, open_stage_guarded
 from .blur_switch import direct_limits
 from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
 from .lighting import (
-    DEFAULT_RHO_S,
-    DEFAULT_ROUGHNESS,
     IrradianceResult,
     filter_interleaved,
     irradiance_texture,
@@ -37,68 +48,15 @@ from .lighting import (
     torrance_sparrow,
 )
 from .opencl import LEDGER, KernelLedger, device_choice, set_device
+from .options import AOVS, RenderOptions
 from .push_pull import push_pull
 from .raytrace import RayScene
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, vertex_normals
 from .unwrap import triangulate, unwrap
 
-AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
-BLURS = ("recursive", "gather")
-SHADOW_SAMPLING = ("interleaved", "full")
 MERGE_RELATIVE = 1e-3
 """Variances closer than this (relative) share one blur."""
-
-
-@dataclass(frozen=True)
-class RenderOptions:
-    """Everything a render depends on besides the stage."""
-
-    resolution: tuple[int, int] = (1024, 1024)
-    texture_size: int = 1024
-    aovs: tuple[str, ...] = AOVS
-    light_samples: int = 16
-    shadow_sampling: str = "interleaved"
-    """'interleaved': each texel traces a quarter of the light samples and borrows the
-    rest from its 3 x 3 neighbours; 'full': every texel traces all of them."""
-    roughness: float = DEFAULT_ROUGHNESS
-    rho_s: float = DEFAULT_RHO_S
-    albedo_split: float = 0.5
-    """Exponent of the albedo applied before scattering (0.5: sqrt before and after)."""
-    variance_grid: int = 12
-    """0: every region's own variances (merged where equal); N > 0: all regions
-    re-expressed on N shared variances (fewer blurs; the error is reported)."""
-    scattering: bool = True
-    blur: str = "recursive"
-    """'recursive': Deriche IIR on a pyramid (cost independent of width); 'gather': the
-    first per-tap kernel (cost grows with width), kept to compare against."""
-    single_profile: str | None = None
-    """None: each region its own profile; 'mean' or a region name: one for the face."""
-    camera: str | None = None
-    write_uvs: bool = True
-    seed: int = 0
-    device: str | None = None
-    """OpenCL device (:data:`~.opencl.DEVICE_HELP`); None: ``$SKINPIPE_OPENCL_DEVICE``,
-    else auto."""
-
-    def __post_init__(self) -> None:
-        w, h = self.resolution
-        if not (1 <= w <= 16384 and 1 <= h <= 16384):
-            raise InputError(f"resolution must be 1-16384 on each side, got {w}x{h}")
-        bad = [a for a in self.aovs if a not in AOVS]
-        if bad or not self.aovs:
-            raise InputError(f"unknown AOV(s) {bad}; choose from {', '.join(AOVS)}")
-        if not 1 <= self.light_samples <= 1024:
-            raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
-        if not 0.0 <= self.albedo_split <= 1.0:
-            raise InputError(f"albedo split must be in [0, 1], got {self.albedo_split}")
-        if self.shadow_sampling not in SHADOW_SAMPLING:
-            raise InputError(f"unknown shadow sampling {self.shadow_sampling!r}; choose from "
-                             f"{', '.join(SHADOW_SAMPLING)}")
-        if self.blur not in BLURS:
-            raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
-        if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
-            raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")
 
 
 # ------------------------------------------------------------------------ profiles
@@ -132,9 +90,7 @@ def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0
     then renormalises the weights to sum to 1. ``single`` = 'mean' or a region name
     gives every region the same profile (the paper's comparison with one profile).
     """
-    from scipy.optimize import nnls
-
-    from ..profile.models import fit_error_eq2c, sum_of_gaussians
+    from scipy.optimize import nnls  # lazy: 0.50 s to import
 
     fits = list(fits)
     notes: list[str] = []
@@ -257,10 +213,6 @@ def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: ND
                    ) -> str | None:
     """Author faceVarying indexed ``st`` in the layer that holds the mesh's points and save
     it atomically; returns the layer path, or None when it cannot be done safely."""
-    from pxr import Sdf, Usd, UsdGeom, Vt
-
-    from ..usd.io import export_layer_atomic
-
     if mesh.points_layer is None:
         return None
     layer = Sdf.Layer.FindOrOpen(mesh.points_layer)
@@ -307,9 +259,6 @@ class SkinUVs(NamedTuple):
 def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) -> SkinUVs:
     """The first skin mesh of ``asset`` with usable UVs: xatlas and written back into the
     asset's layer when it has none."""
-    from ..usd.io import open_stage_guarded
-    from .scene import SceneDelegate
-
     stage = open_stage_guarded(asset)
     delegate = SceneDelegate(stage)
     try:
@@ -333,8 +282,6 @@ def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) 
 def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:
     """The albedo in texture space (S, S, 3), linear in the working space, and what it
     came from."""
-    from ..imageio import convert_colorspace, read_image
-
     albedo = mesh.albedo
     if albedo.texture is None:
         return np.broadcast_to(np.asarray(albedo.constant, np.float32),
@@ -582,8 +529,6 @@ class Renderer:
     # ---- per frame
     def render(self, time_code: Any = None) -> tuple[dict[str, NDArray[np.float32]], TaskLog]:
         """One frame: AOV images (H, W, 4 for beauty with alpha; H, W, 3 otherwise)."""
-        from ..imageio import read_image
-
         log = TaskLog()
         t0 = time.perf_counter()
         scene = self.delegate.sync(time_code)
@@ -724,10 +669,6 @@ def scene_geometry_key(scene: SceneData) -> str:
 def display_image(beauty: NDArray[Any], working: str, config_source: str
                   ) -> tuple[NDArray[np.float32], dict[str, str]]:
     """Display-referred pixels through the config's default display and view."""
-    import PyOpenColorIO as OCIO
-
-    from ..imageio import check_colorspace, ocio_config
-
     config = ocio_config(config_source)
     src = check_colorspace(working, config_source)
     display = config.getDefaultDisplay()
@@ -743,8 +684,6 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
 def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32]],
                   working: str, config_source: str) -> dict[str, Any]:
     """OUT/<name>.exr (one layer per AOV, colour space in the header) and OUT/<name>.png."""
-    from ..imageio import write_exr, write_ldr
-
     channels, names = [], []
     for aov, img in images.items():
         chans = ("R", "G", "B", "A") if img.shape[2] == 4 else ("R", "G", "B")
@@ -772,10 +711,6 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
     ``render.json``: per frame, each task's seconds, what was cached or skipped, and the
     error measures. A ``renderer`` passed in is used (and left open) so that its caches
     serve later renders of the same stage."""
-    from ..fileio import atomic_write_json
-    from ..imageio import check_colorspace
-    from ..usd.io import open_stage_guarded
-
     start = time.perf_counter()
     scene_path = Path(scene_path)
     check_colorspace("lin_ap1_scene", ocio)

@@ -19,9 +19,11 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pxr import Tf, Usd, UsdGeom, UsdLux, UsdShade
 
 from ..errors import InputError
 from ..profile.types import FitResult
+from ..usd.author import read_profiles
 from ..usd.mesh import MeshData, validate_mesh
 from ..usd.schema import PROFILES_REL, REGION_INDEX_PRIMVAR, REGION_WEIGHTS_PRIMVAR, REGIONS_API
 
@@ -151,14 +153,10 @@ class SceneData:
 
 
 def _world_matrix(prim: Any, time: Any) -> NDArray[np.float64]:
-    from pxr import UsdGeom
-
     return np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
 
 
 def _read_light(prim: Any, kind: str, time: Any) -> Light:
-    from pxr import UsdLux
-
     api = UsdLux.LightAPI(prim)
     intensity = float(api.GetIntensityAttr().Get(time) or 0.0)
     exposure = float(api.GetExposureAttr().Get(time) or 0.0)
@@ -190,8 +188,6 @@ def _read_light(prim: Any, kind: str, time: Any) -> Light:
 
 
 def _read_camera(prim: Any, time: Any) -> Camera:
-    from pxr import UsdGeom
-
     cam = UsdGeom.Camera(prim)
     if cam.GetProjectionAttr().Get(time) != UsdGeom.Tokens.perspective:
         raise InputError(f"camera {prim.GetPath()}: only perspective projection is supported")
@@ -207,8 +203,6 @@ def _read_camera(prim: Any, time: Any) -> Camera:
 
 
 def _read_albedo(prim: Any, time: Any) -> Albedo:
-    from pxr import UsdShade
-
     material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
     if not material:
         return Albedo((0.5, 0.5, 0.5))
@@ -234,8 +228,6 @@ def _read_albedo(prim: Any, time: Any) -> Albedo:
 
 
 def _read_fits(prim: Any, names: list[str]) -> tuple[FitResult, ...]:
-    from ..usd.author import read_profiles
-
     stage = prim.GetStage()
     targets = prim.GetRelationship(PROFILES_REL).GetTargets()
     by_path = read_profiles(stage)
@@ -251,8 +243,6 @@ def _read_fits(prim: Any, names: list[str]) -> tuple[FitResult, ...]:
 
 
 def _read_mesh(prim: Any, time: Any, mpu: float) -> SceneMesh:
-    from pxr import UsdGeom
-
     mesh = UsdGeom.Mesh(prim)
     pts = mesh.GetPointsAttr().Get(time)
     counts = mesh.GetFaceVertexCountsAttr().Get(time)
@@ -326,8 +316,6 @@ class SceneDelegate:
     """Reads a stage into :class:`SceneData` and tracks edits through USD notices."""
 
     def __init__(self, stage: Any, camera_path: str | None = None) -> None:
-        from pxr import Tf, Usd, UsdGeom
-
         self.stage = stage
         self.camera_path = camera_path
         self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(stage))
@@ -362,8 +350,6 @@ class SceneDelegate:
             self._dirty |= self._classify(path)
 
     def _time_varying(self) -> set[str]:
-        from pxr import UsdGeom
-
         out: set[str] = set()
         for prim in self.stage.Traverse():
             cats = self._classify(prim.GetPath())
@@ -379,8 +365,6 @@ class SceneDelegate:
         return out
 
     def _below(self, prim: Any) -> set[str]:
-        from pxr import Usd
-
         out: set[str] = set()
         for p in Usd.PrimRange(prim):
             if p != prim:
@@ -391,8 +375,6 @@ class SceneDelegate:
 
     def sync(self, time: Any = None) -> SceneData:
         """Re-read what changed (notices) or what may vary at a new ``time``."""
-        from pxr import Usd, UsdGeom
-
         t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
         dirty = set(self._dirty)
         if self._time is not None and t != self._time:
@@ -419,8 +401,6 @@ class SceneDelegate:
                          self.meters_per_unit, self.working_colorspace, dirty)
 
     def _find_camera(self, t: Any) -> Camera | None:
-        from pxr import UsdGeom
-
         if self.camera_path:
             prim = self.stage.GetPrimAtPath(self.camera_path)
             if not prim or not prim.IsA(UsdGeom.Camera):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import queue as queue_mod
 import tempfile
 import time
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ from queue import Empty
 from typing import Any
 
 import numpy as np
+import xatlas
 from numpy.typing import NDArray
 
 from ..errors import InputError, SkinpipeError
@@ -50,8 +52,6 @@ def triangulate(mesh: MeshData) -> NDArray[np.int32]:
 
 
 def _run_xatlas(npz: str, chart_area: float, resolution: int, padding: int, queue: Any) -> None:
-    import xatlas
-
     with np.load(npz) as data:
         points, tris = data["points"], data["tris"]
     atlas = xatlas.Atlas()
@@ -117,8 +117,6 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
         if mp.current_process().daemon:
             # a daemonic process (a Dask worker by default) may not have children: run
             # here; a crash then takes down the worker, which its nanny restarts
-            import queue as queue_mod
-
             local: queue_mod.Queue[Any] = queue_mod.Queue()
             _run_xatlas(tmp.name, chart_area, resolution, padding, local)
             result = local.get_nowait()

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pxr import Gf, Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
 
 from ..errors import InputError
 from ..profile.types import FitResult, MeasuredProfile
@@ -35,6 +36,7 @@ from .schema import (
     REGIONS_API,
     SUBSET_FAMILY,
     WORKING_COLORSPACE,
+    require_schema,
 )
 
 DEFAULT_ALBEDO = (0.62, 0.42, 0.33)
@@ -86,7 +88,7 @@ def assign_regions_from_landmarks(
     """Soft regions from landmark points: each vertex's weight for a region falls off
     with its distance beyond the nearest region's, exp(-(d_r - d_min) / blend); each face
     takes the region with the largest mean weight over its vertices."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
     names = tuple(landmarks)
     blend = blend_mm / (mesh.meters_per_unit * 1000.0)
@@ -104,8 +106,6 @@ def assign_regions_from_landmarks(
 
 def _layer_stage(meters_per_unit: float, up_axis: str, default_prim: str,
                  layer: Any = None) -> Any:
-    from pxr import Usd, UsdGeom
-
     stage = Usd.Stage.Open(layer) if layer is not None else Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
     UsdGeom.SetStageUpAxis(stage, up_axis)
@@ -125,8 +125,6 @@ def subsurface_radius_mm(fit: FitResult) -> NDArray[np.float64]:
 
 def _author_profile(stage: Any, path: str, fit: FitResult,
                     measured: MeasuredProfile | None) -> None:
-    from pxr import Gf, Sdf, Vt
-
     prim = stage.DefinePrim(path, PROFILE_TYPE)
     # Author every value, fallbacks included: without the plugin they would vanish.
     prim.CreateAttribute("region", Sdf.ValueTypeNames.Token).Set(fit.name)
@@ -154,8 +152,6 @@ def _author_profile(stage: Any, path: str, fit: FitResult,
 
 def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: float,
                      albedo: tuple[float, float, float]) -> str:
-    from pxr import Gf, Sdf, UsdShade
-
     path = f"{root}/Looks/SkinMaterial"
     material = UsdShade.Material.Define(stage, path)
     preview = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
@@ -188,8 +184,6 @@ def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: floa
 
 
 def _author_seal(stage: Any, path: str, seal: MeshData) -> None:
-    from pxr import Gf, UsdGeom, Vt
-
     umesh = UsdGeom.Mesh.Define(stage, path)
     pts = np.asarray(seal.points, dtype=np.float32)
     umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
@@ -218,10 +212,6 @@ def author_asset(
 
     ``seal`` (from :func:`pipeline.usd.mesh.seal_scan`) becomes ``Geom/Seal``: geometry the
     scanner never saw, there to stop light, without skin profiles or texture space."""
-    from pxr import Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
-
-    from .schema import require_schema
-
     require_schema()
     start = time.perf_counter()
     if not name.isidentifier():
@@ -312,8 +302,6 @@ def author_asset(
 
 def read_profiles(stage: Any) -> dict[str, tuple[FitResult, MeasuredProfile | None]]:
     """Every SkinDiffusionProfile on the stage as (fit, measured samples), by prim path."""
-    from pxr import Usd
-
     out = {}
     for prim in Usd.PrimRange(stage.GetPseudoRoot()):
         if prim.GetTypeName() != PROFILE_TYPE:

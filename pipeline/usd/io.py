@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pxr import Tf, Usd
 
 from ..errors import InputError
 from ..fileio import atomic_path
@@ -55,8 +56,6 @@ def check_usd_file(path: str | Path) -> Path:
 
 def open_stage_guarded(path: str | Path) -> Any:
     """Open a stage read-only after :func:`check_usd_file`; InputError if USD refuses it."""
-    from pxr import Tf, Usd
-
     path = check_usd_file(path)
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)

@@ -12,9 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pymeshlab
 from numpy.typing import NDArray
+from pxr import Usd, UsdGeom
 
 from ..errors import InputError
+from .io import open_stage_guarded
 
 MAX_COORDINATE = 1e7  # in scene units; beyond this a mesh is treated as corrupt
 
@@ -96,8 +99,6 @@ def load_mesh(path: str | Path, meters_per_unit: float | None = None,
 
 
 def _load_meshlab(path: Path, meters_per_unit: float) -> MeshData:
-    import pymeshlab
-
     ms = pymeshlab.MeshSet()
     try:
         ms.load_new_mesh(str(path))
@@ -113,10 +114,6 @@ def _load_meshlab(path: Path, meters_per_unit: float) -> MeshData:
 
 
 def _load_usd_mesh(path: Path, prim_path: str | None, meters_per_unit: float | None) -> MeshData:
-    from pxr import Usd, UsdGeom
-
-    from .io import open_stage_guarded
-
     stage = open_stage_guarded(path)
     if prim_path:
         prim = stage.GetPrimAtPath(prim_path)
@@ -153,8 +150,6 @@ def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int 
     every piece but the largest, close the holes inside the scan (up to
     ``max_hole_edges`` boundary edges), decimate to ``target_faces`` (quadric edge
     collapse). The scan's outer rim stays open: :func:`seal_scan` closes it."""
-    import pymeshlab
-
     if np.any(mesh.face_counts != 3):
         raise InputError("prepare_scan needs a triangle mesh", mesh.source)
     ms = pymeshlab.MeshSet()
@@ -196,8 +191,8 @@ def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int 
 
 def _largest_component_faces(faces: NDArray[Any]) -> int:
     """Face count of the largest edge-connected piece of a triangle mesh."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
+    import scipy.sparse as sp  # lazy: with csgraph, 0.27 s to import
+    from scipy.sparse.csgraph import connected_components  # lazy: 0.27 s to import
 
     n = int(faces.max()) + 1
     adj = sp.coo_matrix((np.ones(faces.size), (np.repeat(faces[:, 0], 3), faces.reshape(-1))),
@@ -212,8 +207,6 @@ def seal_scan(mesh: MeshData) -> MeshData | None:
 
     The skin keeps its texture space; the seal is a separate occluder so that no shadow
     or camera ray passes through the scan. ``None`` when the mesh is already closed."""
-    import pymeshlab
-
     faces = mesh.face_indices.reshape(-1, 3)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
@@ -239,8 +232,6 @@ def seal_scan(mesh: MeshData) -> MeshData | None:
 
 def pymeshlab_face_scan() -> Path:
     """The real face range scan shipped in pymeshlab's wheel (mm units, holes, noise)."""
-    import pymeshlab
-
     path = Path(os.path.dirname(pymeshlab.__file__)) / "tests" / "sample_meshes" / \
         "rangemaps" / "face000.ply"
     if not path.is_file():

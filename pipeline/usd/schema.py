@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from pxr import Plug, Usd
+
 from ..errors import SkinpipeError
 
 PROFILE_TYPE = "SkinDiffusionProfile"
@@ -41,8 +43,6 @@ def register_schema_plugin() -> bool:
     report it (rule skinpipe:SchemaPluginRegistered), and :func:`require_schema` stops
     the verbs that author typed prims.
     """
-    from pxr import Plug
-
     folder = schema_dir()
     if not (folder / "plugInfo.json").is_file():
         return False
@@ -59,8 +59,6 @@ def require_schema() -> None:
 
 def schema_is_registered() -> bool:
     """True when USD knows SkinDiffusionProfile (with its fallbacks) and the regions API."""
-    from pxr import Usd
-
     reg = Usd.SchemaRegistry()
     return (reg.FindConcretePrimDefinition(PROFILE_TYPE) is not None
             and reg.FindAppliedAPIPrimDefinition(REGIONS_API) is not None)

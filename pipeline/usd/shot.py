@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from ..errors import InputError
 from .io import export_layer_atomic, open_stage_guarded
@@ -33,8 +34,6 @@ class ShotOptions:
 
 def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) -> Path:
     """Write ``out`` (a .usda shot layer over ``asset``); the asset is only read."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
-
     asset = Path(asset)
     out = Path(out)
     if out.resolve() == asset.resolve():

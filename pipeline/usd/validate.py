@@ -17,6 +17,7 @@ from typing import Any
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
+from pxr import Sdf, Tf, Usd, UsdGeom, UsdValidation
 
 from ..errors import InputError
 from .io import check_usd_file
@@ -116,8 +117,6 @@ def _schema_plugin(stage: Any) -> list[tuple[str, str]]:
 def _color_space(stage: Any) -> list[tuple[str, str]]:
     """The default prim must name its colour space (UsdColorSpaceAPI colorSpace:name, an
     OCIO interop id such as lin_ap1_scene): profile weights and albedo are colours."""
-    from pxr import Usd
-
     prim = stage.GetDefaultPrim()
     if not prim:
         return [("no defaultPrim", "/")]
@@ -270,8 +269,6 @@ def _targets(prim: Any) -> list[tuple[str, str]]:
 def _region_index(prim: Any) -> list[tuple[str, str]]:
     """primvars:skin:regionIndex is uniform, has one value per face and every value is a
     valid index into skin:profiles: every face is covered by a profile."""
-    from pxr import UsdGeom
-
     if not _is_regions_mesh(prim):
         return []
     site = f"{prim.GetPath()}.primvars:{REGION_INDEX_PRIMVAR}"
@@ -296,8 +293,6 @@ def _region_index(prim: Any) -> list[tuple[str, str]]:
 def _region_weights(prim: Any) -> list[tuple[str, str]]:
     """Optional primvars:skin:regionWeights: vertex interpolation, elementSize = number of
     regions, one row per point, finite, >= 0, each row summing to 1 (tolerance 1e-3)."""
-    from pxr import UsdGeom
-
     if not _is_regions_mesh(prim):
         return []
     pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(REGION_WEIGHTS_PRIMVAR)
@@ -326,8 +321,6 @@ def _region_weights(prim: Any) -> list[tuple[str, str]]:
 def _subsets(prim: Any) -> list[tuple[str, str]]:
     """The skinRegion GeomSubsets partition the faces, one subset per region, each
     holding exactly the faces whose region index points at it."""
-    from pxr import UsdGeom
-
     if not _is_regions_mesh(prim):
         return []
     mesh = UsdGeom.Mesh(prim)
@@ -369,8 +362,6 @@ _REGISTERED = False
 def register_rules() -> list[Any]:
     """Register every rule with UsdValidation (once); return our validators."""
     global _REGISTERED
-    from pxr import Sdf, UsdValidation
-
     registry = UsdValidation.ValidationRegistry()
     if not _REGISTERED:
         for r in RULES:
@@ -398,8 +389,6 @@ def register_rules() -> list[Any]:
 
 
 def _validators(include_builtin: bool) -> list[Any]:
-    from pxr import UsdValidation
-
     ours = register_rules()
     if not include_builtin:
         return ours
@@ -430,8 +419,6 @@ class FileReport:
 def validate_file(path: str | Path, include_builtin: bool = True,
                   context: Any = None) -> FileReport:
     """Run USD's built-in validators and ours on one file (opened after a safety check)."""
-    from pxr import Tf, Usd, UsdValidation
-
     start = time.perf_counter()
     report = FileReport(str(path))
     try:
@@ -459,8 +446,6 @@ def validate_file(path: str | Path, include_builtin: bool = True,
 
 def validate_files(paths: Sequence[str | Path], include_builtin: bool = True) -> list[FileReport]:
     """Validate several files with one validation context."""
-    from pxr import UsdValidation
-
     context = UsdValidation.ValidationContext(_validators(include_builtin))
     return [validate_file(p, include_builtin, context) for p in paths]
 

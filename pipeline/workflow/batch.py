@@ -20,7 +20,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import pymeshlab
+
+from .. import __version__
+from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
+from ..fileio import atomic_directory, atomic_write_json
+from ..profile.io import read_profile_csv, write_fit_json
+from ..render.albedo import bake_sample_albedo
+from ..render.renderer import RenderOptions, ensure_skin_uvs, render_files
+from ..usd.shot import author_shot
+from ..usd.validate import validate_file
+from .chain import author_from_files, fit_ingested_profile
 
 STAGES = ("ingest", "fit", "author", "render")
 BATCH_FORMAT = 1
@@ -49,8 +60,6 @@ def _resolve(value: Any, base: Path, what: str, source: Path) -> Path:
     if not isinstance(value, str) or not value:
         raise InputError(f"{what} must be a path string, got {value!r}", source)
     if value.startswith(PYMESHLAB_PREFIX):
-        import pymeshlab
-
         path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / \
             value[len(PYMESHLAB_PREFIX):]
     else:
@@ -135,8 +144,6 @@ def _hash_tree(root: Path) -> str:
 
 def task_key(*parts: Any) -> str:
     """A stable hash of a task's inputs (file hashes, options, upstream keys)."""
-    from .. import __version__
-
     text = json.dumps([BATCH_FORMAT, __version__, *parts], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
 
@@ -187,8 +194,6 @@ def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
               work: Callable[[Path], dict[str, Any]]) -> dict[str, Any]:
     """Skip a finished task, skip when upstream failed, else run ``work`` into a
     temporary directory that replaces ``spec.out_dir`` once ``done.json`` is in it."""
-    from ..fileio import atomic_directory, atomic_write_json
-
     base = {"stage": spec.stage, "subject": spec.subject, "unit": spec.unit, "key": spec.key,
             "dir": str(spec.out_dir)}
     failed = [u for u in upstream if u["status"] in ("failed", "skipped")]
@@ -219,8 +224,6 @@ def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
 
 
 def ingest_task(spec: TaskSpec, subject: Subject) -> dict[str, Any]:
-    from ..capture.ingest import ingest_capture_set
-
     def work(tmp: Path) -> dict[str, Any]:
         report = ingest_capture_set(subject.captures, tmp)
         return {"regions": sorted(report["regions"]),
@@ -234,9 +237,6 @@ def ingest_task(spec: TaskSpec, subject: Subject) -> dict[str, Any]:
 
 def fit_task(spec: TaskSpec, subject: Subject, ingest: dict[str, Any],
              ingest_dir: Path) -> dict[str, Any]:
-    from ..profile.io import read_profile_csv, write_fit_json
-    from .chain import fit_ingested_profile
-
     def work(tmp: Path) -> dict[str, Any]:
         fit = fit_ingested_profile(read_profile_csv(ingest_dir / f"{spec.unit}.csv"),
                                    subject.k)
@@ -251,9 +251,6 @@ def fit_task(spec: TaskSpec, subject: Subject, ingest: dict[str, Any],
 def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
                 fit_dirs: list[Path], ingest_dir: Path) -> dict[str, Any]:
     def work(tmp: Path) -> dict[str, Any]:
-        from ..usd.validate import validate_file
-        from .chain import author_from_files
-
         if subject.mesh is None or subject.landmarks is None:
             raise InputError(f"subject {subject.name}: author needs \"mesh\" and \"landmarks\"")
         paths = author_from_files([d / f"{d.name}.json" for d in fit_dirs], subject.mesh, tmp,
@@ -261,12 +258,8 @@ def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
                                  prepare=subject.prepare_scan)
         measures: dict[str, Any] = {}
         if subject.paint_albedo:
-            from ..render.albedo import bake_sample_albedo
-
             bake_sample_albedo(paths.asset, int(subject.render.get("texture_size", 1024)))
         else:
-            from ..render.renderer import ensure_skin_uvs
-
             # unwrap here, so that a render never writes into a finished asset
             measures["uvs"] = ensure_skin_uvs(paths.asset).note
         check = validate_file(paths.asset)
@@ -281,9 +274,6 @@ def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
 def render_task(spec: TaskSpec, subject: Subject, author: dict[str, Any],
                 asset_dir: Path) -> dict[str, Any]:
     def work(tmp: Path) -> dict[str, Any]:
-        from ..render.renderer import RenderOptions, render_files
-        from ..usd.shot import author_shot
-
         opts = dict(subject.render)
         if "resolution" in opts:
             opts["resolution"] = tuple(opts["resolution"])
@@ -326,8 +316,6 @@ class BatchResult:
 
 
 def regions_of(captures: Path) -> list[str]:
-    from ..capture.ingest import read_capture_set
-
     return list(read_capture_set(captures).regions)
 
 
@@ -394,7 +382,7 @@ def _import_native_libraries() -> Any:
     at process exit ("malloc_consolidate(): unaligned fastbin chunk"); importing it on
     the main thread first avoids that (reproduced without Dask in a ThreadPoolExecutor).
     """
-    from distributed import WorkerPlugin
+    from distributed import WorkerPlugin  # lazy: 0.39 s to import
 
     class NativeImports(WorkerPlugin):
         name = "skinpipe-native-imports"
@@ -411,7 +399,7 @@ def run_batch(client: Any, subjects: list[Subject], out_root: Path,
               ) -> BatchResult:
     """Run the graph on ``client`` and gather every task's result (a task lost with
     its worker is re-run by the scheduler; one lost too often is reported failed)."""
-    from distributed import as_completed
+    from distributed import as_completed  # lazy: 0.39 s to import
 
     bad = [s for s in stages if s not in STAGES]
     if bad or not stages:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -10,9 +12,16 @@ from typing import Any
 
 import numpy as np
 
+from ..capture.ingest import IngestOptions, ingest_region, read_capture_set
+from ..capture.simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
+from ..errors import InputError
 from ..fileio import atomic_path, atomic_write_json
 from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.types import MeasuredProfile
+from ..render.raytrace import RayScene
+from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear
+from ..render.unwrap import triangulate
+from ..usd.io import open_stage_guarded
 
 FIT_METHODS: dict[str, dict[str, Any]] = {
     "ga+ipopt": {"init": "ga", "solver": "ipopt"},
@@ -74,10 +83,10 @@ def _plot_tradeoff(
     ylabel: str = "eq. 2c error (max over R, G, B)",
 ) -> None:
     """Error (log) against seconds (log), one line per series; points labelled."""
-    import matplotlib
+    import matplotlib  # lazy: 0.18 s to import
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: 0.56 s to import
 
     fig, ax = plt.subplots(figsize=(7, 5), dpi=110)
     for series in dict.fromkeys(p[0] for p in points):
@@ -133,9 +142,6 @@ def ingest_tradeoff(
 ) -> list[dict[str, Any]]:
     """Profile error (against the simulator's truth, 0.05-4 mm) and ingest seconds, as
     the number of brackets and the ring width vary. Captures are simulated in work_dir."""
-    from ..capture.ingest import IngestOptions, ingest_region, read_capture_set
-    from ..capture.simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
-
     truths = {t.name: t for t in sample_subject_truths() if t.name in regions}
     cases = [(n, 1.0) for n in brackets] + [(5, w) for w in ring_widths_px if w != 1.0]
     rows = []
@@ -195,15 +201,7 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
     of the relative difference, max over channels. Seconds: texture maps + irradiance +
     diffusion at that size.
     """
-    import math
-
-    from scipy.spatial import cKDTree
-
-    from ..errors import InputError
-    from ..render.raytrace import RayScene
-    from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear
-    from ..render.unwrap import triangulate
-    from ..usd.io import open_stage_guarded
+    from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
     stage = open_stage_guarded(scene)
     finest: dict[str, Any] = {}
@@ -345,8 +343,6 @@ def write_report_page(out_dir: Path) -> Path:
     """report.md in ``out_dir``: every stage's trade-off found there (fit_tradeoff.json,
     ingest_tradeoff.json, render_tradeoff.json) with its plot, its table, the Pareto
     front marked (*) and whether the default sits on it."""
-    import json
-
     lines = ["# skinpipe: error against run time", "",
              "Each stage measured in one run; pick an operating point from the plots. "
              "Rows marked * are on the Pareto front (no other row is both faster and more "
@@ -399,8 +395,6 @@ def write_report_page(out_dir: Path) -> Path:
                           "*" if r["pareto"] else "") for r in doc["rows"]])
         lines.append("")
     if not found:
-        from ..errors import InputError
-
         raise InputError("no *_tradeoff.json to gather: run 'skinpipe report fit|ingest|"
                          "render' into this directory first", out_dir)
     page = out_dir / "report.md"

@@ -1,0 +1,72 @@
+"""What a render can be asked for: the options, their allowed values and defaults (no
+render machinery imported: the CLI builds its parsers from this module alone)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..errors import InputError
+
+AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
+BLURS = ("recursive", "gather")
+SHADOW_SAMPLING = ("interleaved", "full")
+DEFAULT_ROUGHNESS = 0.35
+"""Beckmann roughness of the skin's specular lobe (Torrance-Sparrow)."""
+DEFAULT_RHO_S = 0.25
+"""Specular scale rho_s."""
+DEVICE_ENV = "SKINPIPE_OPENCL_DEVICE"
+"""Environment variable naming the OpenCL device (same values as ``--device``)."""
+DEVICE_HELP = ("OpenCL device: auto (CPU runtimes first: PoCL, then Intel's, then GPUs), "
+               "cpu, gpu (a GPU first), or part of 'platform: device' (e.g. pocl, intel, "
+               f"nvidia); default ${DEVICE_ENV} or auto")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Everything a render depends on besides the stage."""
+
+    resolution: tuple[int, int] = (1024, 1024)
+    texture_size: int = 1024
+    aovs: tuple[str, ...] = AOVS
+    light_samples: int = 16
+    shadow_sampling: str = "interleaved"
+    """'interleaved': each texel traces a quarter of the light samples and borrows the
+    rest from its 3 x 3 neighbours; 'full': every texel traces all of them."""
+    roughness: float = DEFAULT_ROUGHNESS
+    rho_s: float = DEFAULT_RHO_S
+    albedo_split: float = 0.5
+    """Exponent of the albedo applied before scattering (0.5: sqrt before and after)."""
+    variance_grid: int = 12
+    """0: every region's own variances (merged where equal); N > 0: all regions
+    re-expressed on N shared variances (fewer blurs; the error is reported)."""
+    scattering: bool = True
+    blur: str = "recursive"
+    """'recursive': Deriche IIR on a pyramid (cost independent of width); 'gather': the
+    first per-tap kernel (cost grows with width), kept to compare against."""
+    single_profile: str | None = None
+    """None: each region its own profile; 'mean' or a region name: one for the face."""
+    camera: str | None = None
+    write_uvs: bool = True
+    seed: int = 0
+    device: str | None = None
+    """OpenCL device (:data:`~.opencl.DEVICE_HELP`); None: ``$SKINPIPE_OPENCL_DEVICE``,
+    else auto."""
+
+    def __post_init__(self) -> None:
+        w, h = self.resolution
+        if not (1 <= w <= 16384 and 1 <= h <= 16384):
+            raise InputError(f"resolution must be 1-16384 on each side, got {w}x{h}")
+        bad = [a for a in self.aovs if a not in AOVS]
+        if bad or not self.aovs:
+            raise InputError(f"unknown AOV(s) {bad}; choose from {', '.join(AOVS)}")
+        if not 1 <= self.light_samples <= 1024:
+            raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
+        if not 0.0 <= self.albedo_split <= 1.0:
+            raise InputError(f"albedo split must be in [0, 1], got {self.albedo_split}")
+        if self.shadow_sampling not in SHADOW_SAMPLING:
+            raise InputError(f"unknown shadow sampling {self.shadow_sampling!r}; choose from "
+                             f"{', '.join(SHADOW_SAMPLING)}")
+        if self.blur not in BLURS:
+            raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
+        if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
+            raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")
