@@ -22,6 +22,14 @@ from .errors import InputError
 from .fileio import atomic_path
 
 ACESCG = "lin_ap1_scene"
+CHROMATICITIES = {
+    # ACEScg: AP1 primaries and the ACES white point (Academy S-2014-004, table 1)
+    ACESCG: (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767),
+    # linear Rec.709 / sRGB primaries, D65 (ITU-R BT.709-6)
+    "lin_rec709_scene": (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290),
+}
+"""OpenEXR ``chromaticities`` (red, green, blue, white xy) by OCIO interop id: an EXR
+without the attribute means Rec.709 primaries by the OpenEXR standard."""
 """OCIO interop id of ACEScg, the scene-linear working space of every skinpipe image."""
 
 # Extension -> OpenImageIO format names that may legitimately carry it.
@@ -90,13 +98,17 @@ def write_exr(
     path: str | Path, pixels: NDArray[Any], colorspace: str = ACESCG,
     attributes: dict[str, Any] | None = None, channel_names: tuple[str, ...] | None = None,
 ) -> Path:
-    """Write a float EXR atomically, with the colour space (OCIO interop id) in its header."""
+    """Write a float EXR atomically, with the colour space in its header: the OCIO interop
+    id (``oiio:ColorSpace``) and, for the spaces of :data:`CHROMATICITIES`, OpenEXR's
+    ``chromaticities``."""
     path = Path(path)
     arr = np.ascontiguousarray(pixels, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "float")
     spec.attribute("oiio:ColorSpace", colorspace)
+    if colorspace in CHROMATICITIES:
+        spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
     spec.attribute("compression", "zip")
     if channel_names:
         spec.channelnames = channel_names

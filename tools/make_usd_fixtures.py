@@ -61,7 +61,18 @@ def _attr(stage: Usd.Stage, path: str) -> Usd.Attribute:
     return stage.GetPrimAtPath(prim_path).GetAttribute(name)
 
 
+def _retype(stage: Usd.Stage, path: str, type_name: Sdf.ValueTypeName) -> None:
+    prim_path, _, name = path.rpartition(".")
+    prim = stage.GetPrimAtPath(prim_path)
+    value = prim.GetAttribute(name).Get()
+    prim.RemoveProperty(name)
+    prim.CreateAttribute(name, type_name).Set(value)
+
+
 BREAKS: dict[str, Callable[[Usd.Stage], None]] = {
+    # a float3 where OpenPBR's base_color is color3 (MaterialX's node definition)
+    "MaterialXNetworkValid": lambda s: _retype(
+        s, "/Face/Looks/SkinMaterial/OpenPBR.inputs:base_color", Sdf.ValueTypeNames.Float3),
     "ColorSpaceNamed": lambda s: s.GetPrimAtPath("/Face").RemoveAPI(Usd.ColorSpaceAPI),
     "ProfileRegionNamed": lambda s: _attr(s, f"{PROFILE}.region").Set(""),
     "ProfileArrayLengths": lambda s: _attr(s, f"{PROFILE}.weights").Set(

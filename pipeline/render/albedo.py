@@ -20,7 +20,9 @@ from pxr import Sdf, Usd, UsdShade
 
 from ..errors import InputError
 from ..imageio import write_exr
+from ..usd.author import MTLX_NAME
 from ..usd.io import export_layer_atomic
+from ..usd.materialx import author_usd_texture, usd_network_values, write_mtlx
 from ..usd.schema import WORKING_COLORSPACE
 from .push_pull import push_pull
 from .renderer import ensure_skin_uvs
@@ -135,10 +137,11 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path) -> str:
         reader.CreateOutput("result", Sdf.ValueTypeNames.Float2))
     rgb = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surface.GetInput("diffuseColor").ConnectToSource(rgb)
-    for name in ("base_color", "subsurface_color"):
-        openpbr = edit.GetPrimAtPath(f"{base}/OpenPBR")
-        if openpbr:
-            UsdShade.Shader(openpbr).GetInput(name).ConnectToSource(rgb)
+    openpbr = edit.GetPrimAtPath(f"{base}/OpenPBR")
+    if openpbr:  # the MaterialX network reads it with MaterialX's own image node
+        author_usd_texture(edit, base, f"./{rel.as_posix()}", WORKING_COLORSPACE)
+        write_mtlx(Path(layer.realPath).parent / MTLX_NAME,
+                   usd_network_values(UsdShade.Shader(openpbr)), rel.as_posix())
     export_layer_atomic(layer, layer.realPath)
     return str(layer.realPath)
 

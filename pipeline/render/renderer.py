@@ -697,8 +697,12 @@ def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32
     if "beauty" in images:
         disp, info = display_image(images["beauty"], working, config_source)
         alpha = images["beauty"][..., 3:4]
+        # tagged with the display's colour space, so the PNG carries its sRGB chunk
+        space = ocio_config(config_source).getDisplayViewColorSpaceName(info["display"],
+                                                                         info["view"])
         png = write_ldr(out_dir / f"{name}.png", np.concatenate([disp, alpha], axis=2), 8,
-                        {"oiio:ColorSpace": f"{info['display']} / {info['view']}"})
+                        {"oiio:ColorSpace": space,
+                         "skinpipe:displayView": f"{info['display']} / {info['view']}"})
         result.update({"png": str(png), **info})
     return result
 

@@ -27,6 +27,7 @@ from pxr import Gf, Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
 from ..errors import InputError
 from ..profile.types import FitResult, MeasuredProfile
 from .io import export_layer_atomic
+from .materialx import author_usd_network, write_mtlx
 from .mesh import MeshData
 from .schema import (
     PROFILE_TYPE,
@@ -41,6 +42,10 @@ from .schema import (
 
 DEFAULT_ALBEDO = (0.62, 0.42, 0.33)
 """A mid skin tone in ACEScg, used for the preview material until a texture exists."""
+
+
+MTLX_NAME = "look.mtlx"
+"""The material as a MaterialX document, beside look.usda."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +155,18 @@ def _author_profile(stage: Any, path: str, fit: FitResult,
                 Vt.Vec3fArray.FromNumpy(np.asarray(measured.stddev, dtype=np.float32)))
 
 
+def openpbr_values(fits: Sequence[FitResult], mpu: float,
+                   albedo: tuple[float, float, float]) -> dict[str, Any]:
+    """OpenPBR's inputs for renderers without skinpipe's profiles. Its subsurface lobe
+    wants one radius with a per-channel scale: the face's mean RMS exit radius
+    sqrt(2 sum w v) (an approximation: its profile shape is not ours), in scene units."""
+    radii_mm = np.mean([subsurface_radius_mm(f) for f in fits], axis=0)
+    return {"base_color": albedo, "subsurface_weight": 1.0, "subsurface_color": albedo,
+            "subsurface_radius": float(radii_mm.max() / (mpu * 1000.0)),
+            "subsurface_radius_scale": _f32(radii_mm / radii_mm.max()),
+            "specular_roughness": 0.35}
+
+
 def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: float,
                      albedo: tuple[float, float, float]) -> str:
     path = f"{root}/Looks/SkinMaterial"
@@ -161,25 +178,7 @@ def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: floa
     preview.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(1.4)
     material.CreateSurfaceOutput().ConnectToSource(
         preview.CreateOutput("surface", Sdf.ValueTypeNames.Token))
-    # OpenPBR's subsurface lobe wants one radius with a per-channel scale; we give it the
-    # face's mean RMS exit radius (an approximation: its profile shape is not ours).
-    radii_mm = np.mean([subsurface_radius_mm(f) for f in fits], axis=0)
-    openpbr = UsdShade.Shader.Define(stage, f"{path}/OpenPBR")
-    openpbr.CreateIdAttr("ND_open_pbr_surface_surfaceshader")
-    openpbr.CreateInput("base_color", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
-    openpbr.CreateInput("subsurface_weight", Sdf.ValueTypeNames.Float).Set(1.0)
-    openpbr.CreateInput("subsurface_color", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
-    openpbr.CreateInput("subsurface_radius", Sdf.ValueTypeNames.Float).Set(
-        float(radii_mm.max() / (mpu * 1000.0)))
-    openpbr.CreateInput("subsurface_radius_scale", Sdf.ValueTypeNames.Color3f).Set(
-        Gf.Vec3f(*_f32(radii_mm / radii_mm.max())))
-    openpbr.CreateInput("specular_roughness", Sdf.ValueTypeNames.Float).Set(0.35)
-    openpbr.GetPrim().SetDocumentation(
-        "Approximation for renderers without skinpipe's profiles: subsurface_radius is the "
-        "mean over regions of the fitted profiles' RMS exit radius sqrt(2 sum w v), in scene "
-        "units, and subsurface_radius_scale its per-channel ratio.")
-    material.CreateSurfaceOutput("mtlx").ConnectToSource(
-        openpbr.CreateOutput("surface", Sdf.ValueTypeNames.Token))
+    author_usd_network(stage, path, openpbr_values(fits, mpu, albedo))
     return path
 
 
@@ -292,6 +291,7 @@ def author_asset(
     }
 
     export_layer_atomic(geo.GetRootLayer(), paths.geo)
+    write_mtlx(out / MTLX_NAME, openpbr_values(ordered, mpu, albedo))
     export_layer_atomic(look.GetRootLayer(), paths.look)
     export_layer_atomic(asset_layer, paths.asset)
     return AssetPaths(paths.asset, paths.geo, paths.look, time.perf_counter() - start)

@@ -18,6 +18,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from ..errors import InputError
 from .io import export_layer_atomic, open_stage_guarded
+from .schema import WORKING_COLORSPACE
 
 
 @dataclass(frozen=True)
@@ -27,9 +28,18 @@ class ShotOptions:
     """Key light radius as a fraction of the asset's bounding diagonal (soft shadows)."""
     fill_intensity: float = 0.15
     focal_length: float = 50.0
+    """Lens focal length, mm (written in USD's tenths of a scene unit)."""
     horizontal_aperture: float = 24.0
+    """Film back width (and height), mm."""
     turntable_frames: int = 0
     margin: float = 1.15
+
+
+def camera_tenths_per_mm(meters_per_unit: float) -> float:
+    """USD camera lengths (focalLength, apertures) are in tenths of a scene unit: the
+    value for one millimetre on a stage of ``meters_per_unit`` (10 on a millimetre stage,
+    so a 50 mm lens is focalLength 500)."""
+    return 10.0 * 0.001 / meters_per_unit
 
 
 def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) -> Path:
@@ -57,11 +67,13 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(src))
     UsdGeom.SetStageUpAxis(stage, up_axis)
-    UsdGeom.Scope.Define(stage, "/Shot")
+    shot = UsdGeom.Scope.Define(stage, "/Shot").GetPrim()
+    Usd.ColorSpaceAPI.Apply(shot).CreateColorSpaceNameAttr(WORKING_COLORSPACE)
     cam = UsdGeom.Camera.Define(stage, "/Shot/Camera")
-    cam.CreateFocalLengthAttr(options.focal_length)
-    cam.CreateHorizontalApertureAttr(options.horizontal_aperture)
-    cam.CreateVerticalApertureAttr(options.horizontal_aperture)
+    tenths = camera_tenths_per_mm(UsdGeom.GetStageMetersPerUnit(src))
+    cam.CreateFocalLengthAttr(options.focal_length * tenths)
+    cam.CreateHorizontalApertureAttr(options.horizontal_aperture * tenths)
+    cam.CreateVerticalApertureAttr(options.horizontal_aperture * tenths)
     cam.CreateClippingRangeAttr(Gf.Vec2f(float(dist * 0.05), float(dist * 10)))
     orbit = cam.AddRotateYOp(opSuffix="orbit")
     move = cam.AddTranslateOp(opSuffix="dolly")
@@ -93,7 +105,7 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     fill.CreateIntensityAttr(options.fill_intensity)
     fill.CreateColorAttr(Gf.Vec3f(0.85, 0.9, 1.0))
     stage.SetDefaultPrim(stage.GetPrimAtPath("/Shot"))
-    layer.customLayerData = {"skinpipe:colorSpace": "lin_ap1_scene",
+    layer.customLayerData = {"skinpipe:colorSpace": WORKING_COLORSPACE,
                              "skinpipe:generator": "skinpipe shot"}
     del stage  # sublayer added to the bare layer: no stage tries to compose it from here
     layer.subLayerPaths = [os.path.relpath(asset.resolve(), out.resolve().parent)]

@@ -17,10 +17,11 @@ from typing import Any
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
-from pxr import Sdf, Tf, Usd, UsdGeom, UsdValidation
+from pxr import Sdf, Sdr, Tf, Usd, UsdGeom, UsdShade, UsdValidation
 
 from ..errors import InputError
 from .io import check_usd_file
+from .materialx import OPENPBR, is_materialx_id, network_problems
 from .schema import (
     PROFILE_TYPE,
     PROFILES_REL,
@@ -37,12 +38,17 @@ KEYWORD = "skinpipe"
 
 # Units (metersPerUnit, upAxis) are USD's own usdGeomValidators:StageMetadataChecker and
 # subset partitions its usdGeomValidators:SubsetFamilies; we do not repeat them.
-# USD built-in validators left out, with the reason (reported by `skinpipe validate`).
-SKIPPED_BUILTINS = {
-    "usdShadeValidators:ShaderSdrCompliance":
-        "usd-core ships no MaterialX node definitions, so the OpenPBR shader of the "
-        "approximate material cannot be resolved here; studios with MaterialX run it",
-}
+# Every built-in validator runs. One finding can be out of this USD build's reach:
+# usd-core has no MaterialX Sdr plugin, so ShaderSdrCompliance cannot resolve MaterialX
+# node ids (ND_*). Such findings are reported as "not-applicable", with the reason, and
+# fail under --strict; skinpipe:MaterialXNetworkValid makes the same check against the
+# MaterialX library's node definitions.
+NOT_APPLICABLE = "not-applicable"
+SDR_COMPLIANCE = "usdShadeValidators:ShaderSdrCompliance"
+NOT_APPLICABLE_REASON = (
+    "not applicable in this USD build: it has no MaterialX Sdr plugin (usd-core), so "
+    "MaterialX node ids are unknown to its registry; skinpipe:MaterialXNetworkValid checks "
+    "this shader against MaterialX's own node definitions instead")
 
 
 @dataclass(frozen=True)
@@ -126,6 +132,14 @@ def _color_space(stage: Any) -> list[tuple[str, str]]:
         return [("the default prim does not name its colour space (colorSpace:name)",
                  str(prim.GetPath()))]
     return []
+
+
+@rule("MaterialXNetworkValid", "prim")
+def _materialx_network(prim: Any) -> list[tuple[str, str]]:
+    """A shader whose id is a MaterialX node definition (ND_*) must match it: the
+    definition exists in MaterialX's standard libraries and every authored input and
+    output is one of its ports, with the USD type of the port's MaterialX type."""
+    return network_problems(prim)
 
 
 @rule("ProfileRegionNamed", "prim")
@@ -395,9 +409,7 @@ def _validators(include_builtin: bool) -> list[Any]:
     registry = UsdValidation.ValidationRegistry()
     names = {r.name for r in RULES}
     builtin = [v for v in registry.GetOrLoadAllValidators()
-               if v.GetMetadata().name not in names
-               and v.GetMetadata().name not in SKIPPED_BUILTINS
-               and not v.GetMetadata().isSuite]
+               if v.GetMetadata().name not in names and not v.GetMetadata().isSuite]
     return ours + builtin
 
 
@@ -412,6 +424,8 @@ class FileReport:
     seconds: float = 0.0
 
     def failed(self, strict: bool) -> bool:
+        """Errors fail; warnings and findings out of this USD build's reach fail with
+        ``strict``."""
         return self.unreadable is not None or any(
             p.severity == "error" or strict for p in self.problems)
 
@@ -439,9 +453,30 @@ def validate_file(path: str | Path, include_builtin: bool = True,
                       for s in err.GetSites())
         severity = {UsdValidation.ValidationErrorType.Warn: "warning",
                     UsdValidation.ValidationErrorType.Info: "info"}.get(err.GetType(), "error")
-        report.problems.append(Problem(name, err.GetMessage(), sites, severity))
+        message = err.GetMessage()
+        if _beyond_this_build(name, err.GetName(), sites, stage):
+            severity, message = NOT_APPLICABLE, f"{message} ({NOT_APPLICABLE_REASON})"
+        report.problems.append(Problem(name, message, sites, severity))
     report.seconds = time.perf_counter() - start
     return report
+
+
+def _materialx_in_sdr() -> bool:
+    return Sdr.Registry().GetShaderNodeByIdentifier(OPENPBR) is not None
+
+
+def _beyond_this_build(validator: str, error: str, sites: tuple[str, ...], stage: Any) -> bool:
+    """Whether a finding is ShaderSdrCompliance failing to resolve a MaterialX node id
+    in a USD build without MaterialX."""
+    if validator != SDR_COMPLIANCE or error != "MissingShaderIdInRegistry" or \
+            _materialx_in_sdr():
+        return False
+    for site in sites:
+        prim = stage.GetPrimAtPath(Sdf.Path(site).GetPrimPath())
+        shader_id = UsdShade.Shader(prim).GetShaderId() if prim else None
+        if not shader_id or not is_materialx_id(shader_id):
+            return False
+    return bool(sites)
 
 
 def validate_files(paths: Sequence[str | Path], include_builtin: bool = True) -> list[FileReport]:

@@ -263,10 +263,11 @@ def author_task(spec: TaskSpec, subject: Subject, fits: list[dict[str, Any]],
             # unwrap here, so that a render never writes into a finished asset
             measures["uvs"] = ensure_skin_uvs(paths.asset).note
         check = validate_file(paths.asset)
-        if check.problems:
-            raise InputError("the authored asset is invalid: " +
-                             "; ".join(p.message for p in check.problems[:5]), paths.asset)
-        return {"measures": measures, "outputs": ["asset.usda", "geo.usdc", "look.usda"]}
+        if check.failed(strict=False):
+            raise InputError("the authored asset is invalid: " + "; ".join(
+                p.message for p in check.problems if p.severity == "error"), paths.asset)
+        return {"measures": measures,
+                "outputs": ["asset.usda", "geo.usdc", "look.usda", "look.mtlx"]}
 
     return _run_task(spec, fits, work)
 

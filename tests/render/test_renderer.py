@@ -311,6 +311,18 @@ def test_output_has_aov_layers_and_colour_space(lit_patch: Path, tmp_path: Path)
     doc = json.loads((out / "render.json").read_text())
     assert any("AOVs not asked for" in s for s in doc["frames"][0]["skipped"])
     assert (out / "scene.png").is_file()
+    # OpenEXR: without chromaticities a reader takes Rec.709; these are ACEScg's (AP1,
+    # ACES white), compared with colour-science's definition of the space
+    import colour
+
+    acescg = colour.models.RGB_COLOURSPACE_ACESCG
+    want = [*np.asarray(acescg.primaries).ravel(), *acescg.whitepoint]
+    np.testing.assert_allclose(spec.getattribute("chromaticities"), want, atol=1e-4)
+    # the display PNG says it is sRGB (its sRGB chunk), as OpenImageIO reads it back
+    assert b"sRGB" in (out / "scene.png").read_bytes()[:200]
+    png = oiio.ImageInput.open(str(out / "scene.png"))
+    assert png.spec().getattribute("oiio:ColorSpace").startswith("srgb")
+    png.close()
 
 
 def test_missing_uvs_are_unwrapped_and_written_back(tmp_path: Path) -> None:

@@ -1,0 +1,190 @@
+"""The skin material as MaterialX: an OpenPBR network in USD's ``mtlx`` render context
+and the same network as a ``.mtlx`` document, both checked against the node definitions
+of the ``materialx`` package (MaterialX 1.39's standard libraries).
+
+usd-core has no MaterialX plugin, so USD's Sdr registry does not know ``ND_*`` node ids;
+:func:`network_problems` is the check USD's ShaderSdrCompliance validator would make
+(every node id defined, every input and output of the definition's type), made with
+MaterialX's own definitions instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import MaterialX as mx
+import numpy as np
+from pxr import Gf, Sdf, UsdShade
+
+from ..errors import SkinpipeError
+from ..fileio import atomic_write_text
+
+MTLX_COLORSPACE = "acescg"
+"""MaterialX's name of the working space (OCIO interop id ``lin_ap1_scene``)."""
+MX_TO_SDF = {"color3": "color3f", "color4": "color4f", "float": "float", "vector2": "float2",
+             "vector3": "float3", "vector4": "float4", "filename": "asset", "string": "string",
+             "integer": "int", "boolean": "bool", "surfaceshader": "token",
+             "material": "token"}
+"""USD's value type for each MaterialX type (as usdMtlx maps them)."""
+OPENPBR = "ND_open_pbr_surface_surfaceshader"
+IMAGE = "ND_image_color3"
+TEXCOORD = "ND_texcoord_vector2"
+
+
+@lru_cache(maxsize=1)
+def library() -> Any:
+    """MaterialX's standard data libraries (node definitions), loaded once."""
+    lib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
+    return lib
+
+
+def is_materialx_id(shader_id: str) -> bool:
+    """Whether ``shader_id`` names a node definition of MaterialX's libraries."""
+    return library().getNodeDef(shader_id) is not None
+
+
+def network_problems(prim: Any) -> list[tuple[str, str]]:
+    """(message, site) for a UsdShade shader whose id is a MaterialX node definition
+    (``ND_*``): the definition must exist and every authored input and output must be
+    one of its ports, of its type."""
+    shader = UsdShade.Shader(prim)
+    if not shader:
+        return []
+    shader_id = shader.GetShaderId() or ""
+    if not shader_id.startswith("ND_"):
+        return []
+    nodedef = library().getNodeDef(shader_id)
+    if nodedef is None:
+        return [(f"{shader_id} is not a MaterialX node definition", f"{prim.GetPath()}.info:id")]
+    out = []
+    ports = [(p.GetBaseName(), p.GetTypeName(), p.GetAttr().GetPath(), nodedef.getActiveInput)
+             for p in shader.GetInputs(False)]
+    ports += [(p.GetBaseName(), p.GetTypeName(), p.GetAttr().GetPath(), nodedef.getActiveOutput)
+              for p in shader.GetOutputs(False)]
+    for name, type_name, site, lookup in ports:
+        port = lookup(str(name))
+        if port is None:
+            out.append((f"{shader_id} has no port {name!r}", str(site)))
+            continue
+        want = MX_TO_SDF.get(port.getType())
+        if want is not None and str(type_name) != want:
+            out.append((f"{site} is {type_name}, {shader_id}.{name} is "
+                        f"{port.getType()} ({want} in USD)", str(site)))
+    return out
+
+
+def _sdf(mx_type: str) -> Any:
+    return getattr(Sdf.ValueTypeNames, {"color3f": "Color3f", "float": "Float", "float2": "Float2",
+                                        "asset": "Asset", "token": "Token"}[MX_TO_SDF[mx_type]])
+
+
+def author_usd_network(stage: Any, material_path: str, values: Mapping[str, Any]) -> Any:
+    """The OpenPBR shader (``values``: input name -> float or RGB) under the material,
+    wired to its ``outputs:mtlx:surface``; returns the shader."""
+    nodedef = library().getNodeDef(OPENPBR)
+    shader = UsdShade.Shader.Define(stage, f"{material_path}/OpenPBR")
+    shader.CreateIdAttr(OPENPBR)
+    for name, value in values.items():
+        kind = nodedef.getActiveInput(name).getType()
+        v = Gf.Vec3f(*(float(x) for x in value)) if kind == "color3" else float(value)
+        shader.CreateInput(name, _sdf(kind)).Set(v)
+    material = UsdShade.Material(stage.GetPrimAtPath(material_path))
+    material.CreateSurfaceOutput("mtlx").ConnectToSource(
+        shader.CreateOutput("out", _sdf("surfaceshader")))
+    return shader
+
+
+def usd_network_values(shader: Any) -> dict[str, Any]:
+    """The OpenPBR input values authored on ``shader`` (as :func:`author_usd_network`
+    takes them)."""
+    out: dict[str, Any] = {}
+    for port in shader.GetInputs(False):
+        value = port.GetAttr().Get()
+        if value is not None:
+            out[str(port.GetBaseName())] = tuple(value) if hasattr(value, "__len__") \
+                else float(value)
+    return out
+
+
+def author_usd_texture(stage: Any, material_path: str, texture: str,
+                       colorspace: str) -> None:
+    """A MaterialX image (color3) reading ``texture`` by the default texture coordinates,
+    feeding OpenPBR's base and subsurface colour."""
+    coords = UsdShade.Shader.Define(stage, f"{material_path}/MtlxTexcoord")
+    coords.CreateIdAttr(TEXCOORD)
+    image = UsdShade.Shader.Define(stage, f"{material_path}/MtlxAlbedo")
+    image.CreateIdAttr(IMAGE)
+    file_input = image.CreateInput("file", _sdf("filename"))
+    file_input.Set(Sdf.AssetPath(texture))
+    file_input.GetAttr().SetColorSpace(colorspace)
+    image.CreateInput("texcoord", _sdf("vector2")).ConnectToSource(
+        coords.CreateOutput("out", _sdf("vector2")))
+    color = image.CreateOutput("out", _sdf("color3"))
+    openpbr = UsdShade.Shader(stage.GetPrimAtPath(f"{material_path}/OpenPBR"))
+    for name in ("base_color", "subsurface_color"):
+        openpbr.GetInput(name).ConnectToSource(color)
+
+
+def mtlx_document(values: Mapping[str, Any], texture: str | None = None,
+                  name: str = "SkinMaterial") -> Any:
+    """The material as a MaterialX document: a surfacematerial over an open_pbr_surface
+    (``values`` as in :func:`author_usd_network`), with an image node for ``texture``;
+    raises :class:`SkinpipeError` unless MaterialX's ``validate()`` accepts it."""
+    doc = mx.createDocument()
+    doc.importLibrary(library())
+    doc.setColorSpace(MTLX_COLORSPACE)
+    nodedef = library().getNodeDef(OPENPBR)
+    shader = doc.addNode("open_pbr_surface", "OpenPBR", "surfaceshader")
+    for key, value in values.items():
+        kind = nodedef.getActiveInput(key).getType()
+        port = shader.addInput(key, kind)
+        if kind == "color3":
+            port.setValue(mx.Color3(*(float(x) for x in value)))
+        else:
+            port.setValue(float(value))
+    if texture is not None:
+        coords = doc.addNode("texcoord", "MtlxTexcoord", "vector2")
+        image = doc.addNode("image", "MtlxAlbedo", "color3")
+        file_input = image.addInput("file", "filename")
+        file_input.setValueString(texture)
+        file_input.setColorSpace(MTLX_COLORSPACE)
+        image.addInput("texcoord", "vector2").setConnectedNode(coords)
+        for key in ("base_color", "subsurface_color"):
+            shader.getInput(key).setConnectedNode(image)
+    material = doc.addMaterialNode(name, shader)
+    assert material is not None
+    ok, message = doc.validate()
+    if not ok:
+        raise SkinpipeError(f"the MaterialX document is not valid: {message.strip()}")
+    return doc
+
+
+def write_mtlx(path: Path, values: Mapping[str, Any], texture: str | None = None) -> Path:
+    """Write :func:`mtlx_document` to ``path`` (atomically), without the libraries."""
+    doc = mtlx_document(values, texture)
+    options = mx.XmlWriteOptions()
+    options.writeXIncludeEnable = False
+    options.elementPredicate = lambda elem: not elem.hasSourceUri()
+    atomic_write_text(path, mx.writeToXmlString(doc, options))
+    return path
+
+
+def read_openpbr_inputs(path: Path) -> dict[str, Any]:
+    """The OpenPBR inputs of a ``.mtlx`` file written by :func:`write_mtlx` (values as
+    floats or RGB arrays; connected inputs by the name of their node)."""
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    shader = doc.getNode("OpenPBR")
+    out: dict[str, Any] = {}
+    for port in shader.getInputs():
+        if port.getNodeName():
+            out[port.getName()] = port.getNodeName()
+        else:
+            value = port.getValue()
+            out[port.getName()] = np.array(value.asTuple()) if hasattr(value, "asTuple") \
+                else float(value)
+    return out

@@ -1,0 +1,71 @@
+"""The skin material as MaterialX, checked by the ``materialx`` package itself: the
+.mtlx document passes MaterialX's validate(), its OpenPBR subsurface inputs follow the
+fits, and the USD network in the mtlx render context matches MaterialX's node
+definitions (and fails where it does not)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import MaterialX as mx
+import numpy as np
+import pytest
+from pxr import Sdf, Usd, UsdShade
+
+from pipeline.profile.io import read_fit_json
+from pipeline.usd.author import MTLX_NAME, RegionAssignment, author_asset, subsurface_radius_mm
+from pipeline.usd.materialx import network_problems, read_openpbr_inputs
+
+from .test_author import _patch, fit_files  # noqa: F401  (fixture)
+
+
+@pytest.fixture
+def asset(fit_files: Path, tmp_path: Path) -> tuple[Path, list]:  # noqa: F811
+    fits = [read_fit_json(p) for p in sorted(fit_files.glob("*.json"))]
+    regions = RegionAssignment(("forehead", "cheek"), np.array([0] * 6 + [1] * 6, np.int32))
+    return author_asset(fits, _patch(), regions, tmp_path / "a").asset, fits
+
+
+def test_mtlx_document_passes_materialx_validate(asset: tuple[Path, list]) -> None:
+    path = asset[0].parent / MTLX_NAME
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    lib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
+    doc.importLibrary(lib)
+    ok, message = doc.validate()
+    assert ok, message
+    assert doc.getColorSpace() == "acescg"
+    material = doc.getNode("SkinMaterial")
+    assert material.getCategory() == "surfacematerial"
+    shader = material.getInput("surfaceshader").getConnectedNode()
+    assert shader.getCategory() == "open_pbr_surface"
+
+
+def test_openpbr_subsurface_follows_the_fits(asset: tuple[Path, list]) -> None:
+    path, fits = asset
+    inputs = read_openpbr_inputs(path.parent / MTLX_NAME)
+    radii_mm = np.mean([subsurface_radius_mm(f) for f in fits], axis=0)
+    # metersPerUnit 0.001: scene units are mm
+    assert inputs["subsurface_radius"] == pytest.approx(radii_mm.max(), rel=1e-5)
+    np.testing.assert_allclose(inputs["subsurface_radius_scale"], radii_mm / radii_mm.max(),
+                               rtol=1e-5)
+    assert inputs["subsurface_weight"] == 1.0
+    # red scatters farthest in skin: the scale falls from R to B
+    assert inputs["subsurface_radius_scale"][0] == 1.0 > inputs["subsurface_radius_scale"][2]
+
+
+def test_usd_network_matches_materialx_definitions(asset: tuple[Path, list]) -> None:
+    stage = Usd.Stage.Open(Usd.Stage.Open(str(asset[0])).Flatten())  # one layer to edit
+    material = UsdShade.Material(stage.GetPrimAtPath("/Face/Looks/SkinMaterial"))
+    source, output, _ = material.ComputeSurfaceSource("mtlx")
+    assert source.GetShaderId() == "ND_open_pbr_surface_surfaceshader" and output == "out"
+    assert network_problems(source.GetPrim()) == []
+    # a float3 where the definition says color3 is caught
+    prim = source.GetPrim()
+    prim.RemoveProperty("inputs:base_color")
+    prim.CreateAttribute("inputs:base_color", Sdf.ValueTypeNames.Float3).Set((0.5, 0.4, 0.3))
+    prim.CreateAttribute("inputs:no_such_port", Sdf.ValueTypeNames.Float).Set(1.0)
+    problems = [m for m, _ in network_problems(prim)]
+    assert any("color3" in m and "base_color" in m for m in problems)
+    assert any("no_such_port" in m for m in problems)
