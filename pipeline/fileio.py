@@ -82,3 +82,26 @@ def atomic_directory(target: str | Path) -> Iterator[Path]:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def stale_siblings(target: str | Path) -> list[Path]:
+    """Temporaries that :func:`atomic_directory` left beside ``target`` when its process
+    was killed (``.name.tmp-*``, ``.name.old-*``)."""
+    target = Path(target)
+    if not target.parent.is_dir():
+        return []
+    return sorted(p for p in target.parent.iterdir()
+                  if p.name.startswith((f".{target.name}.tmp-", f".{target.name}.old-")))
+
+
+def relocate_paths(doc: Any, old: str, new: str) -> Any:
+    """``doc`` (JSON data) with every string that starts with the path ``old`` pointing
+    under ``new`` instead: records written in a temporary directory name their final
+    place."""
+    if isinstance(doc, str):
+        return new + doc[len(old):] if doc == old or doc.startswith(old + os.sep) else doc
+    if isinstance(doc, list):
+        return [relocate_paths(v, old, new) for v in doc]
+    if isinstance(doc, dict):
+        return {k: relocate_paths(v, old, new) for k, v in doc.items()}
+    return doc

@@ -118,6 +118,27 @@ def write_exr(
     return path
 
 
+def write_texture(path: str | Path, pixels: NDArray[Any], colorspace: str = ACESCG) -> Path:
+    """Write a texture as renderers expect it, atomically: a tiled, MIP-mapped half-float
+    OpenEXR made by OpenImageIO's ``make_texture`` (what ``maketx`` does), with the
+    colour space and chromaticities of :func:`write_exr`."""
+    path = Path(path)
+    arr = np.ascontiguousarray(pixels, dtype=np.float32)
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "float")
+    spec.attribute("oiio:ColorSpace", colorspace)
+    if colorspace in CHROMATICITIES:
+        spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
+    buf = oiio.ImageBuf(spec)
+    buf.set_pixels(oiio.ROI(), arr)
+    config = oiio.ImageSpec()
+    config.format = oiio.TypeDesc("half")
+    config.attribute("compression", "zip")
+    with atomic_path(path) as tmp:
+        if not oiio.ImageBufAlgo.make_texture(oiio.MakeTxTexture, buf, str(tmp), config):
+            raise OSError(f"{path}: make_texture failed: {oiio.geterror()}")
+    return path
+
+
 def write_ldr(
     path: str | Path, pixels: NDArray[Any], bits: int, attributes: dict[str, Any] | None = None
 ) -> Path:

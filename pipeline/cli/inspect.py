@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
+from .common import _eprint
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -30,8 +31,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def cmd_inspect(args: argparse.Namespace) -> int:
     from ..usd.inspection import describe_profile, plot_profile, profiles_on_stage
     from ..usd.io import open_stage_guarded
+    from ..usd.schema import plugin_path_note
 
     stage = open_stage_guarded(args.asset)
+    note = plugin_path_note()
+    if note:
+        _eprint(note)
     found = profiles_on_stage(stage, args.prim)
     if not found:
         raise InputError(f"no SkinDiffusionProfile {'at ' + args.prim if args.prim else ''}"

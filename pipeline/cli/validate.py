@@ -39,6 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     from ..fileio import atomic_write_text
+    from ..usd.schema import plugin_path_note
     from ..usd.validate import RULES, junit_xml, validate_files
 
     if args.list_rules:
@@ -48,6 +49,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
     if not args.assets:
         raise InputError("no ASSET.usd given")
     reports = validate_files(args.assets, include_builtin=not args.skinpipe_only)
+    note = plugin_path_note()
+    if note:
+        _eprint(note)
     if args.junit:
         atomic_write_text(args.junit, junit_xml(reports, args.strict))
     unreadable = any(r.unreadable is not None for r in reports)

@@ -19,10 +19,10 @@ from numpy.typing import NDArray
 from pxr import Sdf, Usd, UsdShade
 
 from ..errors import InputError
-from ..imageio import write_exr
+from ..imageio import write_texture
 from ..usd.author import MTLX_NAME
 from ..usd.io import export_layer_atomic
-from ..usd.materialx import author_usd_texture, usd_network_values, write_mtlx
+from ..usd.materialx import MTLX_COLORSPACE, author_usd_texture, usd_network_values, write_mtlx
 from ..usd.schema import WORKING_COLORSPACE
 from .push_pull import push_pull
 from .renderer import ensure_skin_uvs
@@ -132,14 +132,16 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path) -> str:
     file_input = tex.CreateInput("file", Sdf.ValueTypeNames.Asset)
     file_input.Set(Sdf.AssetPath(f"./{rel.as_posix()}"))
     file_input.GetAttr().SetColorSpace(WORKING_COLORSPACE)
-    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+    # "auto": the file says what it is (colorSpace metadata, USD's name for ACEScg, and the
+    # EXR's chromaticities), rather than "raw" (taken as the renderer's working space)
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("auto")
     tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
         reader.CreateOutput("result", Sdf.ValueTypeNames.Float2))
     rgb = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surface.GetInput("diffuseColor").ConnectToSource(rgb)
     openpbr = edit.GetPrimAtPath(f"{base}/OpenPBR")
     if openpbr:  # the MaterialX network reads it with MaterialX's own image node
-        author_usd_texture(edit, base, f"./{rel.as_posix()}", WORKING_COLORSPACE)
+        author_usd_texture(edit, base, f"./{rel.as_posix()}", MTLX_COLORSPACE)
         write_mtlx(Path(layer.realPath).parent / MTLX_NAME,
                    usd_network_values(UsdShade.Shader(openpbr)), rel.as_posix())
     export_layer_atomic(layer, layer.realPath)
@@ -158,6 +160,6 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
     image = push_pull(albedo, maps.coverage)[::-1]  # image row 0 is v = 1
     texture = Path(asset).resolve().parent / "albedo.exr"
-    write_exr(texture, image, WORKING_COLORSPACE)
+    write_texture(texture, image, WORKING_COLORSPACE)
     author_albedo_texture(stage, mesh.path, texture)
     return texture

@@ -219,7 +219,7 @@ def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: ND
     if layer is None or not layer.realPath or layer.anonymous:
         return None
     layer_stage = Usd.Stage.Open(layer)
-    prim = layer_stage.GetPrimAtPath(mesh.path)
+    prim = layer_stage.GetPrimAtPath(mesh.points_prim or mesh.path)
     if not prim:
         return None
     pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(

@@ -126,6 +126,8 @@ class SceneMesh:
     fits: tuple[FitResult, ...] = ()
     albedo: Albedo = Albedo((0.5, 0.5, 0.5))
     points_layer: str | None = None
+    points_prim: str | None = None
+    """The mesh's path in ``points_layer``."""
 
     @property
     def is_skin(self) -> bool:
@@ -274,13 +276,14 @@ def _read_mesh(prim: Any, time: Any, mpu: float) -> SceneMesh:
             uv = values
         if uv is not None and (uv.ndim != 2 or uv.shape[1] != 2):
             uv = uv_idx = None
-    points_layer = None
+    points_layer = points_prim = None
     for spec in mesh.GetPointsAttr().GetPropertyStack(time):
-        points_layer = spec.layer.identifier
+        # the layer and the path there: a referenced or payloaded mesh has another path
+        points_layer, points_prim = spec.layer.identifier, str(spec.path.GetPrimPath())
         break
     if not prim.HasAPI(REGIONS_API) and not prim.GetRelationship(PROFILES_REL):
         return SceneMesh(path, data, uv, uv_idx, albedo=_read_albedo(prim, time),
-                         points_layer=points_layer)
+                         points_layer=points_layer, points_prim=points_prim)
     pv = UsdGeom.PrimvarsAPI(prim)
     rel_targets = prim.GetRelationship(PROFILES_REL).GetTargets()
     names = [t.name for t in rel_targets]
@@ -309,7 +312,8 @@ def _read_mesh(prim: Any, time: Any, mpu: float) -> SceneMesh:
     total = weights.sum(axis=1, keepdims=True)
     weights = np.where(total > 0, weights / np.where(total > 0, total, 1), 1.0 / n_regions)
     return SceneMesh(path, data, uv, uv_idx, tuple(names), weights.astype(np.float32),
-                     _read_fits(prim, names), _read_albedo(prim, time), points_layer)
+                     _read_fits(prim, names), _read_albedo(prim, time), points_layer,
+                     points_prim)
 
 
 class SceneDelegate:

@@ -2,8 +2,10 @@
 
 ```
 ASSET_DIR/asset.usda   defaultPrim /<Name> (kind component), metersPerUnit, upAxis,
-                       colour space; sublayers look.usda and geo.usdc
-ASSET_DIR/geo.usdc     the mesh, st, region primvars, GeomSubsets, SkinProfileRegionsAPI
+                       colour space, the scan's placement as its transform; sublayers
+                       look.usda, payload geo.usdc (a set dresser can leave it unloaded)
+ASSET_DIR/geo.usdc     the mesh about the asset's origin (its bounds' bottom centre), st,
+                       region primvars, GeomSubsets, SkinProfileRegionsAPI
 ASSET_DIR/look.usda    /<Name>/Looks: SkinDiffusionProfile prims, the Material
 ```
 Every layer is exported to a temporary sibling, fsynced and renamed; input layers are
@@ -182,9 +184,20 @@ def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: floa
     return path
 
 
-def _author_seal(stage: Any, path: str, seal: MeshData) -> None:
+def asset_origin(points: NDArray[Any], up_axis: str) -> NDArray[np.float64]:
+    """Where the asset's root sits in the mesh's coordinates: the bottom centre of its
+    bounds (a scan arrives in scanner coordinates, hundreds of mm from its origin)."""
+    p = np.asarray(points, dtype=np.float64)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    origin = (lo + hi) / 2
+    up = {"Y": 1, "Z": 2}[str(up_axis)]
+    origin[up] = lo[up]
+    return origin
+
+
+def _author_seal(stage: Any, path: str, seal: MeshData, origin: NDArray[Any]) -> None:
     umesh = UsdGeom.Mesh.Define(stage, path)
-    pts = np.asarray(seal.points, dtype=np.float32)
+    pts = np.asarray(seal.points - origin, dtype=np.float32)
     umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
     umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(seal.face_counts))
     umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(seal.face_indices))
@@ -246,7 +259,8 @@ def author_asset(
     geo.OverridePrim(root)
     UsdGeom.Scope.Define(geo, f"{root}/Geom")
     umesh = UsdGeom.Mesh.Define(geo, f"{root}/Geom/Mesh")
-    pts = np.asarray(mesh.points, dtype=np.float32)
+    origin = asset_origin(mesh.points, up_axis)
+    pts = np.asarray(mesh.points - origin, dtype=np.float32)
     umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
     umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(mesh.face_counts))
     umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh.face_indices))
@@ -273,7 +287,7 @@ def author_asset(
     UsdShade.MaterialBindingAPI.Apply(prim).GetDirectBindingRel().SetTargets(
         [Sdf.Path(material_path)])
     if seal is not None:
-        _author_seal(geo, f"{root}/Geom/Seal", seal)
+        _author_seal(geo, f"{root}/Geom/Seal", seal, origin)
 
     # asset.usda: the interface
     asset_layer = Sdf.Layer.CreateAnonymous("asset.usda")  # held here, outlives the stage
@@ -283,8 +297,11 @@ def author_asset(
     Usd.ModelAPI(top).SetAssetName(name)
     Usd.ModelAPI(top).SetAssetIdentifier(Sdf.AssetPath("./asset.usda"))
     Usd.ColorSpaceAPI.Apply(top).CreateColorSpaceNameAttr(WORKING_COLORSPACE)
-    del asset  # sublayers are added to the bare layer: no stage tries to compose them here
-    asset_layer.subLayerPaths = ["./look.usda", "./geo.usdc"]
+    # the scan's placement: a transform of the root, which a set dresser overrides
+    UsdGeom.Xformable(top).AddTranslateOp().Set(Gf.Vec3d(*origin.tolist()))
+    del asset  # composition arcs go on the bare layer: no stage composes them here
+    asset_layer.subLayerPaths = ["./look.usda"]
+    asset_layer.GetPrimAtPath(root).payloadList.Prepend(Sdf.Payload("./geo.usdc"))
     asset_layer.customLayerData = {
         "skinpipe:colorSpace": WORKING_COLORSPACE,
         "skinpipe:generator": "skinpipe author",

@@ -68,3 +68,15 @@ def pxr_plugin_path_line() -> str:
     """The environment line a usdview or DCC user adds to see the schema and plugin."""
     return f"export PXR_PLUGINPATH_NAME={schema_dir()}{os.pathsep}{usdview_plugin_dir()}" \
            f"${{PXR_PLUGINPATH_NAME:+{os.pathsep}$PXR_PLUGINPATH_NAME}}"
+
+
+def plugin_path_note() -> str | None:
+    """A note for users of plain USD tools when ``PXR_PLUGINPATH_NAME`` does not list
+    the schema (skinpipe registers it for itself, usdview and DCCs do not), else None."""
+    listed = [Path(p).resolve() for p in os.environ.get("PXR_PLUGINPATH_NAME", "").split(
+        os.pathsep) if p]
+    if schema_dir().resolve() in listed:
+        return None
+    return ("note: outside skinpipe, USD tools (usdview, DCCs) see SkinDiffusionProfile and "
+            "SkinProfileRegionsAPI as unknown types and drop their fallbacks unless "
+            "PXR_PLUGINPATH_NAME lists the schema; 'skinpipe env' prints the line")

@@ -1,8 +1,9 @@
 """A shot layer for an asset: camera and lights, kept out of the asset itself.
 
-``OUT/scene.usda`` sublayers the asset (prim paths stay as authored, so the renderer can
-write UVs back into the asset's geo layer) and adds ``/Shot/Camera`` framing the asset's
-bounds from the front, a key SphereLight (soft shadows) and a dim DomeLight fill. With
+``OUT/scene.usda`` has one default prim, ``/Shot``, holding the asset by reference
+(``/Shot/<asset>``: referencing the shot brings the face, the camera and the lights, and
+one asset can be placed twice), ``/Shot/Camera`` framing the asset's bounds from the
+front, a key SphereLight (soft shadows) and a dim DomeLight fill. With
 ``turntable_frames`` the camera orbits the asset once over frames 1..N.
 """
 
@@ -67,7 +68,7 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(src))
     UsdGeom.SetStageUpAxis(stage, up_axis)
-    shot = UsdGeom.Scope.Define(stage, "/Shot").GetPrim()
+    shot = UsdGeom.Xform.Define(stage, "/Shot").GetPrim()
     Usd.ColorSpaceAPI.Apply(shot).CreateColorSpaceNameAttr(WORKING_COLORSPACE)
     cam = UsdGeom.Camera.Define(stage, "/Shot/Camera")
     tenths = camera_tenths_per_mm(UsdGeom.GetStageMetersPerUnit(src))
@@ -107,7 +108,14 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     stage.SetDefaultPrim(stage.GetPrimAtPath("/Shot"))
     layer.customLayerData = {"skinpipe:colorSpace": WORKING_COLORSPACE,
                              "skinpipe:generator": "skinpipe shot"}
-    del stage  # sublayer added to the bare layer: no stage tries to compose it from here
-    layer.subLayerPaths = [os.path.relpath(asset.resolve(), out.resolve().parent)]
+    root = src.GetDefaultPrim()
+    if not root:
+        raise InputError("the asset has no defaultPrim to reference", asset)
+    # the reference is added to the bare layer: no stage composes the asset from here
+    spec = Sdf.CreatePrimInLayer(layer, f"/Shot/{root.GetName()}")
+    spec.specifier = Sdf.SpecifierDef
+    spec.referenceList.Prepend(Sdf.Reference(os.path.relpath(asset.resolve(),
+                                                             out.resolve().parent)))
+    del stage
     export_layer_atomic(layer, out)
     return out

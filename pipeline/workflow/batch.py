@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import time
 import traceback
 from collections.abc import Callable
@@ -25,7 +26,7 @@ import pymeshlab
 from .. import __version__
 from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
-from ..fileio import atomic_directory, atomic_write_json
+from ..fileio import atomic_directory, atomic_write_json, relocate_paths, stale_siblings
 from ..profile.io import read_profile_csv, write_fit_json
 from ..render.albedo import bake_sample_albedo
 from ..render.renderer import RenderOptions, ensure_skin_uvs, render_files
@@ -190,6 +191,16 @@ def _done(spec: TaskSpec) -> dict[str, Any] | None:
     return doc
 
 
+def _relocate_records(tmp: Path, final: Path) -> None:
+    """JSON records a stage wrote in its temporary directory (ingest.json, render.json)
+    name the final directory instead."""
+    for path in tmp.glob("*.json"):
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        moved = relocate_paths(doc, str(tmp), str(final))
+        if moved != doc:
+            atomic_write_json(path, moved)
+
+
 def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
               work: Callable[[Path], dict[str, Any]]) -> dict[str, Any]:
     """Skip a finished task, skip when upstream failed, else run ``work`` into a
@@ -205,10 +216,21 @@ def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
     if done is not None:
         return {**done, "status": "cached", "seconds": 0.0,
                 "original_seconds": done.get("seconds", 0.0)}
+    # an earlier attempt that died (its worker lost) left its temporaries: they go, and
+    # the retry is recorded
+    stale = stale_siblings(spec.out_dir)
+    attempts = 1 + sum(".tmp-" in p.name for p in stale)
+    for path in stale:
+        shutil.rmtree(path, ignore_errors=True)
+    if attempts > 1:
+        base |= {"attempts": attempts, "retried_because":
+                 "an earlier attempt stopped without finishing (its worker was lost) and "
+                 "left " + ", ".join(p.name for p in stale)}
     start = time.perf_counter()
     try:
         with atomic_directory(spec.out_dir) as tmp:
             result = work(tmp)
+            _relocate_records(tmp, spec.out_dir)
             doc = {**base, **result, "status": "done",
                    "seconds": time.perf_counter() - start}
             atomic_write_json(tmp / "done.json", doc)
@@ -469,5 +491,9 @@ def batch_document(result: BatchResult, out_root: Path, stages: tuple[str, ...]
     counts: dict[str, int] = {}
     for t in result.tasks:
         counts[t["status"]] = counts.get(t["status"], 0) + 1
+    retried = [{"subject": t["subject"], "stage": t["stage"], "unit": t["unit"],
+                "attempts": t["attempts"], "why": t["retried_because"]}
+               for t in result.tasks if t.get("attempts", 1) > 1]
     return {"stages": list(stages), "workers": result.workers, "seconds": result.seconds,
-            "tasks": counts, "failed_subjects": result.failed, "subjects": subjects}
+            "tasks": counts, "failed_subjects": result.failed, "retried": retried,
+            "subjects": subjects}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Kind, Sdf, Usd, UsdGeom
+from pxr import Gf, Kind, Sdf, Usd, UsdGeom
 
 from pipeline.cli import main
 from pipeline.errors import InputError
@@ -81,6 +81,16 @@ def test_asset_structure(fit_files: Path, tmp_path: Path) -> None:
     assert "SkinProfileRegionsAPI" in mesh.GetAppliedSchemas()
     targets = mesh.GetRelationship("skin:profiles").GetTargets()
     assert [t.name for t in targets] == ["forehead", "cheek"]
+    # AOUSD asset structure: geometry behind a payload, the root at the asset's origin
+    # (bounds' bottom centre) with the scan's placement as the root's transform
+    assert not Usd.Stage.Open(str(paths.asset), Usd.Stage.LoadNone).GetPrimAtPath(
+        "/Jane/Geom/Mesh")
+    local = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get())
+    assert abs(local[:, 1].min()) < 1e-4
+    np.testing.assert_allclose((local.min(0) + local.max(0))[[0, 2]] / 2, 0, atol=1e-4)
+    world = UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    np.testing.assert_allclose([world.Transform(Gf.Vec3d(*map(float, p)))
+                                for p in local[:3]], _patch().points[:3], atol=1e-3)
     report = validate_file(paths.asset)
     assert not report.failed(strict=False)
     assert all(p.severity == NOT_APPLICABLE for p in report.problems)

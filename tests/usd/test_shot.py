@@ -49,3 +49,14 @@ def test_tenths_per_mm() -> None:
     assert camera_tenths_per_mm(0.001) == pytest.approx(10.0)
     assert camera_tenths_per_mm(0.01) == pytest.approx(1.0)
     assert camera_tenths_per_mm(1.0) == pytest.approx(0.01)
+
+
+def test_referencing_the_shot_brings_face_camera_and_lights(shot: Path) -> None:
+    stage = Usd.Stage.CreateInMemory()
+    for take in ("Take1", "Take2"):  # one asset placed twice
+        stage.DefinePrim(f"/World/{take}").GetReferences().AddReference(str(shot))
+    kinds = {(p.GetPath().pathElementCount > 1 and str(p.GetPath()).split("/")[2],
+              p.GetTypeName()) for p in stage.Traverse()}
+    for take in ("Take1", "Take2"):
+        assert {(take, "Mesh"), (take, "Camera"), (take, "SphereLight"),
+                (take, "DomeLight")} <= kinds

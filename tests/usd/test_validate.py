@@ -88,3 +88,20 @@ def test_list_rules(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["validate", "--list-rules"]) == 0
     out = capsys.readouterr().out
     assert all(r.name in out for r in RULES)
+
+
+def test_schema_docs_are_whole_sentences_in_the_registry() -> None:
+    # USD's registry keeps a doc's first sentence: no abbreviation may cut it short
+    from pxr import Usd
+
+    definition = Usd.SchemaRegistry().FindConcretePrimDefinition("SkinDiffusionProfile")
+    for name in definition.GetPropertyNames():
+        doc = definition.GetPropertyDefinition(name).GetDocumentation()
+        assert doc.endswith((".", ")")) and not doc.endswith(("eq.", "e.g.", "i.e.")), name
+
+
+def test_plain_usd_users_are_told_about_the_plugin_path() -> None:
+    env = {k: v for k, v in os.environ.items() if k != "PXR_PLUGINPATH_NAME"}
+    r = subprocess.run([sys.executable, "-m", "pipeline", "validate", str(CLEAN[0])],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0 and "PXR_PLUGINPATH_NAME" in r.stderr

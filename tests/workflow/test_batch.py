@@ -15,6 +15,7 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.errors import InputError
+from pipeline.fileio import relocate_paths
 from pipeline.workflow.batch import read_batch
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample_assets"
@@ -146,3 +147,88 @@ def test_batch_cli_reports_a_bad_batch_file(tmp_path: Path, capsys) -> None:
     assert main(["batch", str(path), "-o", str(tmp_path / "out")]) == 2
     assert "batch.json" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def _without_run_facts(doc: object) -> object:
+    """A record with its run facts (seconds, attempts) left out."""
+    if isinstance(doc, dict):
+        return {k: _without_run_facts(v) for k, v in doc.items()
+                if "seconds" not in k and k not in ("attempts", "retried_because")}
+    if isinstance(doc, list):
+        return [_without_run_facts(v) for v in doc]
+    return doc
+
+
+def _contents(out: Path) -> dict[str, object]:
+    """Every output file of a batch (profiles and fits), run facts left out."""
+    got: dict[str, object] = {}
+    for path in sorted(out.rglob("*")):
+        rel = str(path.relative_to(out))
+        if path.suffix == ".csv":
+            got[rel] = path.read_bytes()
+        elif path.suffix == ".json" and path.name not in ("batch.json", "done.json"):
+            # paths into the output root compare as relative to it
+            got[rel] = relocate_paths(_without_run_facts(json.loads(path.read_text())),
+                                      str(out), "<out>")
+    return got
+
+
+@pytest.mark.timeout(600)
+def test_real_scheduler_and_workers_with_one_killed(tmp_path: Path) -> None:
+    """`dask scheduler` and two `dask worker` processes on 127.0.0.1; the busy workers
+    are SIGKILLed mid-task. The batch completes, equal to a clean run, no temporary
+    left, the retry recorded."""
+    import subprocess
+    import sys
+
+    distributed = pytest.importorskip("distributed")
+    for name in ("a", "b"):
+        _copy_captures(tmp_path, name)
+    batch = _write_batch(tmp_path, ["a", "b"])
+    sched_file = tmp_path / "scheduler.json"
+    py = sys.executable
+    procs = [subprocess.Popen([py, "-m", "distributed.cli.dask_scheduler", "--host",
+                               "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(sched_file)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.is_file() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        procs += [subprocess.Popen([py, "-m", "distributed.cli.dask_worker", address,
+                                    "--nthreads", "1", "--host", "127.0.0.1",
+                                    "--no-dashboard"],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                  for _ in range(2)]
+        with distributed.Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+            clean, killed = tmp_path / "clean", tmp_path / "killed"
+            assert main(["batch", str(batch), "--scheduler", address, "--stages",
+                         "ingest,fit", "-o", str(clean)]) == 0
+            codes: list[int] = []
+            runner = threading.Thread(target=lambda: codes.append(main(
+                ["batch", str(batch), "--scheduler", address, "--stages", "ingest,fit",
+                 "-o", str(killed)])))
+            runner.start()
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not list(killed.rglob(".*.tmp-*")):
+                time.sleep(0.02)
+            assert list(killed.rglob(".*.tmp-*")), "no task started"
+            pids = client.run(os.getpid)
+            for addr, keys in client.processing().items():
+                if keys:  # every busy worker dies mid-task (its nanny starts a new one)
+                    os.kill(pids[addr], signal.SIGKILL)
+            runner.join(timeout=400)
+            assert codes == [0]
+        assert not [p for p in killed.rglob("*") if ".tmp-" in p.name or ".old-" in p.name]
+        assert _contents(killed) == _contents(clean)
+        doc = json.loads((killed / "batch.json").read_text())
+        assert doc["retried"] and all(r["attempts"] >= 2 and "worker" in r["why"]
+                                      for r in doc["retried"])
+        # records name final paths, never the temporary directory they were written in
+        assert ".tmp-" not in (killed / "a" / "ingest" / "ingest.json").read_text()
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait(timeout=30)

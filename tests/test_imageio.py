@@ -1,0 +1,44 @@
+"""Images as other tools read them: OpenImageIO reads back ACEScg chromaticities
+(checked against colour-science's definition of the space) and textures that are tiled,
+MIP-mapped and half float."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import colour
+import numpy as np
+import OpenImageIO as oiio
+
+from pipeline.imageio import ACESCG, read_image, write_exr, write_texture
+
+
+def _acescg_chromaticities() -> list[float]:
+    space = colour.models.RGB_COLOURSPACE_ACESCG
+    return [*np.asarray(space.primaries).ravel(), *space.whitepoint]
+
+
+def test_exr_names_acescg_in_openexr_terms(tmp_path: Path) -> None:
+    path = write_exr(tmp_path / "a.exr", np.full((4, 5, 3), 0.25, np.float32), ACESCG)
+    spec = oiio.ImageInput.open(str(path)).spec()
+    np.testing.assert_allclose(spec.getattribute("chromaticities"), _acescg_chromaticities(),
+                               atol=1e-4)
+    assert spec.getattribute("oiio:ColorSpace") == ACESCG
+
+
+def test_texture_is_tiled_mipmapped_half(tmp_path: Path) -> None:
+    img = np.random.default_rng(0).random((64, 128, 3)).astype(np.float32)
+    path = write_texture(tmp_path / "t.exr", img)
+    inp = oiio.ImageInput.open(str(path))
+    spec = inp.spec()
+    assert (spec.tile_width, spec.tile_height) == (64, 64) and spec.format == "half"
+    np.testing.assert_allclose(spec.getattribute("chromaticities"), _acescg_chromaticities(),
+                               atol=1e-4)
+    levels = 0
+    while inp.seek_subimage(0, levels):
+        levels += 1
+    inp.close()
+    assert levels == 8  # 128 x 64 down to 1 x 1
+    back = read_image(path).pixels[..., :3]
+    np.testing.assert_allclose(back, img, atol=1e-3)  # half float: 11 bits
+    assert not list(tmp_path.glob(".*"))  # written through a temporary, renamed
