@@ -97,15 +97,17 @@ def read_image(path: str | Path, max_pixels: int = 64_000_000) -> LoadedImage:
 def write_exr(
     path: str | Path, pixels: NDArray[Any], colorspace: str = ACESCG,
     attributes: dict[str, Any] | None = None, channel_names: tuple[str, ...] | None = None,
+    half: bool = False,
 ) -> Path:
     """Write a float EXR atomically, with the colour space in its header: the OCIO interop
     id (``oiio:ColorSpace``) and, for the spaces of :data:`CHROMATICITIES`, OpenEXR's
-    ``chromaticities``."""
+    ``chromaticities``. ``half``: 16-bit float pixels (what most pipelines keep beauty
+    in; values above 65504 become inf, so the caller decides)."""
     path = Path(path)
     arr = np.ascontiguousarray(pixels, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
-    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "float")
+    spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "half" if half else "float")
     spec.attribute("oiio:ColorSpace", colorspace)
     if colorspace in CHROMATICITIES:
         spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])

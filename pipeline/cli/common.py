@@ -77,6 +77,9 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--ocio", default=None,
                    help="OCIO config for the display PNG (default: $OCIO, else "
                         "ocio://default)")
+    p.add_argument("--half-float", action="store_true",
+                   help="write the EXR's AOVs as half float (16 bit; the usual beauty "
+                        "format) instead of 32-bit float")
     add_device_option(p)
 
 
@@ -95,7 +98,8 @@ def render_options(args: argparse.Namespace) -> Any:
         roughness=args.roughness, rho_s=args.rho_s,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
-        camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device)
+        camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,
+        half_float=args.half_float)
 
 
 def ocio_source(args: argparse.Namespace) -> str:

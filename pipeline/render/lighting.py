@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from .opencl import Kernel, build, cl_context, device_buffer, device_cache
 from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS
-from .raytrace import RayScene, morton_order
+from .raytrace import RayScene, morton_order, offset_ray_origin
 from .scene import Light
 
 SKIN_IOR = 1.4
@@ -348,6 +348,10 @@ class LightSampler:
         self.origins = origins
         self.normals = normals
         self.strata: NDArray[np.int32] | None = None
+        # a light of zero extent has one direction: one ray says all, and interleaving
+        # it (then filtering) would only blur its hard shadow
+        if is_delta_light(light):
+            samples = 1
         if interleave is not None and samples >= 4:
             self.grid = stratified_unit_square(samples, rng, even=True)
             self.strata = interleaved_strata(samples).astype(np.int32)[
@@ -566,6 +570,9 @@ class IrradianceResult:
     skipped: list[str] = field(default_factory=list)
     rays: int = 0
     seconds: float = 0.0
+    interleaved: frozenset[str] = frozenset()
+    """Lights whose shadow rays were interleaved (each point traced a quarter of the
+    samples): only their visibility is reconstructed by ``filter_interleaved``."""
 
     def entering_with(self, visibility: dict[str, NDArray[Any]]) -> NDArray[np.float32]:
         """Irradiance entering the skin with each light's visibility replaced (e.g. by its
@@ -574,6 +581,12 @@ class IrradianceResult:
         for path, un in self.unshadowed.items():
             out += un * np.asarray(visibility[path], np.float32)[..., None]
         return out
+
+
+def is_delta_light(light: Light) -> bool:
+    """A light of zero extent: a distant light of angle 0 or a sphere of radius 0."""
+    return (light.kind == "distant" and light.angle_deg <= 0.0) or \
+        (light.kind == "sphere" and light.radius <= 0.0)
 
 
 def irradiance_texture(
@@ -587,9 +600,9 @@ def irradiance_texture(
     ``interleave``, a class 0-3 per point: a quarter of them, see ``LightSampler``; the
     per-point visibility is then noisy until ``filter_interleaved`` has run).
 
-    Ray origins are pushed off the surface along the normal by 1e-5 of the scene's
-    diagonal (against self-shadowing acne) and sorted along a Morton curve; rays whose
-    cosine is <= 0 are not cast.
+    Ray origins are pushed off the surface along the normal by what their floating-point
+    error needs (:func:`~.raytrace.offset_ray_origin`) and sorted along a Morton curve;
+    rays whose cosine is <= 0 are not cast.
     """
     start = time.perf_counter()
     pos = np.asarray(positions, dtype=np.float32)
@@ -597,12 +610,13 @@ def irradiance_texture(
     order = morton_order(pos)
     pos, nrm = pos[order], nrm[order]
     classes = None if interleave is None else np.asarray(interleave)[order]
-    origins = pos + nrm * np.float32(1e-5 * rays.diagonal)
+    origins = offset_ray_origin(pos, nrm)
     n = pos.shape[0]
     entering = np.zeros((n, 3), np.float32)
     visibility: dict[str, NDArray[np.float32]] = {}
     unshadowed_by_light: dict[str, NDArray[np.float32]] = {}
     skipped: list[str] = []
+    interleaved: set[str] = set()
     n_rays = 0
     rng = np.random.default_rng(seed)
     point_buffers: dict[str, Any] = {}  # origins and normals on the device, for every light
@@ -638,6 +652,8 @@ def irradiance_texture(
                     unshadowed += full
                     n_rays += cast
         sampler.close()
+        if sampler.strata is not None:
+            interleaved.add(light.path)
         if not lit.any():
             skipped.append(f"light {light.path}: adds nothing (all samples below the horizon "
                            "or shadowed)")
@@ -657,4 +673,4 @@ def irradiance_texture(
     result = np.empty((n, 3), np.float32)
     result[order] = entering
     return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
-                            time.perf_counter() - start)
+                            time.perf_counter() - start, frozenset(interleaved))

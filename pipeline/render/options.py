@@ -48,6 +48,8 @@ class RenderOptions:
     camera: str | None = None
     write_uvs: bool = True
     seed: int = 0
+    half_float: bool = False
+    """Write the EXR's AOVs as half float (16 bit) instead of float."""
     device: str | None = None
     """OpenCL device (:data:`~.opencl.DEVICE_HELP`); None: ``$SKINPIPE_OPENCL_DEVICE``,
     else auto."""

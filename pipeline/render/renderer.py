@@ -50,11 +50,13 @@ from .lighting import (
 from .opencl import LEDGER, KernelLedger, device_choice, set_device
 from .options import AOVS, RenderOptions
 from .push_pull import push_pull
-from .raytrace import RayScene
+from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, vertex_normals
 from .unwrap import triangulate, unwrap
 
+HALF_MAX = 65504.0
+"""The largest finite half float."""
 MERGE_RELATIVE = 1e-3
 """Variances closer than this (relative) share one blur."""
 
@@ -147,14 +149,16 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps
     """Each light's per-texel visibility from interleaved shadow rays, reconstructed in
     texture space (``filter_interleaved``) and returned per covered texel."""
     covered = maps.triangle >= 0
-    paths = list(res.visibility)
+    paths = [p for p in res.visibility if p in res.interleaved]
+    if not paths:  # no light was interleaved: nothing to reconstruct
+        return dict(res.visibility)
     vis = np.zeros((len(paths), *covered.shape), np.float32)
     traced = np.zeros_like(vis)
     for i, p in enumerate(paths):
         vis[i][covered] = res.visibility[p]
         traced[i][covered] = res.unshadowed[p].sum(axis=1) > 0
     filtered = filter_interleaved(vis, traced, maps.normal)
-    return {p: filtered[i][covered] for i, p in enumerate(paths)}
+    return {**res.visibility, **{p: filtered[i][covered] for i, p in enumerate(paths)}}
 
 
 def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
@@ -556,26 +560,42 @@ class Renderer:
             self._irradiance(log, scene, tex, rays, domes)
             self._diffusion(log, tex)
             skins.append(tex)
+        seen = [i for i, m in enumerate(scene.meshes) if m.camera_visible]
+        if not seen:
+            raise InputError("every mesh on the stage is hidden from the camera")
+        camera_rays = rays
+        if len(seen) < len(scene.meshes):  # occluders that only cast shadows
+            def build() -> RayScene:
+                view = RayScene([(scene.meshes[i].mesh.points,
+                                  triangulate(scene.meshes[i].mesh)) for i in seen])
+                view.owner[:, 0] = np.asarray(seen)[view.owner[:, 0]]  # scene's mesh index
+                return view
+            camera_rays = self._cached(log, "bvh_camera", content_hash(
+                scene_geometry_key(scene), seen), build)
+            log.skipped.append("camera rays: " + ", ".join(
+                m.path for m in scene.meshes if not m.camera_visible) + " cast shadows only")
         t0 = time.perf_counter()
-        images = self._shade(scene, skins, rays, log)
+        images = self._shade(scene, skins, rays, log, camera_rays)
         log.seconds["shade"] = time.perf_counter() - t0
         log.measures["rays"] = {"counts": rays.stats.rays,
                                 "mrays_per_s": rays.stats.mrays_per_s()}
         return images, log
 
     def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
-               log: TaskLog) -> dict[str, NDArray[np.float32]]:
+               log: TaskLog, camera_rays: RayScene) -> dict[str, NDArray[np.float32]]:
+        """Camera rays against ``camera_rays`` (the meshes the camera sees), shadow rays
+        against ``rays`` (every mesh)."""
         opts = self.options
         width, height = opts.resolution
         cam = scene.camera
         assert cam is not None
         origins, dirs = cam.rays(width, height)
-        prim, bu, bv, dist = rays.intersect(origins, dirs)
+        prim, bu, bv, dist = camera_rays.intersect(origins, dirs)
         n_pix = width * height
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
         alpha = (prim >= 0).astype(np.float32)
         mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
-        owner = np.where(prim[:, None] >= 0, rays.owner[np.maximum(prim, 0)], -1)
+        owner = np.where(prim[:, None] >= 0, camera_rays.owner[np.maximum(prim, 0)], -1)
         for m_i, mesh in enumerate(scene.meshes):
             sel = np.flatnonzero(owner[:, 0] == m_i)
             if sel.size == 0:
@@ -641,7 +661,7 @@ class Renderer:
         from each light's centre with one shadow ray (dome lights: unshadowed ambient)."""
         albedo = np.asarray(mesh.albedo.constant, np.float32)
         e = np.zeros((pos.shape[0], 3))
-        origins = pos + n * (1e-5 * rays.diagonal)
+        origins = offset_ray_origin(pos, n)
         for light in scene.lights:
             if light.kind == "dome":
                 e += light.radiance * math.pi * 0.5
@@ -682,8 +702,9 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
 
 
 def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32]],
-                  working: str, config_source: str) -> dict[str, Any]:
-    """OUT/<name>.exr (one layer per AOV, colour space in the header) and OUT/<name>.png."""
+                  working: str, config_source: str, half: bool = False) -> dict[str, Any]:
+    """OUT/<name>.exr (one layer per AOV, colour space in the header; half float with
+    ``half``, where no value exceeds half's range) and OUT/<name>.png."""
     channels, names = [], []
     for aov, img in images.items():
         chans = ("R", "G", "B", "A") if img.shape[2] == 4 else ("R", "G", "B")
@@ -692,7 +713,11 @@ def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32
     stack = np.concatenate(channels, axis=2)
     if not np.all(np.isfinite(stack)):
         raise SkinpipeError(f"{name}: the render produced non-finite pixels")
-    exr = write_exr(out_dir / f"{name}.exr", stack, working, channel_names=tuple(names))
+    if half and np.abs(stack).max() > HALF_MAX:
+        raise SkinpipeError(f"{name}: a pixel exceeds half float's range ({HALF_MAX}); "
+                            "write float EXRs (leave out --half-float)")
+    exr = write_exr(out_dir / f"{name}.exr", stack, working, channel_names=tuple(names),
+                    half=half)
     result: dict[str, Any] = {"exr": str(exr), "colorspace": working}
     if "beauty" in images:
         disp, info = display_image(images["beauty"], working, config_source)
@@ -740,7 +765,8 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
                 renderer.clear_cache()  # no frame follows: its textures go before the writes
             working = renderer.delegate.working_colorspace
             frame_name = name if t is None else f"{name}.{t:04d}"
-            outputs = write_outputs(out_dir, frame_name, images, working, ocio)
+            outputs = write_outputs(out_dir, frame_name, images, working, ocio,
+                                    options.half_float)
             doc["frames"].append({"frame": t, "seconds": time.perf_counter() - t0,
                                   "tasks": log.seconds, "cached": log.cached,
                                   "skipped": log.skipped, "measures": log.measures,

@@ -25,7 +25,13 @@ from ..errors import InputError
 from ..profile.types import FitResult
 from ..usd.author import read_profiles
 from ..usd.mesh import MeshData, validate_mesh
-from ..usd.schema import PROFILES_REL, REGION_INDEX_PRIMVAR, REGION_WEIGHTS_PRIMVAR, REGIONS_API
+from ..usd.schema import (
+    CAMERA_VISIBILITY_PRIMVAR,
+    PROFILES_REL,
+    REGION_INDEX_PRIMVAR,
+    REGION_WEIGHTS_PRIMVAR,
+    REGIONS_API,
+)
 
 CATEGORIES = ("geometry", "lights", "camera", "material")
 LIGHT_TYPES = {"DistantLight": "distant", "SphereLight": "sphere", "RectLight": "rect",
@@ -128,6 +134,9 @@ class SceneMesh:
     points_layer: str | None = None
     points_prim: str | None = None
     """The mesh's path in ``points_layer``."""
+    camera_visible: bool = True
+    """False for an occluder that only casts shadows (``primvars:skinpipe:cameraVisibility``
+    = false, see :data:`CAMERA_VISIBILITY_PRIMVARS`)."""
 
     @property
     def is_skin(self) -> bool:
@@ -282,8 +291,11 @@ def _read_mesh(prim: Any, time: Any, mpu: float) -> SceneMesh:
         points_layer, points_prim = spec.layer.identifier, str(spec.path.GetPrimPath())
         break
     if not prim.HasAPI(REGIONS_API) and not prim.GetRelationship(PROFILES_REL):
+        seen = UsdGeom.PrimvarsAPI(prim).GetPrimvar(CAMERA_VISIBILITY_PRIMVAR)
         return SceneMesh(path, data, uv, uv_idx, albedo=_read_albedo(prim, time),
-                         points_layer=points_layer, points_prim=points_prim)
+                         points_layer=points_layer, points_prim=points_prim,
+                         camera_visible=not (seen and seen.HasValue()
+                                             and seen.Get(time) is False))
     pv = UsdGeom.PrimvarsAPI(prim)
     rel_targets = prim.GetRelationship(PROFILES_REL).GetTargets()
     names = [t.name for t in rel_targets]

@@ -37,6 +37,7 @@ from .schema import (
     REGION_INDEX_PRIMVAR,
     REGION_WEIGHTS_PRIMVAR,
     REGIONS_API,
+    SHADOW_ONLY_PRIMVARS,
     SUBSET_FAMILY,
     WORKING_COLORSPACE,
     require_schema,
@@ -204,9 +205,15 @@ def _author_seal(stage: Any, path: str, seal: MeshData, origin: NDArray[Any]) ->
     umesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     umesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])))
     umesh.CreateDisplayColorAttr([Gf.Vec3f(0.2, 0.2, 0.2)])
+    primvars = UsdGeom.PrimvarsAPI(umesh)
+    for name, (type_name, value) in SHADOW_ONLY_PRIMVARS.items():
+        primvars.CreatePrimvar(name, getattr(Sdf.ValueTypeNames, type_name),
+                               UsdGeom.Tokens.constant).Set(value)
     umesh.GetPrim().SetDocumentation(
-        "Closes the scan's open rim (surface the scanner never saw) so that no light or "
-        "camera ray passes through the face; not skin, no texture space.")
+        "Closes the scan's open rim (surface the scanner never saw) so that no light "
+        "passes through the face; it casts shadows but is hidden from camera rays "
+        "(primvars:skinpipe:cameraVisibility and the RenderMan, Arnold and Karma "
+        "equivalents); not skin, no texture space.")
 
 
 def author_asset(

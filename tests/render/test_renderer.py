@@ -323,6 +323,18 @@ def test_output_has_aov_layers_and_colour_space(lit_patch: Path, tmp_path: Path)
     png = oiio.ImageInput.open(str(out / "scene.png"))
     assert png.spec().getattribute("oiio:ColorSpace").startswith("srgb")
     png.close()
+    # half float on request, the same image to half's precision
+    half = tmp_path / "half"
+    assert main(["render", str(lit_patch), "--resolution", "32x24", "--texture-size", "128",
+                 "--aovs", "beauty,diffuse", "--light-samples", "1", "--half-float", "-o",
+                 str(half)]) == 0
+    h = oiio.ImageInput.open(str(half / "scene.exr"))
+    assert h.spec().format == "half"
+    f = oiio.ImageInput.open(str(out / "scene.exr"))
+    np.testing.assert_allclose(h.read_image("float"), f.read_image("float"), rtol=1e-3,
+                               atol=1e-4)
+    h.close()
+    f.close()
 
 
 def test_missing_uvs_are_unwrapped_and_written_back(tmp_path: Path) -> None:

@@ -1,0 +1,108 @@
+"""Shadows against analytic expectations: a light of zero extent is traced once and not
+interleaved (its hard edge is not blurred), ray origins follow the hit point's own
+floating-point error (a far object moves no shadow), and an occluder hidden from the
+camera still casts its shadow."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, UsdGeom
+
+from pipeline.render.lighting import irradiance_texture
+from pipeline.render.raytrace import RayScene, offset_ray_origin
+from pipeline.render.renderer import Renderer, RenderOptions, render_files
+from pipeline.render.scene import Light
+from pipeline.usd.io import open_stage_guarded
+from pipeline.usd.schema import CAMERA_VISIBILITY_PRIMVAR
+
+from ..render_scenes import deon_fit, distant_down, patch_asset, scene_over, top_camera
+
+DOWN = Light("/Sun", "distant", np.ones(3), np.eye(4), angle_deg=0.0)
+
+
+def _floor_and_wall() -> tuple[np.ndarray, np.ndarray]:
+    """A floor at z = 0 and a blocker at z = 10 over x < 0."""
+    pts = np.array([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0],
+                    [-60, -60, 10], [0, -60, 10], [0, 60, 10], [-60, 60, 10]], np.float64)
+    tris = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    return pts, tris
+
+
+def _edge_points() -> tuple[np.ndarray, np.ndarray]:
+    x = np.linspace(-2, 2, 80)  # both sides of the edge at x = 0, never on it
+    pos = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1).astype(np.float32)
+    return pos, np.tile(np.float32([0, 0, 1]), (x.size, 1))
+
+
+def test_a_light_of_zero_extent_is_traced_once_and_not_interleaved() -> None:
+    pos, nrm = _edge_points()
+    classes = np.arange(pos.shape[0]) % 4
+    res = irradiance_texture(pos, nrm, [DOWN], RayScene([_floor_and_wall()]), samples=16,
+                             interleave=classes)
+    assert res.interleaved == frozenset()
+    assert res.rays == pos.shape[0]  # one ray a point
+    vis = res.visibility["/Sun"]
+    # the analytic hard edge at x = 0: shadowed left, lit right, nothing in between
+    np.testing.assert_array_equal(vis, np.where(pos[:, 0] < 0, 0.0, 1.0))
+
+
+def test_a_far_object_moves_no_shadow() -> None:
+    pos, nrm = _edge_points()
+    near = irradiance_texture(pos, nrm, [DOWN], RayScene([_floor_and_wall()]), samples=1)
+    far_pts = np.array([[1e4, 0, -5e3], [1.1e4, 0, -5e3], [1e4, 1e3, -5e3]])
+    far = irradiance_texture(pos, nrm, [DOWN], RayScene(
+        [_floor_and_wall(), (far_pts, np.array([[0, 1, 2]]))]), samples=1)
+    np.testing.assert_array_equal(near.visibility["/Sun"], far.visibility["/Sun"])
+
+
+def test_ray_origins_follow_the_points_own_precision() -> None:
+    n = np.float32([[0, 0, 1]] * 3)
+    p = np.float32([[0.0, 0.0, 0.0], [100.0, 0.0, 100.0], [1e4, 0.0, -1e4]])
+    out = offset_ray_origin(p, n)
+    lift = out[:, 2] - p[:, 2]
+    assert np.all(lift > 0)
+    # 256 units in the last place at 100 and 1e4 (Wächter & Binder), 2^-16 near zero
+    np.testing.assert_allclose(lift[1:], 256 * np.spacing(np.abs(p[1:, 2])), rtol=1e-6)
+    assert lift[0] == np.float32(1 / 65536)
+    np.testing.assert_array_equal(out[:, :2], p[:, :2])  # no move across the normal
+
+
+def test_a_hidden_occluder_casts_its_shadow_but_is_not_seen(tmp_path: Path) -> None:
+    asset = patch_asset(tmp_path / "asset", [deon_fit()])
+
+    def build(stage, hidden: bool) -> None:
+        top_camera(stage)
+        distant_down(stage, intensity=2.0)
+        mesh = UsdGeom.Mesh.Define(stage, "/Blocker")
+        mesh.CreatePointsAttr([Gf.Vec3f(-30, -30, 20), Gf.Vec3f(0, -30, 20),
+                               Gf.Vec3f(0, 30, 20), Gf.Vec3f(-30, 30, 20)])
+        mesh.CreateFaceVertexCountsAttr([4])
+        mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        if hidden:
+            UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+                CAMERA_VISIBILITY_PRIMVAR, Sdf.ValueTypeNames.Bool,
+                UsdGeom.Tokens.constant).Set(False)
+
+    options = RenderOptions(resolution=(48, 48), texture_size=128, light_samples=1,
+                            aovs=("beauty", "irradiance"))
+    images = {}
+    for hidden in (False, True):
+        scene = scene_over(asset, tmp_path / f"scene_{hidden}.usda",
+                           lambda s, h=hidden: build(s, h))
+        images[hidden], _ = Renderer(open_stage_guarded(scene), options).render()
+    # rows are image y (top first), columns x: the blocker covers x < 0, the left half
+    seen, hidden = images[False]["beauty"], images[True]["beauty"]
+    # the 40 mm patch spans columns 14-34 of 48 (90 mm in view), its middle at 24
+    left, right = (slice(16, 32), slice(15, 22)), (slice(16, 32), slice(26, 33))
+    # hidden: the patch shows under the blocker, in its shadow (dark), lit beside it
+    assert hidden[left][..., 3].min() == 1.0
+    assert hidden[left][..., :3].mean() < 0.05 * hidden[right][..., :3].mean()
+    # shown, the blocker's own (lit, grey) top fills the left half instead
+    assert seen[left][..., :3].mean() > 10 * hidden[left][..., :3].mean()
+    np.testing.assert_allclose(seen[right], hidden[right], atol=1e-6)
+    doc = render_files(tmp_path / "scene_True.usda", tmp_path / "out", options)
+    assert any("cast shadows only" in s for s in doc["frames"][0]["skipped"])
+    assert json.loads((tmp_path / "out" / "render.json").read_text())["opencl"]["device"]
