@@ -111,6 +111,8 @@ def write_exr(
     spec.attribute("oiio:ColorSpace", colorspace)
     if colorspace in CHROMATICITIES:
         spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
+    # no write time in the header (OpenEXR capDate): the same pixels give the same file
+    spec.attribute("DateTime", "")
     spec.attribute("compression", "zip")
     if channel_names:
         spec.channelnames = channel_names
@@ -130,6 +132,8 @@ def write_texture(path: str | Path, pixels: NDArray[Any], colorspace: str = ACES
     spec.attribute("oiio:ColorSpace", colorspace)
     if colorspace in CHROMATICITIES:
         spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
+    # no write time in the header (OpenEXR capDate): the same pixels give the same file
+    spec.attribute("DateTime", "")
     buf = oiio.ImageBuf(spec)
     buf.set_pixels(oiio.ROI(), arr)
     config = oiio.ImageSpec()

@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -81,8 +82,12 @@ def write_profile_csv(path: str | Path, profile: MeasuredProfile) -> Path:
 
 
 def write_fit_json(path: str | Path, fit: FitResult) -> Path:
-    """Write FIT.json (atomically)."""
-    return atomic_write_json(path, fit.to_json())
+    """Write FIT.json (atomically); its ``source`` relative to the file's folder, so that
+    a folder of outputs moved or written elsewhere holds the same bytes."""
+    doc = fit.to_json()
+    if doc.get("source") and Path(doc["source"]).is_absolute():
+        doc["source"] = os.path.relpath(doc["source"], Path(path).resolve().parent)
+    return atomic_write_json(path, doc)
 
 
 def read_fit_json(path: str | Path) -> FitResult:
@@ -101,6 +106,8 @@ def read_fit_json(path: str | Path) -> FitResult:
     except InputError as exc:
         raise InputError(str(exc), path) from exc
     _check_fit(fit, path)
+    if fit.source and not Path(fit.source).is_absolute():
+        fit.source = str((path.parent / fit.source).resolve())
     return fit
 
 

@@ -58,7 +58,9 @@ class FitResult:
         return f if self.total_reflectance is None else f * self.total_reflectance
 
     def to_json(self) -> dict[str, Any]:
-        """The FIT.json document (see docs/fit.md)."""
+        """The FIT.json document (see docs/fit.md): the fit's content only. How long it
+        took is a fact of the run, kept in run records (the CLI's output, report.json, a
+        batch task's done.json), so that the same inputs give the same file."""
         # float32-exact numbers: USD stores them as float/color3f without any change,
         # so FIT.json -> USD -> read back is an identity.
         doc: dict[str, Any] = {
@@ -69,7 +71,6 @@ class FitResult:
             ],
             "error": [_f32(e) for e in self.error],
             "error_measure": "Park & Oh 2009 eq. 2c (relative, r-weighted RMS), per channel",
-            "seconds": float(self.seconds),
             "status": self.status,
             "solver": self.solver,
             "iterations": int(self.iterations),

@@ -147,7 +147,7 @@ def _author_profile(stage: Any, path: str, fit: FitResult,
     prim.CreateAttribute("fit:error", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(*_f32(fit.error)))
     prim.CreateAttribute("fit:solver", Sdf.ValueTypeNames.String).Set(fit.solver)
     prim.CreateAttribute("fit:status", Sdf.ValueTypeNames.String).Set(fit.status)
-    prim.CreateAttribute("fit:seconds", Sdf.ValueTypeNames.Float).Set(float(fit.seconds))
+    # fit:seconds is left out: the run's timings live in run records, not in the asset
     if measured is not None:
         prim.CreateAttribute("measured:radiusMm", Sdf.ValueTypeNames.FloatArray).Set(
             Vt.FloatArray(_f32(measured.radius_mm)))
@@ -196,14 +196,20 @@ def asset_origin(points: NDArray[Any], up_axis: str) -> NDArray[np.float64]:
     return origin
 
 
-def _author_seal(stage: Any, path: str, seal: MeshData, origin: NDArray[Any]) -> None:
+def _define_mesh(stage: Any, path: str, mesh: MeshData, origin: NDArray[Any]) -> Any:
+    """A polygon mesh (no subdivision) with its points about the asset's ``origin``."""
     umesh = UsdGeom.Mesh.Define(stage, path)
-    pts = np.asarray(seal.points - origin, dtype=np.float32)
+    pts = np.asarray(mesh.points - origin, dtype=np.float32)
     umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
-    umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(seal.face_counts))
-    umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(seal.face_indices))
+    umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(mesh.face_counts))
+    umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh.face_indices))
     umesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     umesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])))
+    return umesh
+
+
+def _author_seal(stage: Any, path: str, seal: MeshData, origin: NDArray[Any]) -> None:
+    umesh = _define_mesh(stage, path, seal, origin)
     umesh.CreateDisplayColorAttr([Gf.Vec3f(0.2, 0.2, 0.2)])
     primvars = UsdGeom.PrimvarsAPI(umesh)
     for name, (type_name, value) in SHADOW_ONLY_PRIMVARS.items():
@@ -265,14 +271,8 @@ def author_asset(
     geo = _layer_stage(mpu, up_axis, name)
     geo.OverridePrim(root)
     UsdGeom.Scope.Define(geo, f"{root}/Geom")
-    umesh = UsdGeom.Mesh.Define(geo, f"{root}/Geom/Mesh")
     origin = asset_origin(mesh.points, up_axis)
-    pts = np.asarray(mesh.points - origin, dtype=np.float32)
-    umesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
-    umesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(mesh.face_counts))
-    umesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh.face_indices))
-    umesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    umesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])))
+    umesh = _define_mesh(geo, f"{root}/Geom/Mesh", mesh, origin)
     pv_api = UsdGeom.PrimvarsAPI(umesh)
     if mesh.st is not None:
         pv_api.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex

@@ -29,8 +29,8 @@ def describe_profile(path: str, fit: FitResult, measured: MeasuredProfile | None
     lines.append(f"  {'sum':>14} {sums[0]:>8.4f} {sums[1]:>8.4f} {sums[2]:>8.4f}")
     err = " ".join(f"{c}={e:.3e}" for c, e in zip("RGB", fit.error, strict=True))
     lines.append(f"  eq. 2c error: {err}")
-    lines.append(f"  solver: {fit.solver or '?'}  status: {fit.status or '?'}  "
-                 f"seconds: {fit.seconds:.3f}")
+    lines.append(f"  solver: {fit.solver or '?'}  status: {fit.status or '?'}"
+                 + (f"  seconds: {fit.seconds:.3f}" if fit.seconds > 0 else ""))
     if fit.total_reflectance is not None:
         lines.append("  total reflectance: " + " ".join(f"{x:.4f}" for x in fit.total_reflectance))
     if measured is not None:

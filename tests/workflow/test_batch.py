@@ -160,16 +160,17 @@ def _without_run_facts(doc: object) -> object:
 
 
 def _contents(out: Path) -> dict[str, object]:
-    """Every output file of a batch (profiles and fits), run facts left out."""
+    """Every output of a batch: content files (profiles, HDR images, fits) byte for
+    byte; the ingest report with its run facts (seconds) and paths into the root left
+    out. batch.json and done.json are run records."""
     got: dict[str, object] = {}
     for path in sorted(out.rglob("*")):
         rel = str(path.relative_to(out))
-        if path.suffix == ".csv":
-            got[rel] = path.read_bytes()
-        elif path.suffix == ".json" and path.name not in ("batch.json", "done.json"):
-            # paths into the output root compare as relative to it
+        if path.name == "ingest.json":
             got[rel] = relocate_paths(_without_run_facts(json.loads(path.read_text())),
                                       str(out), "<out>")
+        elif path.is_file() and path.name not in ("batch.json", "done.json"):
+            got[rel] = path.read_bytes()
     return got
 
 
