@@ -55,6 +55,9 @@ from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, vertex_normals
 from .unwrap import triangulate, unwrap
 
+EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
+"""Sub-pixel offsets (pixels) of a silhouette pixel's camera rays: the 4-rook rotated
+grid, one sample in every row and column of a 4 x 4 subdivision."""
 HALF_MAX = 65504.0
 """The largest finite half float."""
 MERGE_RELATIVE = 1e-3
@@ -583,17 +586,55 @@ class Renderer:
 
     def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
                log: TaskLog, camera_rays: RayScene) -> dict[str, NDArray[np.float32]]:
-        """Camera rays against ``camera_rays`` (the meshes the camera sees), shadow rays
-        against ``rays`` (every mesh)."""
+        """The AOV images: one camera ray through each pixel centre, and where a pixel's
+        3 x 3 neighbourhood holds both geometry and background (a silhouette), the
+        pixel is shaded again at :data:`EDGE_SAMPLES` (a rotated grid) and its alpha is
+        their coverage, its colours their mean (premultiplied)."""
         opts = self.options
         width, height = opts.resolution
         cam = scene.camera
         assert cam is not None
         origins, dirs = cam.rays(width, height)
+        out, hit = self._shade_rays(scene, skins, rays, log, camera_rays, origins, dirs)
+        alpha = hit.astype(np.float32)
+        mask = hit.reshape(height, width)
+        padded = np.pad(mask, 1, mode="edge")
+        windows = [padded[dy:dy + height, dx:dx + width] for dy in range(3) for dx in range(3)]
+        edge = np.flatnonzero((np.any(windows, axis=0) & ~np.all(windows, axis=0)).ravel())
+        if edge.size:
+            py, px = np.divmod(edge, width)
+            offs = np.asarray(EDGE_SAMPLES)
+            sx = (px[:, None] + 0.5 + offs[None, :, 0]).ravel()
+            sy = (py[:, None] + 0.5 + offs[None, :, 1]).ravel()
+            sub, sub_hit = self._shade_rays(scene, skins, rays, log, camera_rays,
+                                            *cam.rays_at(sx, sy, width, height))
+            k = len(EDGE_SAMPLES)
+            for a in out:
+                out[a][edge] = sub[a].reshape(edge.size, k, 3).mean(axis=1)
+            alpha[edge] = sub_hit.reshape(edge.size, k).mean(axis=1)
+            log.measures["edge_pixels"] = {"pixels": int(edge.size), "samples": k}
+        images = {}
+        for a in opts.aovs:
+            img = out[a].reshape(height, width, 3)
+            if a == "beauty":
+                img = np.concatenate([img, alpha.reshape(height, width, 1)], axis=2)
+            images[a] = img
+        skipped_aovs = [a for a in AOVS if a not in opts.aovs]
+        if skipped_aovs:
+            log.skipped.append(f"AOVs not asked for: {', '.join(skipped_aovs)}")
+        return images
+
+    def _shade_rays(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
+                    log: TaskLog, camera_rays: RayScene, origins: NDArray[Any],
+                    dirs: NDArray[Any]) -> tuple[dict[str, NDArray[np.float32]],
+                                                 NDArray[np.bool_]]:
+        """Every AOV for camera rays (origins, dirs) traced against ``camera_rays`` (the
+        meshes the camera sees; shadow rays against ``rays``, every mesh), and which
+        rays hit."""
+        opts = self.options
         prim, bu, bv, dist = camera_rays.intersect(origins, dirs)
-        n_pix = width * height
+        n_pix = origins.shape[0]
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
-        alpha = (prim >= 0).astype(np.float32)
         mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
         owner = np.where(prim[:, None] >= 0, camera_rays.owner[np.maximum(prim, 0)], -1)
         for m_i, mesh in enumerate(scene.meshes):
@@ -626,16 +667,7 @@ class Renderer:
             if "specular" in opts.aovs or "beauty" in opts.aovs:
                 out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
         out["beauty"] = out["diffuse"] + out["specular"]
-        images = {}
-        for a in opts.aovs:
-            img = out[a].reshape(height, width, 3)
-            if a == "beauty":
-                img = np.concatenate([img, alpha.reshape(height, width, 1)], axis=2)
-            images[a] = img
-        skipped_aovs = [a for a in AOVS if a not in opts.aovs]
-        if skipped_aovs:
-            log.skipped.append(f"AOVs not asked for: {', '.join(skipped_aovs)}")
-        return images
+        return out, prim >= 0
 
     def _specular(self, scene: SceneData, tex: SkinTextures, pos: NDArray[Any],
                   n: NDArray[Any], view: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:

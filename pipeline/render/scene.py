@@ -95,12 +95,18 @@ class Camera:
 
     def rays(self, width: int, height: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Origins and unit directions through pixel centres, row 0 at the top."""
-        x = ((np.arange(width) + 0.5) / width - 0.5) * self.horizontal_aperture
+        px, py = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        return self.rays_at(px.ravel(), py.ravel(), width, height)
+
+    def rays_at(self, px: NDArray[Any], py: NDArray[Any], width: int, height: int
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Rays through image points (``px``, ``py``) in pixels of a width x height image,
+        (0, 0) its top left corner."""
+        x = (np.asarray(px, np.float64) / width - 0.5) * self.horizontal_aperture
         # the image keeps square pixels: the vertical extent follows the aspect ratio
         vext = self.horizontal_aperture * height / width
-        y = (0.5 - (np.arange(height) + 0.5) / height) * vext
-        xx, yy = np.meshgrid(x, y)
-        local = np.stack([xx, yy, np.full_like(xx, -self.focal_length)], axis=-1).reshape(-1, 3)
+        y = (0.5 - np.asarray(py, np.float64) / height) * vext
+        local = np.stack([x, y, np.full_like(x, -self.focal_length)], axis=-1)
         d = local @ self.rotation.T
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.position, d.shape).copy(), d

@@ -106,3 +106,29 @@ def test_a_hidden_occluder_casts_its_shadow_but_is_not_seen(tmp_path: Path) -> N
     doc = render_files(tmp_path / "scene_True.usda", tmp_path / "out", options)
     assert any("cast shadows only" in s for s in doc["frames"][0]["skipped"])
     assert json.loads((tmp_path / "out" / "render.json").read_text())["opencl"]["device"]
+
+
+def test_silhouettes_have_partial_alpha_that_sums_to_the_covered_area(tmp_path: Path) -> None:
+    # a 40 mm square seen from 100 mm through a 45 mm film back at 50 mm: it spans
+    # 40 / 90 of the 48-pixel frame, 21.33 pixels a side, so its edges cut pixels
+    asset = patch_asset(tmp_path / "asset", [deon_fit()])
+
+    def build(stage) -> None:
+        top_camera(stage)
+        distant_down(stage, intensity=2.0)
+
+    scene = scene_over(asset, tmp_path / "scene.usda", build)
+    options = RenderOptions(resolution=(48, 48), texture_size=128, light_samples=1,
+                            aovs=("beauty",))
+    images, log = Renderer(open_stage_guarded(scene), options).render()
+    alpha = images["beauty"][..., 3]
+    partial = (alpha > 0) & (alpha < 1)
+    assert partial.sum() >= 4 * 20  # the four edges
+    side = 48 * 40 / 90
+    # four samples a pixel: each silhouette pixel's coverage within 1/8
+    assert abs(alpha.sum() - side * side) <= 4 * side / 8
+    assert log.measures["edge_pixels"]["samples"] == 4
+    # colour is premultiplied: an edge pixel is its coverage times the interior colour
+    inner = images["beauty"][24, 24, :3]
+    y, x = np.argwhere(partial)[0]
+    np.testing.assert_allclose(images["beauty"][y, x, :3], alpha[y, x] * inner, rtol=0.05)
