@@ -34,7 +34,7 @@ from .direct_blur import (
     fir_weight_table,
 )
 from .opencl import cl_context, device_buffer, device_cache, device_choice
-from .opencl_runtimes import _cache_root
+from .opencl_runtimes import cache_root
 from .recursive_blur import iir_kernels
 
 FIR_MAX_RADIUS_TUNED = 32
@@ -136,7 +136,7 @@ def _cache_path() -> str:
     key = "|".join(str(x) for x in (device_choice().candidate.label, d.driver_version,
                                     d.version, d.max_compute_units, __version__, TUNE_SIZE))
     name = hashlib.sha256(key.encode()).hexdigest()[:16]
-    return os.path.join(_cache_root(), "opencl", f"blur-switch-{name}.json")
+    return os.path.join(cache_root(), "opencl", f"blur-switch-{name}.json")
 
 
 SWITCH_ENV = "SKINPIPE_BLUR_SWITCH"

@@ -21,7 +21,7 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .opencl_runtimes import SETUP, _cache_root
+from .opencl_runtimes import SETUP, cache_root
 from .options import DEVICE_ENV
 
 STREAM_MIN_BYTES = 16 << 20
@@ -294,7 +294,7 @@ def cl_context() -> tuple[Any, Any]:
 
 def program_cache_dir() -> Path:
     """Where built programs are kept (pyopencl's binary cache, for every runtime)."""
-    return _cache_root() / "opencl" / "programs"
+    return cache_root() / "opencl" / "programs"
 
 
 @dataclass

@@ -59,7 +59,9 @@ def _dist_file(dist: str, name: str) -> Path | None:
     return None
 
 
-def _cache_root() -> Path:
+def cache_root() -> Path:
+    """skinpipe's cache folder: ``$XDG_CACHE_HOME/skinpipe``, else ``~/.cache/skinpipe``
+    (OpenCL vendors list, built programs, PoCL's kernels, the blur switch)."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "skinpipe"
 
@@ -68,7 +70,7 @@ def _write_vendors(entries: dict[str, str]) -> Path:
     """A folder of ``.icd`` files (name -> library path), made once per content and
     written atomically (many processes may start at once)."""
     digest = hashlib.sha256(repr(sorted(entries.items())).encode()).hexdigest()[:16]
-    for root in (_cache_root() / "opencl", Path(tempfile.gettempdir()) / "skinpipe-opencl"):
+    for root in (cache_root() / "opencl", Path(tempfile.gettempdir()) / "skinpipe-opencl"):
         folder = root / f"vendors-{digest}"
         if folder.is_dir():
             return folder
@@ -95,7 +97,7 @@ def register_runtimes() -> RuntimeSetup:
     ``OCL_ICD_VENDORS`` alone."""
     setup = RuntimeSetup()
     # PoCL compiles each kernel again at its first launch: keep those on disk too
-    os.environ.setdefault("POCL_CACHE_DIR", str(_cache_root() / "pocl"))
+    os.environ.setdefault("POCL_CACHE_DIR", str(cache_root() / "pocl"))
     intel = _dist_file(INTEL_DIST, INTEL_LIBRARY)
     if intel is None:
         setup.notes.append(f"Intel CPU runtime: not installed (pip install {INTEL_DIST} "
