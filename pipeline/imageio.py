@@ -94,6 +94,16 @@ def read_image(path: str | Path, max_pixels: int = 64_000_000) -> LoadedImage:
     return LoadedImage(path, pixels, is_float, bits, exposure_s, fmt)
 
 
+def _colour_header(spec: Any, colorspace: str) -> None:
+    """The colour space as OIIO, OCIO and OpenEXR read it (``oiio:ColorSpace`` and
+    ``chromaticities``), and no write time (OpenEXR ``capDate``): the same pixels give
+    the same file."""
+    spec.attribute("oiio:ColorSpace", colorspace)
+    if colorspace in CHROMATICITIES:
+        spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
+    spec.attribute("DateTime", "")
+
+
 def write_exr(
     path: str | Path, pixels: NDArray[Any], colorspace: str = ACESCG,
     attributes: dict[str, Any] | None = None, channel_names: tuple[str, ...] | None = None,
@@ -108,11 +118,7 @@ def write_exr(
     if arr.ndim == 2:
         arr = arr[..., None]
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "half" if half else "float")
-    spec.attribute("oiio:ColorSpace", colorspace)
-    if colorspace in CHROMATICITIES:
-        spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
-    # no write time in the header (OpenEXR capDate): the same pixels give the same file
-    spec.attribute("DateTime", "")
+    _colour_header(spec, colorspace)
     spec.attribute("compression", "zip")
     if channel_names:
         spec.channelnames = channel_names
@@ -129,11 +135,7 @@ def write_texture(path: str | Path, pixels: NDArray[Any], colorspace: str = ACES
     path = Path(path)
     arr = np.ascontiguousarray(pixels, dtype=np.float32)
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], "float")
-    spec.attribute("oiio:ColorSpace", colorspace)
-    if colorspace in CHROMATICITIES:
-        spec.attribute("chromaticities", oiio.TypeDesc("float[8]"), CHROMATICITIES[colorspace])
-    # no write time in the header (OpenEXR capDate): the same pixels give the same file
-    spec.attribute("DateTime", "")
+    _colour_header(spec, colorspace)
     buf = oiio.ImageBuf(spec)
     buf.set_pixels(oiio.ROI(), arr)
     config = oiio.ImageSpec()

@@ -23,12 +23,17 @@ def _resolution(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected WxH, got {text!r}") from exc
 
 
-def _frames(text: str) -> tuple[int, int]:
+def _int_pair(text: str) -> tuple[int, int]:
+    """``A:B`` (or ``A`` for ``A:A``) as two ints; an argparse error otherwise."""
     try:
         a, _, b = text.partition(":")
-        lo, hi = int(a), int(b or a)
+        return int(a), int(b or a)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"expected A:B, got {text!r}") from exc
+
+
+def _frames(text: str) -> tuple[int, int]:
+    lo, hi = _int_pair(text)
     if lo > hi or hi - lo > 10000:
         raise argparse.ArgumentTypeError(f"need A <= B (at most 10000 frames), got {text!r}")
     return lo, hi

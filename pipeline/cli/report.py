@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint
+from .common import _eprint, _int_pair
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -50,11 +50,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _int_range(text: str) -> tuple[int, int]:
-    try:
-        a, _, b = text.partition(":")
-        lo, hi = int(a), int(b or a)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected A:B, got {text!r}") from exc
+    lo, hi = _int_pair(text)
     if not 1 <= lo <= hi <= 8:
         raise argparse.ArgumentTypeError(f"need 1 <= A <= B <= 8, got {text!r}")
     return lo, hi

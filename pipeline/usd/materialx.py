@@ -78,8 +78,8 @@ def network_problems(prim: Any) -> list[tuple[str, str]]:
 
 
 def _sdf(mx_type: str) -> Any:
-    return getattr(Sdf.ValueTypeNames, {"color3f": "Color3f", "float": "Float", "float2": "Float2",
-                                        "asset": "Asset", "token": "Token"}[MX_TO_SDF[mx_type]])
+    """USD's value type for a MaterialX type."""
+    return Sdf.ValueTypeNames.Find(MX_TO_SDF[mx_type])
 
 
 def author_usd_network(stage: Any, material_path: str, values: Mapping[str, Any]) -> Any:

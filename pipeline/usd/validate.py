@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import escape, quoteattr
@@ -461,6 +462,7 @@ def validate_file(path: str | Path, include_builtin: bool = True,
     return report
 
 
+@lru_cache(maxsize=1)
 def _materialx_in_sdr() -> bool:
     return Sdr.Registry().GetShaderNodeByIdentifier(OPENPBR) is not None
 
