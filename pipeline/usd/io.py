@@ -2,23 +2,27 @@
 
 USD's text parser crashes the interpreter on lists or dictionaries nested tens of
 thousands deep and takes minutes on deep tuples; a .usdc saved over an existing file is
-rewritten in place. Files from outside are therefore checked before they are opened,
-and layers are exported to a temporary sibling, fsynced and renamed.
+rewritten in place. Every layer a stage will compose (the file named, its sublayers,
+references and payloads, recursively, and the text layers inside a .usdz) is therefore
+checked before USD parses it, and layers are exported to a temporary sibling, fsynced
+and renamed.
 """
 
 from __future__ import annotations
 
 import re
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Tf, Usd
+from pxr import Sdf, Tf, Usd, UsdUtils
 
 from ..errors import InputError
 from ..fileio import atomic_path
 
 MAX_USDA_NESTING = 256
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 _STRINGS = re.compile(rb'"""(?:.|\n)*?"""|\'\'\'(?:.|\n)*?\'\'\'|"(?:\\.|[^"\\\n])*"|'
                       rb"'(?:\\.|[^'\\\n])*'|#[^\n]*")
 
@@ -35,6 +39,18 @@ def usda_nesting_depth(data: bytes) -> int:
     return int(np.cumsum(step).max(initial=0))
 
 
+def _check_usda_text(data: bytes, where: str | Path) -> None:
+    depth = usda_nesting_depth(data)
+    if depth > MAX_USDA_NESTING:
+        raise InputError(f".usda text nested {depth} deep (limit {MAX_USDA_NESTING}): "
+                         "refusing to parse it (USD's parser crashes on such files)", where)
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f".usda text is not UTF-8 (byte {exc.start}: "
+                         f"{data[exc.start:exc.start + 1]!r})", where) from exc
+
+
 def check_usd_file(path: str | Path) -> Path:
     """Refuse files that would crash or stall USD's parser; return the path."""
     path = Path(path)
@@ -45,18 +61,69 @@ def check_usd_file(path: str | Path) -> Path:
     with open(path, "rb") as handle:
         head = handle.read(8)
     if head.startswith(b"#usda"):
-        depth = usda_nesting_depth(path.read_bytes())
-        if depth > MAX_USDA_NESTING:
-            raise InputError(f".usda text nested {depth} deep (limit {MAX_USDA_NESTING}): "
-                             "refusing to parse it (USD's parser crashes on such files)", path)
-    elif not head.startswith(b"PXR-USDC") and not head.startswith(b"PK"):
+        _check_usda_text(path.read_bytes(), path)
+    elif head.startswith(b"PK"):
+        try:
+            with zipfile.ZipFile(path) as package:
+                for member in package.namelist():
+                    if member.lower().endswith((".usd", ".usda")):
+                        data = package.read(member)
+                        if data.startswith(b"#usda"):
+                            _check_usda_text(data, f"{path}[{member}]")
+        except (zipfile.BadZipFile, OSError) as exc:
+            raise InputError(f"not a readable .usdz package: {exc}", path) from exc
+    elif not head.startswith(b"PXR-USDC"):
         raise InputError("not a USD file (neither usda text, usdc crate nor usdz)", path)
     return path
 
 
+def composed_layer_files(path: str | Path) -> list[Path]:
+    """Every layer file that opening ``path`` composes (sublayers, references, payloads,
+    recursively), each checked by :func:`check_usd_file` before USD parses it; the root
+    first. Layers inside a .usdz were checked with their package."""
+    root = check_usd_file(path).absolute()
+    seen: dict[Path, None] = {}
+    todo = [root]
+    while todo:
+        file = todo.pop()
+        if file in seen:
+            continue
+        check_usd_file(file)
+        seen[file] = None
+        if file.suffix.lower() == ".usdz":
+            continue
+        layer = _open_layer(file)
+        for dep in layer.GetCompositionAssetDependencies():
+            resolved = Path(layer.ComputeAbsolutePath(dep)) if dep else None
+            if resolved is not None and resolved.is_file():
+                todo.append(resolved.absolute())
+    return list(seen)
+
+
+def _open_layer(file: Path) -> Any:
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(file))
+    except Tf.ErrorException as exc:
+        raise InputError(f"USD cannot read it: {str(exc).strip().splitlines()[-1]}", file) \
+            from exc
+    if layer is None:
+        raise InputError("USD cannot read it", file)
+    return layer
+
+
+def usd_inputs(path: str | Path) -> list[Path]:
+    """The files a command that opens ``path`` reads: its layers (checked as by
+    :func:`composed_layer_files`) and the assets they name (textures, MaterialX files)."""
+    layers = composed_layer_files(path)
+    _, assets, _ = UsdUtils.ComputeAllDependencies(str(layers[0]))
+    return layers + [Path(a) for a in assets if a and "[" not in a and Path(a).is_file()]
+
+
 def open_stage_guarded(path: str | Path) -> Any:
-    """Open a stage read-only after :func:`check_usd_file`; InputError if USD refuses it."""
-    path = check_usd_file(path)
+    """Open a stage read-only after checking every layer it composes
+    (:func:`composed_layer_files`); InputError if USD refuses it."""
+    path = Path(path)
+    composed_layer_files(path)
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:

@@ -21,7 +21,7 @@ import numpy as np
 from pxr import Sdf, Sdr, Tf, Usd, UsdGeom, UsdShade, UsdValidation
 
 from ..errors import InputError
-from .io import check_usd_file
+from .io import composed_layer_files
 from .materialx import OPENPBR, is_materialx_id, network_problems
 from .schema import (
     PROFILE_TYPE,
@@ -437,7 +437,7 @@ def validate_file(path: str | Path, include_builtin: bool = True,
     start = time.perf_counter()
     report = FileReport(str(path))
     try:
-        check_usd_file(path)
+        composed_layer_files(path)
         stage = Usd.Stage.Open(str(path))
         if stage is None:
             raise InputError("USD cannot open it", path)
