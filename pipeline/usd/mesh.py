@@ -17,7 +17,8 @@ from numpy.typing import NDArray
 from pxr import Usd, UsdGeom
 
 from ..errors import InputError
-from .io import open_stage_guarded
+from .io import USD_SUFFIXES, open_stage_guarded
+from .mesh_files import load_in_child, scan_mesh_file
 
 MAX_COORDINATE = 1e7  # in scene units; beyond this a mesh is treated as corrupt
 
@@ -61,6 +62,8 @@ def validate_mesh(mesh: MeshData) -> MeshData:
         bad = int(np.flatnonzero(~finite)[0])
         raise InputError(f"{int((~finite).sum())} non-finite vertex position(s), first at "
                          f"vertex {bad}: {pts[bad].tolist()}", src)
+    if not np.ptp(pts, axis=0).max() > 0:
+        raise InputError(f"all {pts.shape[0]} vertices are at one point {pts[0].tolist()}", src)
     if np.abs(pts).max() > MAX_COORDINATE:
         raise InputError(f"vertex coordinates up to {np.abs(pts).max():.3g} scene units: "
                          "corrupt or in the wrong unit", src)
@@ -89,7 +92,7 @@ def load_mesh(path: str | Path, meters_per_unit: float | None = None,
     if not path.is_file():
         raise InputError("no such mesh file", path)
     suffix = path.suffix.lower()
-    if suffix in (".usd", ".usda", ".usdc", ".usdz"):
+    if suffix in USD_SUFFIXES:
         mesh = _load_usd_mesh(path, prim_path, meters_per_unit)
     elif suffix in (".ply", ".obj"):
         mesh = _load_meshlab(path, 0.001 if meters_per_unit is None else meters_per_unit)
@@ -99,18 +102,11 @@ def load_mesh(path: str | Path, meters_per_unit: float | None = None,
 
 
 def _load_meshlab(path: Path, meters_per_unit: float) -> MeshData:
-    ms = pymeshlab.MeshSet()
-    try:
-        ms.load_new_mesh(str(path))
-    except pymeshlab.PyMeshLabException as exc:
-        raise InputError(f"cannot load mesh: {exc}", path) from exc
-    m = ms.current_mesh()
-    faces = np.asarray(m.face_matrix(), dtype=np.int32)
-    st = np.asarray(m.vertex_tex_coord_matrix(), dtype=np.float64) \
-        if m.has_vertex_tex_coord() else None
-    return MeshData(np.asarray(m.vertex_matrix(), dtype=np.float64),
-                    np.full(faces.shape[0], 3, np.int32), faces.reshape(-1), meters_per_unit,
-                    st, path)
+    facts = scan_mesh_file(path)
+    arrays = load_in_child(path, facts)
+    faces = arrays["faces"]
+    return MeshData(arrays["points"], np.full(faces.shape[0], 3, np.int32), faces.reshape(-1),
+                    meters_per_unit, arrays.get("st"), path)
 
 
 def _load_usd_mesh(path: Path, prim_path: str | None, meters_per_unit: float | None) -> MeshData:

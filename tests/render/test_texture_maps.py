@@ -87,7 +87,7 @@ def test_xatlas_unwrap_keeps_triangles_and_gives_finite_uvs() -> None:
 
 
 def test_unwrap_refuses_a_degenerate_mesh() -> None:
-    pts = np.zeros((3, 3))
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])  # collinear: no area
     mesh = MeshData(pts, np.array([3], np.int32), np.array([0, 1, 2], np.int32), 0.001)
     with pytest.raises(InputError, match="no area"):
         unwrap(mesh)
