@@ -1,8 +1,17 @@
-"""Atomic file output: write to a temporary sibling, fsync, then rename.
+"""Atomic file output: write to a temporary sibling, fsync, then rename; and the
+output guard that keeps a command from writing over what is not its own.
 
 Readers (a farm job, a re-run of a batch) must never see a half-written file, and a
 failed write must not truncate the previous good one. ``os.replace`` is atomic on
 POSIX within one file system, hence the temporary file lives beside the target.
+
+A command's output directory is staged whole in a temporary sibling
+(:func:`staged_output_directory`) and moved in file by file only once everything is
+written: a full disk, a crash or Ctrl-C leaves nothing half-way. Every directory
+skinpipe writes holds a ledger (``.skinpipe-outputs.json``) of the files it wrote there;
+an existing file is replaced only if a ledger lists it and the command does not read it
+(``force`` overrides both), so a user's captures, sources and layers are never written
+over by a mistyped ``-o``.
 """
 
 from __future__ import annotations
@@ -10,11 +19,29 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
+from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any
+
+from .errors import InputError
+
+LEDGER_NAME = ".skinpipe-outputs.json"
+_PATH_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+
+
+def check_path_name(name: object, what: str, source: str | Path | None = None) -> str:
+    """``name`` if it can become one file or folder name (letters, digits, ``_ . -``,
+    not starting with a dot, at most 128 characters); InputError naming ``what`` and
+    ``source`` otherwise. Region, subject, asset and image names become paths: a name
+    like ``../../x`` must not write outside the output folder."""
+    if not isinstance(name, str) or not _PATH_NAME.fullmatch(name):
+        raise InputError(f"{what} {name!r} cannot name a file: use letters, digits, '_', "
+                         "'.' and '-' (not first), at most 128 characters", source)
+    return name
 
 
 @contextlib.contextmanager
@@ -105,3 +132,143 @@ def relocate_paths(doc: Any, old: str, new: str) -> Any:
     if isinstance(doc, dict):
         return {k: relocate_paths(v, old, new) for k, v in doc.items()}
     return doc
+
+
+# --------------------------------------------------------------------- the output guard
+
+
+def _ledger(directory: Path) -> dict[str, str]:
+    """``{relative path: verb}`` of the files skinpipe wrote under ``directory``."""
+    try:
+        doc = json.loads((directory / LEDGER_NAME).read_text(encoding="utf-8"))
+        return {str(k): str(v) for k, v in doc.get("files", {}).items()}
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def written_by_skinpipe(path: str | Path) -> bool:
+    """Whether a ledger in ``path``'s folder or any folder above lists ``path``."""
+    path = Path(path).absolute()
+    for folder in path.parents:
+        if (folder / LEDGER_NAME).is_file() and \
+                path.relative_to(folder).as_posix() in _ledger(folder):
+            return True
+    return False
+
+
+def record_outputs(directory: str | Path, relative: list[str], verb: str) -> None:
+    """Add ``relative`` (paths under ``directory``) to its ledger as written by ``verb``."""
+    directory = Path(directory)
+    files = _ledger(directory) | {r: verb for r in relative}
+    atomic_write_json(directory / LEDGER_NAME, {
+        "note": "files skinpipe wrote here; skinpipe replaces only these", "files": files})
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_writable_location(target: str | Path) -> Path:
+    """Refuse, before any work, a ``target`` whose nearest existing folder is a file or
+    cannot be written (read-only file system, no permission)."""
+    target = Path(target)
+    folder = target.absolute().parent
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(f"cannot write {target}: {folder} is a file, not a folder", folder)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write {target}: {folder} is not writable "
+                         "(read-only file system or no permission)", folder)
+    return target
+
+
+def check_output_file(target: str | Path, reads: list[Path] | tuple[Path, ...] = (),
+                      force: bool = False) -> Path:
+    """Refuse, before any work, to write ``target`` over a folder, over a file the command
+    reads (its inputs and every layer and texture they bring) or over a file skinpipe did
+    not write; ``force`` allows the last two."""
+    target = Path(target)
+    check_writable_location(target)
+    if target.is_dir():
+        raise InputError("is a folder: give a file name", target)
+    if target.exists() and not force:
+        if any(_same_file(target, r) for r in reads):
+            raise InputError("is an input of this command: refusing to write over it "
+                             "(choose another output or pass --force)", target)
+        if not written_by_skinpipe(target):
+            raise InputError("exists and skinpipe did not write it: refusing to replace it "
+                             "(choose another output or pass --force)", target)
+    return target
+
+
+@dataclass
+class StagedOutput:
+    """A command's output directory while it is written: ``path`` (a temporary sibling of
+    ``target``) now, ``target`` once committed."""
+
+    path: Path
+    target: Path
+
+    def final(self, doc: Any) -> Any:
+        """``doc`` (JSON data, a path, or a dataclass of paths) with staged paths pointing
+        into ``target``."""
+        if is_dataclass(doc) and not isinstance(doc, type):
+            return replace(doc, **{f.name: self.final(getattr(doc, f.name))
+                                   for f in fields(doc)})
+        if isinstance(doc, Path):
+            return Path(relocate_paths(str(doc), str(self.path), str(self.target)))
+        return relocate_paths(doc, str(self.path), str(self.target))
+
+
+@contextlib.contextmanager
+def staged_output_directory(target: str | Path, verb: str,
+                            reads: list[Path] | tuple[Path, ...] = (), force: bool = False,
+                            expect: tuple[str, ...] | list[str] = ()) -> Iterator[StagedOutput]:
+    """Stage a command's outputs and move them into ``target`` only when all are written.
+
+    Checked before the work: ``target`` is (or can be) a folder, and the files it is
+    expected to write (``expect``, relative names) may be replaced (:func:`check_output_file`).
+    Checked again at the commit, for every staged file, before any is moved. JSON records
+    written in the stage are relocated to name their final place. Files already in
+    ``target`` that the command does not write are left alone; the ledger records the
+    new ones. On an exception (full disk, Ctrl-C) the stage is removed and ``target`` is
+    as it was."""
+    target = Path(target)
+    check_writable_location(target)
+    if target.exists() and not target.is_dir():
+        raise InputError("is a file: give a folder for the outputs", target)
+    for name in expect:
+        check_output_file(target / name, reads, force)
+    created = [p for p in (target.absolute(), *target.absolute().parents) if not p.exists()]
+    target.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent)).absolute()
+    ok = False
+    try:
+        staged = StagedOutput(stage, target)
+        yield staged
+        files = sorted(p.relative_to(stage) for p in stage.rglob("*") if p.is_file())
+        for rel in files:
+            if (target / rel).is_dir():
+                raise InputError("is a folder where skinpipe writes a file", target / rel)
+            check_output_file(target / rel, reads, force)
+        for rel in files:
+            if rel.suffix == ".json":
+                doc = json.loads((stage / rel).read_text(encoding="utf-8"))
+                atomic_write_json(stage / rel, staged.final(doc))
+        for rel in files:
+            (target / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / rel, target / rel)
+        for folder in (target, *(target / d for d in {r.parent for r in files})):
+            os.chmod(folder, 0o755)
+        record_outputs(target, [r.as_posix() for r in files], verb)
+        ok = True
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if not ok:  # folders made for this output only, now empty, go too
+            for folder in created:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()

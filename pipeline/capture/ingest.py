@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates, median_filter
 
 from ..errors import InputError
-from ..fileio import atomic_write_json
+from ..fileio import atomic_write_json, check_path_name
 from ..imageio import (
     ACESCG,
     LoadedImage,
@@ -56,6 +56,12 @@ class CaptureSet:
     mm_per_pixel: float
     camera_colorspace: str
     regions: dict[str, list[Bracket]]
+
+    @property
+    def files(self) -> list[Path]:
+        """Every file the capture set consists of: capture.json and the brackets."""
+        return [self.root / "capture.json"] + [b.path for bs in self.regions.values()
+                                               for b in bs]
 
 
 @dataclass(frozen=True)
@@ -98,7 +104,8 @@ def read_capture_set(root: str | Path) -> CaptureSet:
         if key not in doc:
             raise InputError(f"missing key {key!r}", manifest)
     mmpp = doc["mm_per_pixel"]
-    if not isinstance(mmpp, int | float) or not math.isfinite(mmpp) or not 0 < mmpp < 10:
+    if isinstance(mmpp, bool) or not isinstance(mmpp, int | float) or \
+            not math.isfinite(mmpp) or not 0 < mmpp < 10:
         raise InputError(f"mm_per_pixel must be a number in (0, 10) mm, got {mmpp!r}", manifest)
     try:
         colorspace = check_colorspace(str(doc["camera_colorspace"]))
@@ -109,6 +116,7 @@ def read_capture_set(root: str | Path) -> CaptureSet:
         raise InputError("'regions' must be a non-empty object {name: {images: [...]}}", manifest)
     regions: dict[str, list[Bracket]] = {}
     for name, entry in regions_doc.items():
+        check_path_name(name, "region", manifest)
         images = entry.get("images") if isinstance(entry, dict) else None
         if not isinstance(images, list) or not images:
             raise InputError(f"region {name!r}: 'images' must be a non-empty list", manifest)
@@ -117,14 +125,17 @@ def read_capture_set(root: str | Path) -> CaptureSet:
             if not isinstance(img, dict) or not isinstance(img.get("file"), str):
                 raise InputError(f"region {name!r}, image {i}: needs a 'file' string", manifest)
             exp = img.get("exposure_s")
-            if exp is not None and (not isinstance(exp, int | float) or not exp > 0
-                                    or not math.isfinite(exp)):
+            if exp is not None and (isinstance(exp, bool) or not isinstance(exp, int | float)
+                                    or not exp > 0 or not math.isfinite(exp)):
                 raise InputError(
                     f"region {name!r}, {img['file']}: exposure_s must be > 0 s, got {exp!r}",
                     manifest)
             brackets.append(Bracket(root / img["file"], None if exp is None else float(exp)))
         regions[str(name)] = brackets
-    return CaptureSet(root, str(doc.get("subject", root.name)), float(mmpp), colorspace, regions)
+    subject = doc.get("subject", root.absolute().name)
+    if not isinstance(subject, str) or not subject.strip():
+        raise InputError(f"'subject' must be a non-empty string, got {subject!r}", manifest)
+    return CaptureSet(root, subject, float(mmpp), colorspace, regions)
 
 
 # ------------------------------------------------------------------------------- merging

@@ -9,7 +9,10 @@ pip's ``cli/`` and ``commands/``; the library never imports this package."""
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 
 from .. import __version__
@@ -87,6 +90,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _eprint(f"skinpipe {args.verb}: interrupted; no partial output was kept")
         return 130
+    except OSError as exc:  # where the outputs go: read-only, full, unreachable
+        _eprint(f"skinpipe {args.verb}: error: {_os_error(exc)}; no partial output was kept")
+        return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug: one line, the traceback only when asked for
+        if os.environ.get("SKINPIPE_DEBUG"):
+            traceback.print_exc()
+        _eprint(f"skinpipe {args.verb}: internal error: {type(exc).__name__}: "
+                f"{str(exc).strip().splitlines()[0] if str(exc).strip() else ''} "
+                "(please report it; SKINPIPE_DEBUG=1 shows the traceback)")
+        return EXIT_CHECK_FAILED
+
+
+def _os_error(exc: OSError) -> str:
+    """``file: reason`` for an OSError, with what to do for the common output faults."""
+    where = exc.filename or ""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    hint = {errno.ENOSPC: " (the disk is full)", errno.EROFS: " (read-only file system)",
+            errno.EACCES: " (no permission)", errno.ENOTDIR: " (a parent is a file)",
+            errno.EDQUOT: " (disk quota exceeded)"}.get(exc.errno or 0, "")
+    return f"{where}: {reason}{hint}" if where else f"{reason}{hint}"
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK
-from .common import _eprint
+from .common import _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -49,18 +49,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--target-faces", type=int, default=60000, help="with --prepare-scan")
     p.add_argument("--name", default="Face", help="asset (and default prim) name")
     p.add_argument("-o", "--output", type=Path, required=True, help="asset directory")
+    add_force_option(p)
     p.set_defaults(handler=cmd_author)
 
 
 def cmd_author(args: argparse.Namespace) -> int:
-    from ..workflow.chain import author_from_files
+    from ..fileio import staged_output_directory
+    from ..usd.author import ASSET_FILES
+    from ..workflow.chain import author_from_files, author_inputs
 
-    paths = author_from_files(
-        args.fits, args.mesh, args.output, landmarks=args.landmarks,
+    reads = author_inputs(args.fits, args.mesh, args.landmarks, args.profiles)
+    with staged_output_directory(args.output, "author", reads, args.force,
+                                 ASSET_FILES) as out:
+        paths = author_from_files(
+            args.fits, args.mesh, out.path, landmarks=args.landmarks,
         region_primvar=args.region_primvar, region_names=args.region_names,
         blend_mm=args.blend_mm, profiles_dir=args.profiles,
         meters_per_unit=args.meters_per_unit, prepare=args.prepare_scan,
-        target_faces=args.target_faces, name=args.name, mesh_prim=args.mesh_prim,
-        progress=_eprint)
+            target_faces=args.target_faces, name=args.name, mesh_prim=args.mesh_prim,
+            progress=_eprint)
+    paths = out.final(paths)
     print(f"wrote {paths.asset} (+ {paths.geo.name}, {paths.look.name}) in {paths.seconds:.2f} s")
     return EXIT_OK

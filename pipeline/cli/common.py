@@ -43,6 +43,13 @@ def _aovs(text: str) -> tuple[str, ...]:
     return tuple(a.strip() for a in text.split(",") if a.strip())
 
 
+def add_force_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="write over existing files skinpipe did not write, and over this "
+                        "command's own inputs (a re-run into skinpipe's own output "
+                        "folder never needs it)")
+
+
 def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024",
                        texture_size: int = 1024) -> None:
     from ..render.options import AOVS, BLURS, SHADOW_SAMPLING

@@ -5,12 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
+from ..errors import InputError
 from .common import (
-    _eprint,
+    add_force_option,
     add_render_options,
-    ocio_source,
-    render_options,
 )
 
 
@@ -39,28 +37,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, default=Path("demo_out"), help="output directory")
     p.add_argument("-k", type=int, default=6, help="Gaussians per profile")
     add_render_options(p, resolution="768x768", texture_size=1024)
+    add_force_option(p)
     p.set_defaults(handler=cmd_demo)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from ..capture.simulate import read_truth
-    from ..fileio import atomic_write_json
     from ..usd.mesh import pymeshlab_face_scan
-    from ..workflow.chain import run_chain
-    from .run import print_chain
+    from .run import run_staged
 
     captures = sample_captures_dir()
     if not (captures / "capture.json").is_file():
         raise InputError("the sample assets are missing (run from a clone of the repository)",
                          captures)
-    out = args.output
-    options = render_options(args)
-    result = run_chain(captures, pymeshlab_face_scan(), captures.parent / "face" /
-                       "landmarks.json", out, args.k, True, True, options, ocio_source(args),
-                       truth=read_truth(captures / "truth.json"), comparisons=True,
-                       progress=_eprint)
-    print_chain(result)
-    report = result.report
-    atomic_write_json(out / "report.json", report)
-    print(f"wrote {out / 'report.json'} ({report['total_seconds']:.1f} s)")
-    return EXIT_OK if report["valid"] else EXIT_CHECK_FAILED
+    return run_staged(args, "demo", captures, pymeshlab_face_scan(),
+                      captures.parent / "face" / "landmarks.json", True, True,
+                      truth=read_truth(captures / "truth.json"))

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import warnings
 from pathlib import Path
+from typing import Any
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint
+from .common import _eprint, add_force_option
 
 
 def _float_list(text: str) -> tuple[float, ...]:
@@ -60,12 +62,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (GA); same seed, same fit")
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="FIT.json for one profile; a directory (one <name>.json each) for several")
+    add_force_option(p)
     p.set_defaults(handler=cmd_fit)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from ..profile.fit import FitOptions, fit_profiles
-    from ..profile.io import read_profile_csv, write_fit_json
+    from ..fileio import check_output_file, check_path_name, record_outputs, staged_output_directory
+    from ..profile.fit import FitOptions
+    from ..profile.io import read_profile_csv
+
     fixed = args.fixed_variances or None
     options = FitOptions(
         k=args.k, share=args.share, fixed_variances_mm2=fixed, min_radius_mm=args.min_radius_mm,
@@ -74,12 +79,33 @@ def cmd_fit(args: argparse.Namespace) -> int:
         free_scale=args.free_scale, use_stddev=args.use_stddev,
     )
     profiles = [read_profile_csv(p) for p in args.profiles]
+    reads = list(args.profiles)
     names = [p.name for p in profiles]
     if len(set(names)) != len(names):
         raise InputError(f"profile names (file stems) must be unique: {names}")
     several = len(profiles) > 1
+    for name in names:
+        check_path_name(name, "profile name", args.output)
     if several and args.output.suffix.lower() == ".json":
         raise InputError("several profiles write one JSON each: give -o a directory", args.output)
+    if several:
+        staged = staged_output_directory(args.output, "fit", reads, args.force,
+                                         [f"{p.name}.json" for p in profiles])
+    else:
+        check_output_file(args.output, reads, args.force)
+        staged = contextlib.nullcontext(None)
+    with staged as out:
+        _fit_groups(args, options, profiles, several, None if out is None else out.path)
+    if not several:
+        record_outputs(args.output.parent, [args.output.name], "fit")
+    return EXIT_OK
+
+
+def _fit_groups(args: argparse.Namespace, options: Any, profiles: list[Any], several: bool,
+                out_dir: Path | None) -> None:
+    from ..profile.fit import fit_profiles
+    from ..profile.io import write_fit_json
+
     if args.share == "profiles" or not several:
         groups = [profiles]
     else:
@@ -94,10 +120,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
             _eprint(f"warning: {w.message}")
         for res in results:
             target = args.output / f"{res.name}.json" if several else args.output
-            write_fit_json(target, res)
+            write_fit_json(out_dir / f"{res.name}.json" if out_dir else target, res)
             errs = " ".join(f"{c}={e:.2e}" for c, e in zip("RGB", res.error, strict=True))
             print(f"{res.name}: {len(res.variances_mm2)} terms, eq.2c error {errs}, "
                   f"{res.seconds:.2f} s, {res.status} -> {target}")
             for note in res.warnings:
                 _eprint(f"note: {res.name}: {note}")
-    return EXIT_OK

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint
+from .common import _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,18 +35,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="keep radiance units (per second of exposure) instead of normalising")
     p.add_argument("--regions", type=lambda t: [x for x in t.split(",") if x], default=None,
                    metavar="A,B", help="only these regions")
+    add_force_option(p)
     p.set_defaults(handler=cmd_ingest)
 
 
 def cmd_ingest(args: argparse.Namespace) -> int:
-    from ..capture.ingest import IngestOptions, ingest_capture_set
+    from ..capture.ingest import IngestOptions, ingest_capture_set, read_capture_set
+    from ..fileio import staged_output_directory
 
     if not args.ring_width_px > 0:
         raise InputError(f"--ring-width-px must be > 0, got {args.ring_width_px}")
     options = IngestOptions(ring_width_px=args.ring_width_px, max_radius_mm=args.max_radius_mm,
                             mode=args.mode, absolute=args.absolute)
-    report = ingest_capture_set(args.captures, args.output, options, progress=_eprint,
-                                regions=args.regions)
+    captures = read_capture_set(args.captures)
+    names = args.regions or list(captures.regions)
+    expect = [f"{n}{ext}" for n in names for ext in (".csv", ".exr")] + ["ingest.json"]
+    with staged_output_directory(args.output, "ingest", captures.files, args.force,
+                                 expect) as out:
+        report = ingest_capture_set(args.captures, out.path, options, progress=_eprint,
+                                    regions=args.regions)
+    report = out.final(report)
     for name, entry in report["regions"].items():
         print(f"{name}: {entry['samples']} samples to {entry['max_radius_mm']:.2f} mm "
               f"-> {entry['csv']}")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import EXIT_OK
-from .common import _eprint
+from ..errors import EXIT_OK, InputError
+from .common import _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -25,11 +25,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("asset", type=Path)
     p.add_argument("--size", type=int, default=2048, help="texture size in texels")
     p.add_argument("--seed", type=int, default=7, help="freckle and mole placement")
+    add_force_option(p)
     p.set_defaults(handler=cmd_paint_albedo)
 
 
 def cmd_paint_albedo(args: argparse.Namespace) -> int:
-    from ..render.albedo import bake_sample_albedo
+    from ..fileio import check_output_file, record_outputs
+    from ..render.albedo import ALBEDO_NAME, bake_sample_albedo
 
+    if not 16 <= args.size <= 16384:
+        raise InputError(f"--size must be 16-16384 texels, got {args.size}")
+    texture = check_output_file(args.asset.absolute().parent / ALBEDO_NAME, (), args.force)
     print(f"wrote {bake_sample_albedo(args.asset, args.size, args.seed, _eprint)}")
+    record_outputs(texture.parent, [texture.name], "paint-albedo")
     return EXIT_OK

@@ -10,6 +10,7 @@ from ..errors import EXIT_OK
 from .common import (
     _eprint,
     _frames,
+    add_force_option,
     add_render_options,
     ocio_source,
     render_options,
@@ -52,14 +53,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="render time codes A..B (e.g. a turntable from 'skinpipe shot')")
     p.add_argument("--name", default=None, help="image name (default: the scene's stem)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    add_force_option(p)
     p.set_defaults(handler=cmd_render)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from ..fileio import check_path_name, staged_output_directory
     from ..render.renderer import render_files
+    from ..usd.io import usd_inputs
 
-    doc = render_files(args.scene, args.output, render_options(args), args.frames,
-                       ocio_source(args), args.name, progress=_eprint)
+    name = check_path_name(args.name or args.scene.stem, "image name (--name)")
+    frames = [name] if args.frames is None else \
+        [f"{name}.{t:04d}" for t in range(args.frames[0], args.frames[1] + 1)]
+    expect = [f"{f}{ext}" for f in frames for ext in (".exr", ".png")] + ["render.json"]
+    reads = usd_inputs(args.scene)
+    options = render_options(args)
+    with staged_output_directory(args.output, "render", reads, args.force, expect) as out:
+        doc = render_files(args.scene, out.path, options, args.frames, ocio_source(args),
+                           name, progress=_eprint)
+    doc = out.final(doc)
     _print_render(doc)
     print(f"wrote {args.output / 'render.json'} ({doc['total_seconds']:.1f} s)")
     return EXIT_OK

@@ -99,8 +99,12 @@ def _report_fit(args: argparse.Namespace, profile_paths: list[Path]) -> None:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from ..fileio import check_writable_location
     from ..workflow.report import write_report_page
 
+    check_writable_location(args.output / "report.md")
+    if args.output.exists() and not args.output.is_dir():
+        raise InputError("is a file: give a folder for the report", args.output)
     scenes = [p for p in args.profiles if p.suffix in (".usd", ".usda", ".usdc", ".usdz")]
     if args.stage in ("render", "all"):
         if len(scenes) != 1:

@@ -9,6 +9,7 @@ from typing import Any
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from .common import (
     _eprint,
+    add_force_option,
     add_render_options,
     ocio_source,
     render_options,
@@ -37,6 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-k", type=int, default=6, help="Gaussians per profile")
     add_render_options(p)
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    add_force_option(p)
     p.set_defaults(handler=cmd_run)
 
 
@@ -57,16 +59,30 @@ def print_chain(result: Any) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from ..fileio import atomic_write_json
-    from ..workflow.chain import run_chain
-
     if not (args.captures / "capture.json").is_file():
         raise InputError("not a capture set (no capture.json)", args.captures)
-    result = run_chain(args.captures, args.mesh, args.landmarks, args.output, args.k,
-                       args.prepare_scan, args.paint_albedo, render_options(args),
-                       ocio_source(args), progress=_eprint)
+    return run_staged(args, "run", args.captures, args.mesh, args.landmarks,
+                      args.prepare_scan, args.paint_albedo)
+
+
+def run_staged(args: argparse.Namespace, verb: str, captures: Path, mesh: Path,
+               landmarks: Path, prepare: bool, paint: bool,
+               truth: dict[str, Any] | None = None) -> int:
+    """The chain for ``run`` and ``demo``: every input checked first, every output staged
+    and moved into ``args.output`` only when the whole chain has finished."""
+    from ..fileio import atomic_write_json, staged_output_directory
+    from ..workflow.chain import chain_inputs, run_chain
+
+    options = render_options(args)
+    reads = chain_inputs(captures, mesh, landmarks, args.k)
+    with staged_output_directory(args.output, verb, reads, args.force,
+                                 ["report.json", "scene.usda"]) as out:
+        result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
+                           options, ocio_source(args), truth=truth,
+                           comparisons=verb == "demo", progress=_eprint)
+        atomic_write_json(out.path / "report.json", result.report)
+    result.report = out.final(result.report)
+    result.render_doc = out.final(result.render_doc)
     print_chain(result)
-    report = result.report
-    atomic_write_json(args.output / "report.json", report)
-    print(f"wrote {args.output / 'report.json'} ({report['total_seconds']:.1f} s)")
-    return EXIT_OK if report["valid"] else EXIT_CHECK_FAILED
+    print(f"wrote {args.output / 'report.json'} ({result.report['total_seconds']:.1f} s)")
+    return EXIT_OK if result.valid else EXIT_CHECK_FAILED

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK
+from .common import add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -26,14 +27,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="irradiance the key light gives a surface facing it")
     p.add_argument("--fill-intensity", type=float, default=0.15, help="dome radiance")
     p.add_argument("-o", "--output", type=Path, required=True, help="shot layer to write")
+    add_force_option(p)
     p.set_defaults(handler=cmd_shot)
 
 
 def cmd_shot(args: argparse.Namespace) -> int:
+    from ..fileio import check_output_file, record_outputs
+    from ..usd.io import usd_inputs
     from ..usd.shot import ShotOptions, author_shot
 
+    check_output_file(args.output, usd_inputs(args.asset), args.force)
     out = author_shot(args.asset, args.output, ShotOptions(
         key_intensity=args.key_intensity, fill_intensity=args.fill_intensity,
         turntable_frames=args.turntable))
+    record_outputs(args.output.parent, [args.output.name], "shot")
     print(f"wrote {out}")
     return EXIT_OK

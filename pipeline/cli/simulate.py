@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint
+from .common import _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -31,11 +31,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--size-px", type=int, default=320, help="image width and height")
     p.add_argument("--mm-per-pixel", type=float, default=0.025, help="camera scale")
     p.add_argument("--seed", type=int, default=0, help="random seed")
+    add_force_option(p)
     p.set_defaults(handler=cmd_simulate)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from ..capture.simulate import CaptureSettings, sample_subject_truths, simulate_capture_set
+    from ..fileio import staged_output_directory
 
     if not 1 <= args.brackets <= 9:
         raise InputError(f"--brackets must be 1-9, got {args.brackets}")
@@ -43,7 +45,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     settings = CaptureSettings(mm_per_pixel=args.mm_per_pixel, size_px=args.size_px,
                                bits=args.bits, exposures_s=exposures, hair_strands=args.hair,
                                image_format="tif" if args.bits == 16 else "png")
-    simulate_capture_set(sample_subject_truths(), args.output, settings, seed=args.seed,
-                         progress=_eprint)
+    with staged_output_directory(args.output, "simulate", (), args.force,
+                                 ["capture.json", "truth.json"]) as out:
+        simulate_capture_set(sample_subject_truths(), out.path, settings, seed=args.seed,
+                             progress=_eprint)
     print(f"wrote {args.output / 'capture.json'} and {args.output / 'truth.json'}")
     return EXIT_OK

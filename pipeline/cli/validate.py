@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ..errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, InputError
-from .common import _eprint
+from .common import _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -34,11 +34,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--skinpipe-only", action="store_true",
                    help="run only skinpipe's rules, not USD's built-in validators")
     p.add_argument("--list-rules", action="store_true", help="list skinpipe's rules and exit")
+    add_force_option(p)
     p.set_defaults(handler=cmd_validate)
 
 
+def _inputs(assets: list[Path]) -> list[Path]:
+    """The files validating ``assets`` reads (the files alone where USD cannot read them:
+    the report says why)."""
+    from ..usd.io import usd_inputs
+
+    reads: list[Path] = []
+    for asset in assets:
+        try:
+            reads += usd_inputs(asset)
+        except InputError:
+            reads.append(asset)
+    return reads
+
+
 def cmd_validate(args: argparse.Namespace) -> int:
-    from ..fileio import atomic_write_text
+    from ..fileio import atomic_write_text, check_output_file, record_outputs
     from ..usd.schema import plugin_path_note
     from ..usd.validate import RULES, junit_xml, validate_files
 
@@ -48,12 +63,15 @@ def cmd_validate(args: argparse.Namespace) -> int:
         return EXIT_OK
     if not args.assets:
         raise InputError("no ASSET.usd given")
+    if args.junit:
+        check_output_file(args.junit, _inputs(args.assets), args.force)
     reports = validate_files(args.assets, include_builtin=not args.skinpipe_only)
     note = plugin_path_note()
     if note:
         _eprint(note)
     if args.junit:
         atomic_write_text(args.junit, junit_xml(reports, args.strict))
+        record_outputs(args.junit.parent, [args.junit.name], "validate")
     unreadable = any(r.unreadable is not None for r in reports)
     failed = any(r.failed(args.strict) for r in reports)
     if args.json:

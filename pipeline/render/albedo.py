@@ -148,6 +148,10 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path) -> str:
     return str(layer.realPath)
 
 
+ALBEDO_NAME = "albedo.exr"
+"""The texture :func:`bake_sample_albedo` writes beside the asset."""
+
+
 def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
                        progress: Any = None) -> Path:
     """Paint the sample albedo for the first skin mesh of ``asset`` (unwrapping it first
@@ -159,7 +163,7 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
         progress(f"paint albedo {size}x{size}")
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
     image = push_pull(albedo, maps.coverage)[::-1]  # image row 0 is v = 1
-    texture = Path(asset).resolve().parent / "albedo.exr"
+    texture = Path(asset).resolve().parent / ALBEDO_NAME
     write_texture(texture, image, WORKING_COLORSPACE)
     author_albedo_texture(stage, mesh.path, texture)
     return texture

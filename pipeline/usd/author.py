@@ -49,6 +49,8 @@ DEFAULT_ALBEDO = (0.62, 0.42, 0.33)
 
 MTLX_NAME = "look.mtlx"
 """The material as a MaterialX document, beside look.usda."""
+ASSET_FILES = ("asset.usda", "geo.usdc", "look.usda", MTLX_NAME)
+"""What :func:`author_asset` writes into the asset folder."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,12 @@ class AssetPaths:
 
 
 # ------------------------------------------------------------------------------ regions
+
+
+LANDMARK_TOLERANCE = 0.1
+"""A landmark farther from the mesh than this share of its bounding-box diagonal is
+refused: landmarks in the wrong unit (or for another mesh) would otherwise put every
+face in one region without a word."""
 
 
 def read_landmarks(path: str | Path) -> dict[str, NDArray[np.float64]]:
@@ -98,8 +106,19 @@ def assign_regions_from_landmarks(
     takes the region with the largest mean weight over its vertices."""
     from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
+    if not (math.isfinite(blend_mm) and blend_mm > 0):
+        raise InputError(f"the region border width (blend) must be > 0 mm, got {blend_mm}")
     names = tuple(landmarks)
     blend = blend_mm / (mesh.meters_per_unit * 1000.0)
+    diagonal = float(np.linalg.norm(np.ptp(mesh.points, axis=0)))
+    tree = cKDTree(mesh.points)
+    for name in names:
+        off = float(tree.query(landmarks[name])[0].max())
+        if off > LANDMARK_TOLERANCE * diagonal:
+            raise InputError(
+                f"region {name!r}: a landmark lies {off:.4g} mesh units from the mesh, "
+                f"more than {LANDMARK_TOLERANCE:.0%} of its {diagonal:.4g}-unit diagonal "
+                "(landmarks in another unit or for another mesh?)", mesh.source)
     dist = np.stack([cKDTree(landmarks[n]).query(mesh.points)[0] for n in names], axis=1)
     w = np.exp(-(dist - dist.min(axis=1, keepdims=True)) / max(blend, 1e-12))
     w /= w.sum(axis=1, keepdims=True)
@@ -245,6 +264,10 @@ def author_asset(
     missing = [r for r in regions.names if r not in by_name]
     if missing:
         raise InputError(f"no fit for region(s) {missing}; fits given: {sorted(by_name)}")
+    unused = sorted(set(by_name) - set(regions.names))
+    if unused:
+        raise InputError(f"fit(s) {unused} have no region on the mesh (regions: "
+                         f"{list(regions.names)}): add them to the landmarks or leave them out")
     if regions.face_region.shape != (mesh.n_faces,):
         raise InputError(f"{regions.face_region.size} face regions for {mesh.n_faces} faces")
     out = Path(out_dir)

@@ -19,7 +19,7 @@ import numpy as np
 import OpenImageIO as oiio
 from pxr import UsdGeom
 
-from ..capture.ingest import ingest_capture_set
+from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
 from ..imageio import write_ldr
 from ..profile.fit import FitOptions, fit_sum_of_gaussians
@@ -34,7 +34,7 @@ from ..usd.author import (
     author_asset,
     read_landmarks,
 )
-from ..usd.io import open_stage_guarded
+from ..usd.io import USD_SUFFIXES, open_stage_guarded, usd_inputs
 from ..usd.mesh import load_mesh, prepare_scan, seal_scan
 from ..usd.shot import author_shot
 from ..usd.validate import validate_file
@@ -86,6 +86,19 @@ def _regions_from_primvar(mesh_path: Path, mesh: Any, mesh_prim: str | None,
     return RegionAssignment(tuple(region_names), idx)
 
 
+def author_inputs(fits_paths: list[Path], mesh_path: Path, landmarks: Path | None,
+                  profiles_dir: Path | None) -> list[Path]:
+    """The files the author stage reads (no output may replace them): FIT.jsons, the
+    mesh (with its layers when it is USD), landmarks and measured profiles."""
+    reads = [p for f in fits_paths for p in (sorted(f.glob("*.json")) if f.is_dir() else [f])]
+    reads += usd_inputs(mesh_path) if mesh_path.suffix.lower() in USD_SUFFIXES and \
+        mesh_path.is_file() else [mesh_path]
+    reads += [p for p in (landmarks,) if p is not None]
+    if profiles_dir is not None and profiles_dir.is_dir():
+        reads += sorted(profiles_dir.glob("*.csv"))
+    return reads
+
+
 def author_from_files(fits_paths: list[Path], mesh_path: Path, out: Path, *,
                       landmarks: Path | None = None, region_primvar: str | None = None,
                       region_names: list[str] | None = None, blend_mm: float = 8.0,
@@ -111,6 +124,22 @@ def author_from_files(fits_paths: list[Path], mesh_path: Path, out: Path, *,
         raise InputError("give --landmarks or --region-primvar to place the regions")
     return author_asset(fits, mesh, regions, out, name=name,
                         measured=measured_for(fits, profiles_dir), seal=seal)
+
+
+def chain_inputs(captures: Path, mesh_path: Path, landmarks: Path, k: int) -> list[Path]:
+    """Check every input of :func:`run_chain` before its first write and return the files
+    it reads: the capture set, the mesh (loaded and validated), the landmarks (each
+    region's points on the mesh, one region per captured region) and ``k``."""
+    if not 1 <= k <= 8:
+        raise InputError(f"-k must be between 1 and 8 Gaussians, got {k}")
+    capture_set = read_capture_set(captures)
+    mesh = load_mesh(mesh_path)
+    marks = read_landmarks(landmarks)
+    if set(marks) != set(capture_set.regions):
+        raise InputError(f"the landmarks' regions {sorted(marks)} are not the captured ones "
+                         f"{sorted(capture_set.regions)}", landmarks)
+    assign_regions_from_landmarks(mesh, marks)
+    return capture_set.files + author_inputs([], mesh_path, landmarks, None)
 
 
 @dataclass
