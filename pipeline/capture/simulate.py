@@ -102,6 +102,12 @@ class RegionTruth:
         return doc
 
 
+MAX_SIZE_PX = 8192
+MAX_HAIR_STRANDS = 200
+"""A spot crossed by more strands is no capture anyone keeps (the paper re-shot spots a
+single hair covered); each strand costs a pass over the image."""
+
+
 @dataclass(frozen=True)
 class CaptureSettings:
     """Camera and projector: geometry, sensor noise, encoding, brackets."""
@@ -117,6 +123,21 @@ class CaptureSettings:
     hair_strands: int = 0
     exposure_in_manifest: bool = True
     image_format: Literal["tif", "png"] = "tif"
+
+    def __post_init__(self) -> None:
+        checks = {"mm_per_pixel": 0 < self.mm_per_pixel < 10,
+                  "size_px": 32 <= self.size_px <= MAX_SIZE_PX,
+                  "footprint_mm": 0 <= self.footprint_mm < 10,
+                  "full_well_e": self.full_well_e > 0, "read_noise_e": self.read_noise_e >= 0,
+                  "peak_fraction": 0 < self.peak_fraction <= 1,
+                  "hair_strands": 0 <= self.hair_strands <= MAX_HAIR_STRANDS,
+                  "exposures_s": bool(self.exposures_s) and all(
+                      math.isfinite(t) and t > 0 for t in self.exposures_s)}
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise InputError("capture settings out of range: " + ", ".join(
+                f"{k} = {getattr(self, k)!r}" for k in bad) + f" (size_px 32-{MAX_SIZE_PX}, "
+                f"hair_strands 0-{MAX_HAIR_STRANDS}, mm_per_pixel in (0, 10))")
 
     @property
     def colorspace(self) -> str:

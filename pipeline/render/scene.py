@@ -13,6 +13,7 @@ what comes out, so a camera-only change leaves texture-space work untouched.
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -170,7 +171,25 @@ class SceneData:
 
 
 def _world_matrix(prim: Any, time: Any) -> NDArray[np.float64]:
-    return np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
+    """``prim``'s local-to-world matrix; InputError if it is not finite or collapses space
+    (a NaN or zero scale renders black without a word otherwise)."""
+    m = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
+    if not np.isfinite(m).all():
+        raise InputError(f"{prim.GetPath()}: its transform is not finite at time {time}: "
+                         f"{m.tolist()}")
+    if not abs(np.linalg.det(m[:3, :3])) > 1e-30:
+        raise InputError(f"{prim.GetPath()}: its transform has zero scale (singular) at "
+                         f"time {time}")
+    return m
+
+
+def _positive(prim: Any, name: str, value: Any, allow_zero: bool = False) -> float:
+    """A light or camera size as a float; InputError unless finite and > 0 (or >= 0)."""
+    v = float("nan") if value is None else float(value)
+    if not (math.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+        raise InputError(f"{prim.GetPath()}: {name} must be {'>= 0' if allow_zero else '> 0'}"
+                         f" and finite, got {value!r}")
+    return v
 
 
 def _read_light(prim: Any, kind: str, time: Any) -> Light:
@@ -186,17 +205,20 @@ def _read_light(prim: Any, kind: str, time: Any) -> Light:
     normalize = bool(api.GetNormalizeAttr().Get(time))
     if kind == "distant":
         return Light(str(prim.GetPath()), kind, radiance, matrix,
-                     angle_deg=float(UsdLux.DistantLight(prim).GetAngleAttr().Get(time)),
+                     angle_deg=_positive(prim, "angle", UsdLux.DistantLight(prim)
+                                         .GetAngleAttr().Get(time), allow_zero=True),
                      normalize=normalize)
     if kind == "sphere":
         return Light(str(prim.GetPath()), kind, radiance, matrix,
-                     radius=float(UsdLux.SphereLight(prim).GetRadiusAttr().Get(time)),
+                     radius=_positive(prim, "radius", UsdLux.SphereLight(prim)
+                                      .GetRadiusAttr().Get(time), allow_zero=True),
                      normalize=normalize)
     if kind == "rect":
         rect = UsdLux.RectLight(prim)
         return Light(str(prim.GetPath()), kind, radiance, matrix,
-                     width=float(rect.GetWidthAttr().Get(time)),
-                     height=float(rect.GetHeightAttr().Get(time)), normalize=normalize)
+                     width=_positive(prim, "width", rect.GetWidthAttr().Get(time)),
+                     height=_positive(prim, "height", rect.GetHeightAttr().Get(time)),
+                     normalize=normalize)
     tex = UsdLux.DomeLight(prim).GetTextureFileAttr().Get(time)
     path = (tex.resolvedPath or tex.path) if tex is not None and tex.path else None
     if tex is not None and tex.path and not tex.resolvedPath:
@@ -214,8 +236,13 @@ def _read_camera(prim: Any, time: Any) -> Camera:
     focal = float(cam.GetFocalLengthAttr().Get(time))
     hap = float(cam.GetHorizontalApertureAttr().Get(time))
     vap = float(cam.GetVerticalApertureAttr().Get(time))
-    if not (focal > 0 and hap > 0 and vap > 0):
-        raise InputError(f"camera {prim.GetPath()}: focal length and apertures must be > 0")
+    if not all(math.isfinite(v) and v > 0 for v in (focal, hap, vap)):
+        raise InputError(f"camera {prim.GetPath()}: focal length and apertures must be > 0 "
+                         f"and finite, got {focal}, {hap}, {vap}")
+    near, far = cam.GetClippingRangeAttr().Get(time) or (1.0, 1e6)
+    if not (math.isfinite(near) and 0 < near < far):
+        raise InputError(f"camera {prim.GetPath()}: clipping range must be 0 < near < far, "
+                         f"got ({near}, {far})")
     return Camera(str(prim.GetPath()), m[3, :3].copy(), rot, focal, hap, vap)
 
 

@@ -359,25 +359,40 @@ def read_profiles(stage: Any) -> dict[str, tuple[FitResult, MeasuredProfile | No
             value = a.Get() if a else None
             return default if value is None else value
 
-        variances = np.array(get("variances", []), dtype=np.float64)
-        weights = np.array(get("weights", []), dtype=np.float64).reshape(-1, 3)
-        tr = np.array(get("totalReflectance", (1.0, 1.0, 1.0)), dtype=np.float64)
+        def numbers(attr: str, default: Any, prim: Any = prim) -> NDArray[np.float64]:
+            value = get(attr, default)
+            try:
+                return np.array(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise InputError(f"{prim.GetPath()}.{attr}: expected numbers, got "
+                                 f"{type(value).__name__} {str(value)[:60]!r}",
+                                 stage.GetRootLayer().realPath) from None
+
+        variances = numbers("variances", []).reshape(-1)
+        weights = numbers("weights", [])
+        if weights.size % 3:
+            raise InputError(f"{prim.GetPath()}.weights: {weights.size} numbers is not RGB "
+                             "triples", stage.GetRootLayer().realPath)
+        weights = weights.reshape(-1, 3)
+        tr = numbers("totalReflectance", (1.0, 1.0, 1.0)).reshape(-1)
         fit = FitResult(
             name=str(get("region", prim.GetName())), variances_mm2=variances, weights=weights,
-            error=np.array(get("fit:error", (math.nan,) * 3), dtype=np.float64),
-            seconds=float(get("fit:seconds", 0.0)), status=str(get("fit:status", "")),
+            error=numbers("fit:error", (math.nan,) * 3).reshape(-1),
+            seconds=float(numbers("fit:seconds", 0.0)), status=str(get("fit:status", "")),
             solver=str(get("fit:solver", "")), iterations=0, objective=math.nan,
             k_requested=int(variances.size), share="", n_samples=0, radius_range_mm=(0.0, 0.0),
             total_reflectance=None if np.allclose(tr, 1.0) else tr,
         )
-        radius = get("measured:radiusMm")
+        if weights.shape[0] != variances.size:
+            raise InputError(f"{prim.GetPath()}: {weights.shape[0]} weights for "
+                             f"{variances.size} variances", stage.GetRootLayer().realPath)
+        radius = numbers("measured:radiusMm", []).reshape(-1)
         measured = None
-        if radius is not None and len(radius):
-            values = np.array(get("measured:values", []), dtype=np.float64).reshape(-1, 3)
+        if radius.size:
+            values = numbers("measured:values", []).reshape(-1, 3)
             std = get("measured:stddev")
-            measured = MeasuredProfile(np.array(radius, dtype=np.float64), values,
-                                       None if std is None else
-                                       np.array(std, dtype=np.float64).reshape(-1, 3),
+            measured = MeasuredProfile(radius, values, None if std is None else
+                                       numbers("measured:stddev", []).reshape(-1, 3),
                                        name=fit.name)
         out[str(prim.GetPath())] = (fit, measured)
     return out

@@ -100,12 +100,21 @@ def composed_layer_files(path: str | Path) -> list[Path]:
     return list(seen)
 
 
+_TF_ERROR = re.compile(r"Error in '[^']*' at line \d+ in file \S+ : '(.*)'\s*$", re.S)
+
+
+def usd_error_message(exc: Exception) -> str:
+    """The reason in a Tf error, without USD's source location."""
+    last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+    match = _TF_ERROR.search(last)
+    return match.group(1) if match else last
+
+
 def _open_layer(file: Path) -> Any:
     try:
         layer = Sdf.Layer.FindOrOpen(str(file))
     except Tf.ErrorException as exc:
-        raise InputError(f"USD cannot read it: {str(exc).strip().splitlines()[-1]}", file) \
-            from exc
+        raise InputError(f"USD cannot read it: {usd_error_message(exc)}", file) from exc
     if layer is None:
         raise InputError("USD cannot read it", file)
     return layer
@@ -127,8 +136,7 @@ def open_stage_guarded(path: str | Path) -> Any:
     try:
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise InputError(f"USD cannot open it: {str(exc).strip().splitlines()[-1]}", path) \
-            from exc
+        raise InputError(f"USD cannot open it: {usd_error_message(exc)}", path) from exc
     if stage is None:
         raise InputError("USD cannot open it", path)
     return stage

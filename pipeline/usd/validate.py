@@ -21,7 +21,7 @@ import numpy as np
 from pxr import Sdf, Sdr, Tf, Usd, UsdGeom, UsdShade, UsdValidation
 
 from ..errors import InputError
-from .io import composed_layer_files
+from .io import composed_layer_files, usd_error_message
 from .materialx import OPENPBR, is_materialx_id, network_problems
 from .schema import (
     PROFILE_TYPE,
@@ -90,11 +90,16 @@ def _value(prim: Any, name: str) -> Any:
 
 
 def _array(prim: Any, name: str, width: int = 1) -> np.ndarray | None:
+    """An authored numeric attribute as an array; None where it is absent or not numbers
+    (USD's AttributeTypeMismatch reports those)."""
     value = _value(prim, name)
     if value is None:
         return None
-    arr = np.asarray(value, dtype=np.float64)
-    return arr.reshape(-1, width) if width > 1 else arr.reshape(-1)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+        return arr.reshape(-1, width) if width > 1 else arr.reshape(-1)
+    except (TypeError, ValueError):
+        return None
 
 
 def _is_profile(prim: Any) -> bool:
@@ -389,10 +394,15 @@ def register_rules() -> list[Any]:
                     if r.scope == "prim" and obj.IsPseudoRoot():
                         return []
                     stage = obj if r.scope == "stage" else obj.GetStage()
+                    try:
+                        found = r.check(obj)
+                    except Exception as exc:  # a rule must fail the file, never the run
+                        found = [(f"the rule could not check this: {type(exc).__name__}: "
+                                  f"{exc}", "/" if r.scope == "stage" else str(obj.GetPath()))]
                     return [UsdValidation.ValidationError(
                         r.name.split(":")[1], UsdValidation.ValidationErrorType.Error,
                         [UsdValidation.ValidationErrorSite(stage, Sdf.Path(site))], message)
-                        for message, site in r.check(obj)]
+                        for message, site in found]
                 return task
 
             if r.scope == "stage":
@@ -442,7 +452,7 @@ def validate_file(path: str | Path, include_builtin: bool = True,
         if stage is None:
             raise InputError("USD cannot open it", path)
     except (InputError, Tf.ErrorException) as exc:
-        report.unreadable = str(exc).strip().splitlines()[-1]
+        report.unreadable = usd_error_message(exc)
         report.seconds = time.perf_counter() - start
         return report
     ctx = context or UsdValidation.ValidationContext(_validators(include_builtin))
