@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 from pathlib import Path
@@ -10,7 +11,7 @@ from typing import Any
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from ..render.options import DEVICE_ENV, DEVICE_HELP
-from .common import _eprint
+from .common import _eprint, add_force_option
 
 
 def _stages(text: str) -> tuple[str, ...]:
@@ -52,6 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default=None, metavar="SPEC",
                    help=f"OpenCL device of the local workers ({DEVICE_HELP}); workers of "
                         f"your own cluster read ${DEVICE_ENV} from their environment")
+    add_force_option(p)
     p.set_defaults(handler=cmd_batch)
 
 
@@ -69,10 +71,18 @@ def _bar(done: int, total: int, res: dict[str, Any]) -> None:
 def cmd_batch(args: argparse.Namespace) -> int:
     from distributed import Client, LocalCluster
 
-    from ..fileio import atomic_write_json
-    from ..workflow.batch import batch_document, read_batch, run_batch, summary_table
+    from ..fileio import atomic_write_json, check_output_file, record_outputs
+    from ..workflow.batch import (
+        batch_document,
+        ignore_interrupts,
+        read_batch,
+        remove_temporaries,
+        run_batch,
+        summary_table,
+    )
 
     subjects = read_batch(args.batch)
+    check_output_file(args.output / "batch.json", [args.batch], args.force)
     if args.scheduler is None and not 1 <= args.local_workers <= 256:
         raise InputError(f"--local-workers must be 1-256, got {args.local_workers}")
     cluster = None
@@ -84,16 +94,25 @@ def cmd_batch(args: argparse.Namespace) -> int:
         cluster = LocalCluster(n_workers=args.local_workers, threads_per_worker=1,
                                processes=True, dashboard_address=None)
         client = Client(cluster)
+        client.register_plugin(ignore_interrupts())
     try:
         _eprint(f"batch: {len(subjects)} subject(s), stages {','.join(args.stages)}, "
                 f"{len(client.scheduler_info().get('workers', {}))} worker(s)")
         result = run_batch(client, subjects, args.output, args.stages, progress=_bar)
+    except KeyboardInterrupt:
+        logging.getLogger("distributed").setLevel(logging.ERROR)  # shutdown chatter
+        client.close()
+        if cluster is not None:
+            cluster.close()
+        remove_temporaries(args.output)
+        raise
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
     doc = batch_document(result, args.output, args.stages)
     atomic_write_json(args.output / "batch.json", doc)
+    record_outputs(args.output, ["batch.json"], "batch")
     print(summary_table(result))
     print(f"wrote {args.output / 'batch.json'} ({result.seconds:.1f} s, "
           f"{result.workers} workers; tasks: "

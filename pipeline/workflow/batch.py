@@ -10,6 +10,7 @@ re-run would trust. Failures are caught per task and reported; dependants are sk
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -227,6 +228,11 @@ def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
                  "an earlier attempt stopped without finishing (its worker was lost) and "
                  "left " + ", ".join(p.name for p in stale)}
     start = time.perf_counter()
+    if spec.out_dir.is_dir() and any(spec.out_dir.iterdir()) and \
+            not (spec.out_dir / "done.json").is_file():
+        return {**base, "status": "failed", "seconds": 0.0,
+                "error": f"{spec.out_dir}: a folder that no batch task made is in the way "
+                         "(skinpipe replaces only its own task folders): move it"}
     try:
         with atomic_directory(spec.out_dir) as tmp:
             result = work(tmp)
@@ -416,6 +422,36 @@ def _import_native_libraries() -> Any:
     return NativeImports()
 
 
+def ignore_interrupts() -> Any:
+    """A worker plugin for workers this process started (a local cluster): Ctrl-C at the
+    terminal reaches their process group too, and they would print tracebacks while the
+    client shuts them down; they ignore SIGINT and are closed by the client instead."""
+    from distributed import WorkerPlugin  # lazy: 0.39 s to import
+
+    class IgnoreInterrupts(WorkerPlugin):
+        name = "skinpipe-ignore-interrupts"
+
+        def setup(self, worker: Any) -> None:
+            import logging
+            import signal
+
+            with contextlib.suppress(ValueError):  # not the main thread: nothing to do
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+            # tasks cancelled by the client's shutdown are expected, not warnings
+            logging.getLogger("distributed.worker.state_machine").setLevel(logging.ERROR)
+
+    return IgnoreInterrupts()
+
+
+def remove_temporaries(out_root: Path) -> list[Path]:
+    """Task folders' temporaries under ``out_root`` (``<subject>/.<stage>.tmp-*``) that
+    workers stopped mid-task left; removed, and returned."""
+    stale = sorted(out_root.glob("*/.*.tmp-*")) if out_root.is_dir() else []
+    for path in stale:
+        shutil.rmtree(path, ignore_errors=True)
+    return stale
+
+
 def run_batch(client: Any, subjects: list[Subject], out_root: Path,
               stages: tuple[str, ...] = STAGES,
               progress: Callable[[int, int, dict[str, Any]], None] | None = None
@@ -427,6 +463,11 @@ def run_batch(client: Any, subjects: list[Subject], out_root: Path,
     bad = [s for s in stages if s not in STAGES]
     if bad or not stages:
         raise InputError(f"unknown stage(s) {bad}; choose from {', '.join(STAGES)}")
+    if {"author", "render"} & set(stages):
+        lacking = [s.name for s in subjects if s.mesh is None or s.landmarks is None]
+        if lacking:
+            raise InputError(f"subject(s) {lacking}: the author and render stages need "
+                             "\"mesh\" and \"landmarks\" (or run --stages ingest,fit)")
     start = time.perf_counter()
     out_root.mkdir(parents=True, exist_ok=True)
     client.register_plugin(_import_native_libraries())
