@@ -26,7 +26,7 @@ class TaskBar:
         self.shares, self.frames, self.width = shares, max(frames, 1), width
         self.done = 0.0
         self.current: str | None = None
-        self.start = time.perf_counter()
+        self.start = 0.0  # the first task's start: a chain's earlier stages are not counted
         self.tty = sys.stderr.isatty()
 
     def __call__(self, message: str) -> None:
@@ -36,6 +36,8 @@ class TaskBar:
             return
         if self.current is not None:
             self.done += self.shares[self.current] / self.frames
+        else:
+            self.start = time.perf_counter()
         self.current = task
         share = min(self.done / sum(self.shares.values()), 0.99)
         elapsed = time.perf_counter() - self.start

@@ -8,7 +8,7 @@ from typing import Any
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from .common import (
-    _eprint,
+    TaskBar,
     add_force_option,
     add_render_options,
     ocio_source,
@@ -71,16 +71,23 @@ def run_staged(args: argparse.Namespace, verb: str, captures: Path, mesh: Path,
     """The chain for ``run`` and ``demo``: every input checked first, every output staged
     and moved into ``args.output`` only when the whole chain has finished."""
     from ..fileio import atomic_write_json, staged_output_directory
+    from ..render.options import TASK_SHARES
     from ..workflow.chain import chain_inputs, run_chain
 
     options = render_options(args)
     reads = chain_inputs(captures, mesh, landmarks, args.k)
-    with staged_output_directory(args.output, verb, reads, args.force,
-                                 ["report.json", "scene.usda"]) as out:
-        result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
-                           options, ocio_source(args), truth=truth,
-                           comparisons=verb == "demo", progress=_eprint)
-        atomic_write_json(out.path / "report.json", result.report)
+    bar = TaskBar(TASK_SHARES)
+    try:
+        with staged_output_directory(args.output, verb, reads, args.force,
+                                     ["report.json", "scene.usda"]) as out:
+            result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
+                               options, ocio_source(args), truth=truth,
+                               comparisons=verb == "demo",
+                               progress=lambda m: bar(m.replace(str(out.path),
+                                                                str(args.output))))
+            atomic_write_json(out.path / "report.json", result.report)
+    finally:
+        bar.close()
     result.report = out.final(result.report)
     result.render_doc = out.final(result.render_doc)
     print_chain(result)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue as queue_mod
+import signal
 import tempfile
 import time
 from dataclasses import dataclass
@@ -52,6 +53,9 @@ def triangulate(mesh: MeshData) -> NDArray[np.int32]:
 
 
 def _run_xatlas(npz: str, chart_area: float, resolution: int, padding: int, queue: Any) -> None:
+    # Ctrl-C reaches the whole process group: the parent stops this child, which must
+    # not print a traceback of its own
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     with np.load(npz) as data:
         points, tris = data["points"], data["tris"]
     atlas = xatlas.Atlas()
@@ -76,6 +80,7 @@ def _xatlas_in_child(npz: str, chart_area: float, resolution: int, padding: int,
     proc = ctx.Process(target=_run_xatlas, args=(npz, chart_area, resolution, padding, queue),
                        daemon=True)
     result = None
+    ok = False
     try:
         proc.start()
         while result is None:
@@ -87,8 +92,11 @@ def _xatlas_in_child(npz: str, chart_area: float, resolution: int, padding: int,
                 if time.perf_counter() - start > timeout_s:
                     raise SkinpipeError(f"xatlas did not finish in {timeout_s:.0f} s; decimate "
                                         "the mesh or raise charts_per_mesh") from None
+        ok = True
     finally:
         if proc.pid is not None:
+            if not ok:  # interrupted or failed: nothing to wait for
+                proc.kill()
             proc.join(timeout=5)
             if proc.is_alive():
                 proc.kill()

@@ -13,6 +13,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
@@ -65,6 +66,24 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     dist = options.margin * 0.5 * max(size[0], size[1]) / math.tan(fov / 2) + size[2] / 2
 
     layer = Sdf.Layer.CreateAnonymous("scene.usda")
+    # the prims are authored through a stage that is gone before the asset is referenced
+    # (a stage on the anonymous layer would try to compose the relative reference)
+    _author_shot_prims(layer, src, options, centre, dist, diag, up_axis)
+    root = src.GetDefaultPrim()
+    if not root:
+        raise InputError("the asset has no defaultPrim to reference", asset)
+    # the reference is added to the bare layer: no stage composes the asset from here
+    spec = Sdf.CreatePrimInLayer(layer, f"/Shot/{root.GetName()}")
+    spec.specifier = Sdf.SpecifierDef
+    spec.referenceList.Prepend(Sdf.Reference(os.path.relpath(asset.resolve(),
+                                                             out.resolve().parent)))
+    export_layer_atomic(layer, out)
+    return out
+
+
+def _author_shot_prims(layer: Any, src: Any, options: ShotOptions, centre: Any, dist: float,
+                       diag: float, up_axis: str) -> None:
+    """Camera, lights and the shot's metadata on ``layer``."""
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(src))
     UsdGeom.SetStageUpAxis(stage, up_axis)
@@ -108,14 +127,3 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     stage.SetDefaultPrim(stage.GetPrimAtPath("/Shot"))
     layer.customLayerData = {"skinpipe:colorSpace": WORKING_COLORSPACE,
                              "skinpipe:generator": "skinpipe shot"}
-    root = src.GetDefaultPrim()
-    if not root:
-        raise InputError("the asset has no defaultPrim to reference", asset)
-    # the reference is added to the bare layer: no stage composes the asset from here
-    spec = Sdf.CreatePrimInLayer(layer, f"/Shot/{root.GetName()}")
-    spec.specifier = Sdf.SpecifierDef
-    spec.referenceList.Prepend(Sdf.Reference(os.path.relpath(asset.resolve(),
-                                                             out.resolve().parent)))
-    del stage
-    export_layer_atomic(layer, out)
-    return out
