@@ -52,10 +52,15 @@ def triangulate(mesh: MeshData) -> NDArray[np.int32]:
     return np.asarray(tris, dtype=np.int32)
 
 
-def _run_xatlas(npz: str, chart_area: float, resolution: int, padding: int, queue: Any) -> None:
+def _xatlas_child(npz: str, chart_area: float, resolution: int, padding: int,
+                  queue: Any) -> None:
     # Ctrl-C reaches the whole process group: the parent stops this child, which must
     # not print a traceback of its own
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _run_xatlas(npz, chart_area, resolution, padding, queue)
+
+
+def _run_xatlas(npz: str, chart_area: float, resolution: int, padding: int, queue: Any) -> None:
     with np.load(npz) as data:
         points, tris = data["points"], data["tris"]
     atlas = xatlas.Atlas()
@@ -77,7 +82,7 @@ def _xatlas_in_child(npz: str, chart_area: float, resolution: int, padding: int,
     """Run :func:`_run_xatlas` in a spawned child: a crash there is an error here."""
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_run_xatlas, args=(npz, chart_area, resolution, padding, queue),
+    proc = ctx.Process(target=_xatlas_child, args=(npz, chart_area, resolution, padding, queue),
                        daemon=True)
     result = None
     ok = False

@@ -116,8 +116,9 @@ def assign_regions_from_landmarks(
         off = float(tree.query(landmarks[name])[0].max())
         if off > LANDMARK_TOLERANCE * diagonal:
             raise InputError(
-                f"region {name!r}: a landmark lies {off:.4g} mesh units from the mesh, "
-                f"more than {LANDMARK_TOLERANCE:.0%} of its {diagonal:.4g}-unit diagonal "
+                f"region {name!r}: a landmark lies {off:.4g} mesh units from the nearest "
+                f"mesh vertex, more than {LANDMARK_TOLERANCE:.0%} of its {diagonal:.4g}-unit "
+                "diagonal "
                 "(landmarks in another unit or for another mesh?)", mesh.source)
     dist = np.stack([cKDTree(landmarks[n]).query(mesh.points)[0] for n in names], axis=1)
     w = np.exp(-(dist - dist.min(axis=1, keepdims=True)) / max(blend, 1e-12))
