@@ -51,6 +51,15 @@ class LoadedImage:
     format_name: str
 
 
+def oiio_error(obj: Any = None) -> str:
+    """OpenImageIO's pending error message (global, or of ``obj``): its text can hold bytes
+    of a corrupt file that are not UTF-8, which the binding would raise on."""
+    try:
+        return (obj if obj is not None else oiio).geterror()
+    except UnicodeDecodeError:
+        return "(the reader's message is not UTF-8 text: a corrupt file?)"
+
+
 def read_image(path: str | Path, max_pixels: int = 64_000_000) -> LoadedImage:
     """Read an RGB(A) image with every OpenImageIO failure turned into an InputError."""
     path = Path(path)
@@ -63,7 +72,7 @@ def read_image(path: str | Path, max_pixels: int = 64_000_000) -> LoadedImage:
         raise InputError(f"unsupported image type {path.suffix!r} (use {sorted(_FORMATS)})", path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise InputError(f"unreadable image: {oiio.geterror() or 'unknown error'}", path)
+        raise InputError(f"unreadable image: {oiio_error() or 'unknown error'}", path)
     try:
         fmt = inp.format_name()
         if fmt not in expected:
@@ -74,7 +83,7 @@ def read_image(path: str | Path, max_pixels: int = 64_000_000) -> LoadedImage:
         if spec.nchannels not in (1, 3, 4):
             raise InputError(f"{spec.nchannels} channels; need 1 (grey), 3 or 4 (RGB[A])", path)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        err = inp.geterror()
+        err = oiio_error(inp)
         if pixels is None or err:
             raise InputError(f"cannot read pixels (truncated?): {err or 'no data'}", path)
         exposure = spec.getattribute("ExposureTime")
@@ -143,7 +152,7 @@ def write_texture(path: str | Path, pixels: NDArray[Any], colorspace: str = ACES
     config.attribute("compression", "zip")
     with atomic_path(path) as tmp:
         if not oiio.ImageBufAlgo.make_texture(oiio.MakeTxTexture, buf, str(tmp), config):
-            raise OSError(f"{path}: make_texture failed: {oiio.geterror()}")
+            raise OSError(f"{path}: make_texture failed: {oiio_error()}")
     return path
 
 
@@ -169,12 +178,12 @@ def _write(path: Path, spec: Any, arr: NDArray[Any]) -> None:
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
-            raise OSError(f"{path}: cannot create an image writer: {oiio.geterror()}")
+            raise OSError(f"{path}: cannot create an image writer: {oiio_error()}")
         try:
             if not out.open(str(tmp), spec):
-                raise OSError(f"{path}: {out.geterror()}")
+                raise OSError(f"{path}: {oiio_error(out)}")
             if not out.write_image(arr):
-                raise OSError(f"{path}: {out.geterror()}")
+                raise OSError(f"{path}: {oiio_error(out)}")
         finally:
             out.close()
 

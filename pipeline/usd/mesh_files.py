@@ -117,7 +117,8 @@ def _ply_header(path: Path) -> tuple[str, list[_Element], int]:
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
         raise InputError("not a PLY file (no 'ply' ... 'end_header' header)", path)
-    body_start = head.index(b"\n", end) + 1
+    newline = head.find(b"\n", end)
+    body_start = newline + 1 if newline >= 0 else len(head)
     fmt = ""
     elements: list[_Element] = []
     for number, raw in enumerate(head[:end].decode("ascii", "replace").splitlines(), 1):

@@ -21,7 +21,7 @@ from pxr import UsdGeom
 
 from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
-from ..imageio import write_ldr
+from ..imageio import oiio_error, write_ldr
 from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
 from ..profile.types import FitResult, MeasuredProfile
@@ -243,7 +243,7 @@ def side_by_side(left: Path, right: Path, out: Path, labels: tuple[str, str]) ->
         buf = oiio.ImageBuf(str(path))
         px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
         if buf.has_error or px.ndim != 3 or px.shape[2] < 4:
-            raise InputError(f"cannot read {path}: {buf.geterror()}", path)
+            raise InputError(f"cannot read {path}: {oiio_error(buf)}", path)
         rgb, a = px[..., :3], px[..., 3:4]
         tile = oiio.ImageBuf(oiio.ImageSpec(px.shape[1], px.shape[0], 3, "float"))
         tile.set_pixels(oiio.ROI(), np.ascontiguousarray(rgb * a + 0.18 * (1 - a)))

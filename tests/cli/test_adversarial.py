@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pipeline.capture.simulate import (
     CaptureSettings,
@@ -395,3 +397,63 @@ def _clipping(ws: Path, near_far: tuple[float, float]) -> None:
         cam.CreateClippingRangeAttr(Gf.Vec2f(*near_far))
 
     _scene_edit(ws, edit)
+
+
+# ---------------------------------------------------------------- property-based inputs
+
+_json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner,
+                                                                   max_size=4),
+    max_leaves=12)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(doc=st.fixed_dictionaries({}, optional={
+    "mm_per_pixel": _json_values, "camera_colorspace": _json_values,
+    "subject": _json_values, "regions": st.dictionaries(
+        st.text(min_size=1, max_size=12), st.fixed_dictionaries({}, optional={
+            "images": st.lists(st.fixed_dictionaries({}, optional={
+                "file": st.text(max_size=12) | _json_values,
+                "exposure_s": _json_values}), max_size=3)}) | _json_values, max_size=3)}))
+def test_any_capture_manifest_is_read_or_refused(tmp_path: Path, doc: dict) -> None:
+    """capture.json of any shape: read, or an InputError naming the manifest."""
+    from pipeline.capture.ingest import read_capture_set
+    from pipeline.errors import InputError
+
+    root = tmp_path / "caps"
+    root.mkdir(exist_ok=True)
+    (root / "capture.json").write_text(json.dumps(doc))
+    try:
+        captures = read_capture_set(root)
+    except InputError as exc:
+        assert "capture.json" in str(exc) or "caps" in str(exc)
+        return
+    assert all(".." not in name and "/" not in name for name in captures.regions)
+
+
+_cells = st.sampled_from(["0.5", "-1", "nan", "inf", "1e400", "", "x", "1,2", '"3"', "0x1p-3",
+                          "1e-320", " 7 ", "\u00a0", "NaN"]) | st.text(max_size=6)
+
+
+@settings(max_examples=80, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(header=st.sampled_from(["radius_mm,R,G,B", "radius_mm,R,G,B,std_R,std_G,std_B",
+                               "R,radius_mm,B,G", "radius_mm,R,G"]),
+       rows=st.lists(st.lists(_cells, min_size=0, max_size=8), max_size=12))
+def test_any_profile_csv_is_read_or_refused(tmp_path: Path, header: str,
+                                            rows: list[list[str]]) -> None:
+    """PROFILE.csv with any cells: a profile of finite-or-flagged numbers, or an
+    InputError naming the file."""
+    from pipeline.errors import InputError
+    from pipeline.profile.io import read_profile_csv
+
+    path = tmp_path / "p.csv"
+    path.write_text("\n".join([header] + [",".join(r) for r in rows]) + "\n")
+    try:
+        prof = read_profile_csv(path)
+    except InputError as exc:
+        assert "p.csv" in str(exc)
+        return
+    assert prof.values.shape == (prof.radius_mm.size, 3) and prof.radius_mm.size > 0
