@@ -97,7 +97,7 @@ def add_force_option(p: argparse.ArgumentParser) -> None:
 
 def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024",
                        texture_size: int = 1024) -> None:
-    from ..render.options import AOVS, BLURS, SHADOW_SAMPLING
+    from ..render.options import AOVS, BLURS, DATA_AOVS, SHADOW_SAMPLING, TEXTURE_OUTPUTS
 
     p.add_argument("--camera", default=None, metavar="PRIM",
                    help="UsdGeomCamera prim path (default: the first camera on the stage)")
@@ -106,7 +106,12 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--texture-size", type=int, default=texture_size, metavar="N",
                    help="texture-space maps are N x N texels")
     p.add_argument("--aovs", type=_aovs, default=AOVS, metavar="A,B",
-                   help=f"AOVs to write, from {','.join(AOVS)} (default: all)")
+                   help=f"AOVs to write, from {','.join(AOVS + DATA_AOVS)} (default: "
+                        f"{','.join(AOVS)}; region: the face region index per pixel)")
+    p.add_argument("--texture-outputs", type=_aovs, default=(), metavar="A,B",
+                   help=f"texture-space maps to write to <name>_uv.exr, from "
+                        f"{','.join(TEXTURE_OUTPUTS)} (irradiance and diffused radiosity "
+                        "in RGB, stretch in mm per texel, region index; row 0 is v = 1)")
     p.add_argument("--light-samples", type=int, default=16,
                    help="stratified light samples per texel and light (area and dome lights; "
                         "see --shadow-sampling for how many are traced)")
@@ -156,6 +161,7 @@ def render_options(args: argparse.Namespace) -> Any:
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,
+        texture_outputs=args.texture_outputs,
         half_float=args.half_float)
 
 

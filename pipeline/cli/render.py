@@ -66,7 +66,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     name = check_path_name(args.name or args.scene.stem, "image name (--name)")
     frames = [name] if args.frames is None else \
         [f"{name}.{t:04d}" for t in range(args.frames[0], args.frames[1] + 1)]
-    expect = [f"{f}{ext}" for f in frames for ext in (".exr", ".png")] + ["render.json"]
+    expect = [f"{f}{ext}" for f in frames for ext in (".exr", ".png", "_uv.exr")] + \
+        ["render.json"]
     reads = usd_inputs(args.scene)
     options = render_options(args)
     bar = TaskBar(TASK_SHARES, len(frames))

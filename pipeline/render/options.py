@@ -8,6 +8,15 @@ from dataclasses import dataclass
 from ..errors import InputError
 
 AOVS = ("beauty", "diffuse", "specular", "irradiance", "albedo")
+"""The default AOVs (colours in the working space)."""
+DATA_AOVS = ("region",)
+"""AOVs on request: ``region``, the index of the face region the pixel shows (the
+largest of its interpolated region weights; -1 off the skin), layer ``region.id``."""
+TEXTURE_OUTPUTS = ("irradiance", "radiosity", "stretch", "region")
+"""Texture-space maps on request, in ``<name>_uv.exr`` (row 0 is v = 1, as a texture):
+irradiance (RGB, before scattering), radiosity (RGB, pi x the diffused exitant
+radiance), stretch (mm per texel along u and v), region (index of the largest region
+weight, -1 outside the charts), each with the charts' coverage."""
 BLURS = ("recursive", "gather")
 SHADOW_SAMPLING = ("interleaved", "full")
 DEFAULT_ROUGHNESS = 0.35
@@ -55,6 +64,8 @@ class RenderOptions:
     seed: int = 0
     half_float: bool = False
     """Write the EXR's AOVs as half float (16 bit) instead of float."""
+    texture_outputs: tuple[str, ...] = ()
+    """Texture-space maps to write (:data:`TEXTURE_OUTPUTS`)."""
     device: str | None = None
     """OpenCL device (:data:`~.opencl.DEVICE_HELP`); None: ``$SKINPIPE_OPENCL_DEVICE``,
     else auto."""
@@ -63,9 +74,14 @@ class RenderOptions:
         w, h = self.resolution
         if not (1 <= w <= 16384 and 1 <= h <= 16384):
             raise InputError(f"resolution must be 1-16384 on each side, got {w}x{h}")
-        bad = [a for a in self.aovs if a not in AOVS]
+        bad = [a for a in self.aovs if a not in AOVS + DATA_AOVS]
         if bad or not self.aovs:
-            raise InputError(f"unknown AOV(s) {bad}; choose from {', '.join(AOVS)}")
+            raise InputError(f"unknown AOV(s) {bad}; choose from "
+                             f"{', '.join(AOVS + DATA_AOVS)}")
+        bad = [t for t in self.texture_outputs if t not in TEXTURE_OUTPUTS]
+        if bad:
+            raise InputError(f"unknown texture output(s) {bad}; choose from "
+                             f"{', '.join(TEXTURE_OUTPUTS)}")
         if not 1 <= self.light_samples <= 1024:
             raise InputError(f"light samples must be 1-1024, got {self.light_samples}")
         if not 0.0 <= self.albedo_split <= 1.0:

@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import PyOpenColorIO as OCIO
 from numpy.typing import NDArray
-from pxr import Sdf, Usd, UsdGeom, Vt
+from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from ..errors import InputError, SkinpipeError
 from ..fileio import atomic_write_json
@@ -48,7 +48,7 @@ from .lighting import (
     torrance_sparrow,
 )
 from .opencl import LEDGER, KernelLedger, device_choice, set_device
-from .options import AOVS, RenderOptions
+from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
@@ -364,6 +364,7 @@ class Renderer:
         self.delegate = SceneDelegate(stage, options.camera)
         self.progress = progress or (lambda _msg: None)
         self._cache: dict[str, Any] = {}
+        self.textures: list[SkinTextures] = []
 
     def close(self) -> None:
         self.delegate.close()
@@ -563,6 +564,7 @@ class Renderer:
             self._irradiance(log, scene, tex, rays, domes)
             self._diffusion(log, tex)
             skins.append(tex)
+        self.textures = skins  # the last frame's texture-space results, for outputs
         seen = [i for i, m in enumerate(scene.meshes) if m.camera_visible]
         if not seen:
             raise InputError("every mesh on the stage is hidden from the camera")
@@ -610,17 +612,17 @@ class Renderer:
             sub, sub_hit = self._shade_rays(scene, skins, rays, log, camera_rays,
                                             *cam.rays_at(sx, sy, width, height))
             k = len(EDGE_SAMPLES)
-            for a in out:
+            for a in AOVS:  # colours: the samples' mean; a region index stays the centre's
                 out[a][edge] = sub[a].reshape(edge.size, k, 3).mean(axis=1)
             alpha[edge] = sub_hit.reshape(edge.size, k).mean(axis=1)
             log.measures["edge_pixels"] = {"pixels": int(edge.size), "samples": k}
         images = {}
         for a in opts.aovs:
-            img = out[a].reshape(height, width, 3)
+            img = out[a].reshape(height, width, -1)
             if a == "beauty":
                 img = np.concatenate([img, alpha.reshape(height, width, 1)], axis=2)
             images[a] = img
-        skipped_aovs = [a for a in AOVS if a not in opts.aovs]
+        skipped_aovs = [a for a in AOVS + DATA_AOVS if a not in opts.aovs]
         if skipped_aovs:
             log.skipped.append(f"AOVs not asked for: {', '.join(skipped_aovs)}")
         return images
@@ -636,6 +638,7 @@ class Renderer:
         prim, bu, bv, dist = camera_rays.intersect(origins, dirs)
         n_pix = origins.shape[0]
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
+        out["region"] = np.full((n_pix, 1), -1.0, np.float32)
         mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
         owner = np.where(prim[:, None] >= 0, camera_rays.owner[np.maximum(prim, 0)], -1)
         for m_i, mesh in enumerate(scene.meshes):
@@ -665,6 +668,9 @@ class Renderer:
             out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
             out["albedo"][sel] = bilinear(tex.albedo, uv)
             out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
+            if mesh.region_weights is not None:
+                weights = (mesh.region_weights[tris[tri_idx]] * b).sum(axis=1)
+                out["region"][sel, 0] = np.argmax(weights, axis=1)
             if "specular" in opts.aovs or "beauty" in opts.aovs:
                 out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
         out["beauty"] = out["diffuse"] + out["specular"]
@@ -712,6 +718,50 @@ class Renderer:
         out["irradiance"][sel] = e
 
 
+def texture_space_images(tex: SkinTextures, which: tuple[str, ...]
+                         ) -> dict[str, NDArray[np.float32]]:
+    """The texture-space maps ``which`` (:data:`~.options.TEXTURE_OUTPUTS`) of one skin
+    mesh, rows flipped so that row 0 is v = 1 (as a texture image), plus coverage."""
+    maps = tex.maps
+    covered = maps.triangle >= 0
+    out: dict[str, NDArray[np.float32]] = {}
+    if "irradiance" in which and tex.irradiance is not None:
+        out["irradiance"] = tex.irradiance
+    if "radiosity" in which and tex.radiance is not None:
+        out["radiosity"] = (tex.radiance * np.float32(math.pi)) * covered[..., None]
+    if "stretch" in which:
+        out["stretch"] = np.stack([maps.mm_per_texel_u, maps.mm_per_texel_v], axis=-1)
+    if "region" in which:
+        region = np.full(covered.shape, -1.0, np.float32)
+        if maps.region_weights is not None:
+            region[covered] = np.argmax(maps.region_weights[covered], axis=-1)
+        out["region"] = region[..., None]
+    out["coverage"] = maps.coverage[..., None]
+    return {k: np.ascontiguousarray(v[::-1], np.float32) for k, v in out.items()}
+
+
+_TEXTURE_CHANNELS = {"irradiance": ("R", "G", "B"), "radiosity": ("R", "G", "B"),
+                     "stretch": ("u_mm", "v_mm"), "region": ("id",), "coverage": ("A",)}
+
+
+def write_texture_outputs(out_dir: Path, name: str, renderer: Renderer, working: str
+                          ) -> list[str]:
+    """``<name>_uv.exr`` (``<name>_uv_<mesh>.exr`` for each of several skin meshes) with
+    the options' texture-space maps; their paths."""
+    which = renderer.options.texture_outputs
+    paths = []
+    for tex in renderer.textures if which else []:
+        images = texture_space_images(tex, which)
+        suffix = "" if len(renderer.textures) == 1 else \
+            "_" + Tf.MakeValidIdentifier(tex.mesh.path.strip("/").replace("/", "_"))
+        names = [f"{k}.{c}" for k in images for c in _TEXTURE_CHANNELS[k]]
+        exr = write_exr(out_dir / f"{name}_uv{suffix}.exr",
+                        np.concatenate(list(images.values()), axis=2), working,
+                        channel_names=tuple(names))
+        paths.append(str(exr))
+    return paths
+
+
 def scene_geometry_key(scene: SceneData) -> str:
     return content_hash(*[m.geometry_key() for m in scene.meshes])
 
@@ -740,7 +790,7 @@ def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32
     ``half``, where no value exceeds half's range) and OUT/<name>.png."""
     channels, names = [], []
     for aov, img in images.items():
-        chans = ("R", "G", "B", "A") if img.shape[2] == 4 else ("R", "G", "B")
+        chans = {4: ("R", "G", "B", "A"), 3: ("R", "G", "B"), 1: ("id",)}[img.shape[2]]
         channels.append(img)
         names += [c if aov == "beauty" else f"{aov}.{c}" for c in chans]
     stack = np.concatenate(channels, axis=2)
@@ -794,12 +844,16 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
             if progress and t is not None:
                 progress(f"frame {t}")
             images, log = renderer.render(t)
+            frame_name = name if t is None else f"{name}.{t:04d}"
+            uv_outputs = write_texture_outputs(out_dir, frame_name, renderer,
+                                               renderer.delegate.working_colorspace)
             if own and t == times[-1]:
                 renderer.clear_cache()  # no frame follows: its textures go before the writes
             working = renderer.delegate.working_colorspace
-            frame_name = name if t is None else f"{name}.{t:04d}"
             outputs = write_outputs(out_dir, frame_name, images, working, ocio,
                                     options.half_float)
+            if uv_outputs:
+                outputs["texture_space"] = uv_outputs
             doc["frames"].append({"frame": t, "seconds": time.perf_counter() - t0,
                                   "tasks": log.seconds, "cached": log.cached,
                                   "skipped": log.skipped, "measures": log.measures,

@@ -84,8 +84,10 @@ class Light:
 
 @dataclass(frozen=True)
 class Camera:
-    """A pinhole camera: world position, rotation (columns: right, up, back), apertures
-    and focal length in the same (arbitrary) unit."""
+    """A pinhole or orthographic camera: world position, rotation (columns: right, up,
+    back), apertures and focal length in the same unit. For ``orthographic`` the
+    horizontal aperture is the view's width in scene units (USD's tenths of a unit,
+    converted when read) and the focal length is unused."""
 
     path: str
     position: NDArray[np.float64]
@@ -93,6 +95,7 @@ class Camera:
     focal_length: float
     horizontal_aperture: float
     vertical_aperture: float
+    projection: str = "perspective"
 
     def rays(self, width: int, height: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Origins and unit directions through pixel centres, row 0 at the top."""
@@ -107,6 +110,10 @@ class Camera:
         # the image keeps square pixels: the vertical extent follows the aspect ratio
         vext = self.horizontal_aperture * height / width
         y = (0.5 - np.asarray(py, np.float64) / height) * vext
+        if self.projection == "orthographic":  # parallel rays from the film plane
+            film = np.stack([x, y, np.zeros_like(x)], axis=-1) @ self.rotation.T
+            d = np.broadcast_to(-self.rotation[:, 2], film.shape).copy()
+            return self.position + film, d
         local = np.stack([x, y, np.full_like(x, -self.focal_length)], axis=-1)
         d = local @ self.rotation.T
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -114,7 +121,7 @@ class Camera:
 
     def key(self) -> str:
         return content_hash(self.position, self.rotation, self.focal_length,
-                            self.horizontal_aperture, self.vertical_aperture)
+                            self.horizontal_aperture, self.vertical_aperture, self.projection)
 
 
 @dataclass(frozen=True)
@@ -228,8 +235,9 @@ def _read_light(prim: Any, kind: str, time: Any) -> Light:
 
 def _read_camera(prim: Any, time: Any) -> Camera:
     cam = UsdGeom.Camera(prim)
-    if cam.GetProjectionAttr().Get(time) != UsdGeom.Tokens.perspective:
-        raise InputError(f"camera {prim.GetPath()}: only perspective projection is supported")
+    projection = str(cam.GetProjectionAttr().Get(time))
+    if projection not in (UsdGeom.Tokens.perspective, UsdGeom.Tokens.orthographic):
+        raise InputError(f"camera {prim.GetPath()}: unknown projection {projection!r}")
     m = _world_matrix(prim, time)
     rot = m[:3, :3].T  # columns = world images of local x, y, z
     rot = rot / np.linalg.norm(rot, axis=0, keepdims=True)
@@ -243,6 +251,10 @@ def _read_camera(prim: Any, time: Any) -> Camera:
     if not (math.isfinite(near) and 0 < near < far):
         raise InputError(f"camera {prim.GetPath()}: clipping range must be 0 < near < far, "
                          f"got ({near}, {far})")
+    if projection == UsdGeom.Tokens.orthographic:
+        # GfCamera: an orthographic view is the aperture wide, in tenths of a scene unit
+        return Camera(str(prim.GetPath()), m[3, :3].copy(), rot, focal, hap * 0.1, vap * 0.1,
+                      "orthographic")
     return Camera(str(prim.GetPath()), m[3, :3].copy(), rot, focal, hap, vap)
 
 

@@ -422,3 +422,65 @@ def test_bad_assets_give_clear_errors(tmp_path: Path, case: str, message: str,
     assert code == 2, err
     assert message in err
     assert not (tmp_path / "out" / "scene.exr").exists()
+
+
+def _ortho_scene(tmp_path: Path, height: float, asset: Path) -> Path:
+    def build(stage) -> None:
+        from pxr import Gf, UsdGeom
+
+        cam = UsdGeom.Camera.Define(stage, "/Cam")
+        cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
+        cam.CreateHorizontalApertureAttr(1500.0)  # tenths of a mm: a 150 mm wide view
+        cam.CreateVerticalApertureAttr(1500.0)
+        UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, height))
+        distant_down(stage, intensity=2.0)
+
+    return scene_over(asset, tmp_path / f"ortho_{height:g}.usda", build)
+
+
+def test_an_orthographic_camera_sees_true_sizes_at_any_distance(tmp_path: Path) -> None:
+    """A 40 mm square under a 150 mm wide orthographic view covers 40/150 of the frame
+    each way, whatever the camera's height (USD's apertures in tenths of a unit)."""
+    two = np.zeros((17 * 17, 2), np.float32)
+    two[:, 0] = np.repeat(np.linspace(0, 1, 17), 17) < 0.5  # rows: y below the middle
+    two[:, 1] = 1 - two[:, 0]
+    asset = patch_asset(tmp_path / "asset", [deon_fit("low"), deon_fit("high")],
+                        vertex_weights=two)
+    options = RenderOptions(resolution=(96, 96), texture_size=128, light_samples=1,
+                            aovs=("beauty", "region"), texture_outputs=("stretch", "region"))
+    areas = []
+    for height in (50.0, 400.0):
+        images, _ = Renderer(open_stage_guarded(_ortho_scene(tmp_path, height, asset)),
+                             options).render()
+        areas.append(float(images["beauty"][..., 3].sum()))
+        region = images["region"][..., 0]
+        # the region AOV: -1 off the skin, region 0 in the lower half, 1 in the upper
+        assert region[0, 0] == -1 and region[40, 48] == 1 and region[56, 48] == 0
+    side = 96 * 40 / 150
+    assert all(abs(a - side * side) <= 4 * side / 8 for a in areas)
+
+
+def test_texture_space_outputs_hold_the_layout(tmp_path: Path) -> None:
+    """<name>_uv.exr: stretch is the patch's mm per texel (40 mm over 128 texels), the
+    region map is the vertex regions' argmax, coverage is the charts."""
+    import OpenImageIO as oiio
+
+    asset = patch_asset(tmp_path / "asset", [deon_fit()])
+    scene = _ortho_scene(tmp_path, 100.0, asset)
+    options = RenderOptions(resolution=(32, 32), texture_size=128, light_samples=1,
+                            aovs=("beauty",),
+                            texture_outputs=("irradiance", "radiosity", "stretch", "region"))
+    doc = render_files(scene, tmp_path / "out", options)
+    uv = tmp_path / "out" / "ortho_100_uv.exr"
+    assert doc["frames"][0]["outputs"]["texture_space"] == [str(uv)]
+    buf = oiio.ImageBuf(str(uv))
+    names = list(buf.spec().channelnames)
+    px = np.asarray(buf.get_pixels(oiio.FLOAT))
+    assert {"radiosity.R", "irradiance.G", "stretch.u_mm", "region.id", "coverage.A"} <= \
+        set(names)
+    cov = px[..., names.index("coverage.A")] > 0
+    assert cov.mean() > 0.95
+    np.testing.assert_allclose(px[..., names.index("stretch.u_mm")][cov], 40 / 128, rtol=1e-3)
+    np.testing.assert_allclose(px[..., names.index("stretch.v_mm")][cov], 40 / 128, rtol=1e-3)
+    assert set(np.unique(px[..., names.index("region.id")][cov])) == {0.0}
+    assert buf.spec().getattribute("oiio:ColorSpace") == "lin_ap1_scene"
