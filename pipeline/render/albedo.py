@@ -24,7 +24,7 @@ from ..usd.author import MTLX_NAME
 from ..usd.io import export_layer_atomic
 from ..usd.materialx import MTLX_COLORSPACE, author_usd_texture, usd_network_values, write_mtlx
 from ..usd.schema import WORKING_COLORSPACE
-from .push_pull import push_pull
+from .push_pull import dilate_charts, push_pull
 from .renderer import ensure_skin_uvs
 from .texture_maps import TextureMaps, rasterize
 from .unwrap import triangulate
@@ -162,7 +162,7 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     if progress:
         progress(f"paint albedo {size}x{size}")
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
-    image = push_pull(albedo, maps.coverage)[::-1]  # image row 0 is v = 1
+    image = dilate_charts(push_pull(albedo, maps.coverage), maps.coverage)[::-1]  # row 0: v=1
     texture = Path(asset).resolve().parent / ALBEDO_NAME
     write_texture(texture, image, WORKING_COLORSPACE)
     author_albedo_texture(stage, mesh.path, texture)

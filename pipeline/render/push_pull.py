@@ -5,10 +5,17 @@ near a seam never blend in black: a pyramid of coverage-weighted 2 x 2 sums (pul
 then each level's empty texels take their coarser parent's normalised value (push).
 Covered texels are returned unchanged. :func:`push_pull` runs on the OpenCL device;
 :func:`push_pull_reference` is the numpy version it is tested against.
+
+The pyramid's fill is an average over the neighbourhood in UV space, which near a chart
+can hold other charts (other places on the face, lit differently). A bilinear lookup
+at a point near a chart's edge reads gutter texels, so :func:`dilate_charts` then gives
+the texels within :data:`GUTTER_RING` of a chart its nearest covered texel's value: the
+lookups see only their own chart (the demo's bright texels at chart borders, issue 19).
 """
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -164,3 +171,37 @@ def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float3
              np.int32(lh), np.int32(shapes[k + 1][1]), np.int32(ch), np.int32(k == 0))
     read_output(queue, out_buf, out)
     return out[..., 0] if squeeze else out
+
+
+GUTTER_RING = 2
+"""Texels around each chart that take their nearest covered texel's value: a bilinear
+lookup inside a chart reads at most one texel beyond it."""
+
+
+@lru_cache(maxsize=4)
+def _nearest_sources(covered_bytes: bytes, shape: tuple[int, int], ring: int
+                     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Flat indices of the ring's texels and of their nearest covered texels (one
+    layout's coverage, cached: its irradiance, radiance and albedo share them)."""
+    from scipy.ndimage import distance_transform_edt  # lazy: 0.3 s to import
+
+    covered = np.frombuffer(covered_bytes, dtype=bool).reshape(shape)
+    dist, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
+    ring_mask = (dist > 0) & (dist <= ring)
+    dst = np.flatnonzero(ring_mask)
+    return dst, (iy * shape[1] + ix).ravel()[dst]
+
+
+def dilate_charts(values: NDArray[Any], coverage: NDArray[Any], ring: int = GUTTER_RING
+                  ) -> NDArray[np.float32]:
+    """``values`` (H, W[, C]) with each texel within ``ring`` texels of a chart set to its
+    nearest covered texel's value (Euclidean distance transform); in place when
+    ``values`` is float32, returned."""
+    v = np.asarray(values, dtype=np.float32)
+    covered = np.asarray(coverage) > 0
+    if covered.all() or not covered.any():
+        return v
+    dst, src = _nearest_sources(np.ascontiguousarray(covered).tobytes(), covered.shape, ring)
+    flat = v.reshape(covered.size, -1)
+    flat[dst] = flat[src]
+    return v

@@ -49,7 +49,7 @@ from .lighting import (
 )
 from .opencl import LEDGER, KernelLedger, device_choice, set_device
 from .options import AOVS, DATA_AOVS, RenderOptions
-from .push_pull import push_pull
+from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, vertex_normals
@@ -449,7 +449,7 @@ class Renderer:
             planes[..., :3] = e
             for i, path in enumerate(spec):
                 planes[..., 3 + i][covered] = visibility[path]
-            filled = push_pull(planes, maps.coverage)
+            filled = dilate_charts(push_pull(planes, maps.coverage), maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
             return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds)
@@ -518,7 +518,7 @@ class Renderer:
             out *= before  # out is this task's own array: in place
             del before
             out *= np.float32(1.0 / math.pi)
-            radiance = push_pull(out, cov)
+            radiance = dilate_charts(push_pull(out, cov), cov)
             return radiance, skipped, passes, energy, work
 
         radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)
