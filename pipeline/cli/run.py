@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 from typing import Any
 
@@ -75,16 +76,20 @@ def run_staged(args: argparse.Namespace, verb: str, captures: Path, mesh: Path,
     from ..workflow.chain import chain_inputs, run_chain
 
     options = render_options(args)
-    reads = chain_inputs(captures, mesh, landmarks, args.k)
+    checks_start = time.perf_counter()
+    reads, loaded = chain_inputs(captures, mesh, landmarks, args.k)
+    checks_s = time.perf_counter() - checks_start
     bar = TaskBar(TASK_SHARES)
     try:
         with staged_output_directory(args.output, verb, reads, args.force,
                                      ["report.json", "scene.usda"]) as out:
             result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
                                options, ocio_source(args), truth=truth,
-                               comparisons=verb == "demo",
+                               comparisons=verb == "demo", loaded_mesh=loaded,
                                progress=lambda m: bar(m.replace(str(out.path),
                                                                 str(args.output))))
+            result.report["stages"] = {"check_inputs": {"seconds": checks_s},
+                                       **result.report["stages"]}
             atomic_write_json(out.path / "report.json", result.report)
     finally:
         bar.close()

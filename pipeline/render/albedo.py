@@ -95,15 +95,23 @@ def paint_skin_albedo(maps: TextureMaps, region_names: tuple[str, ...],
     # low-frequency blotchiness (+-4%), a function of the surface point so seams match
     mm = pos * meters_per_unit * 1000.0
     base *= 1.0 + 0.04 * np.sin(mm[:, :1] * 0.21 + 1.3) * np.sin(mm[:, 1:2] * 0.17 + 0.4)
-    tree = cKDTree(pos)
-    scale = 1.0 / (meters_per_unit * 1000.0)  # mm -> scene units
-    for spot in place_spots(maps, region_names, seed=seed):
-        idx = np.asarray(tree.query_ball_point(spot.centre, 2.5 * spot.radius_mm * scale))
-        if idx.size == 0:
-            continue
-        d_mm = np.linalg.norm(pos[idx] - spot.centre, axis=1) / scale
-        falloff = np.exp(-0.5 * (d_mm / (0.6 * spot.radius_mm)) ** 4)[:, None]
-        base[idx] *= 1.0 - (1.0 - spot.tint) * falloff
+    spots = place_spots(maps, region_names, seed=seed)
+    if spots:
+        # every spot's texels in one query (the spots' tints multiply, in any order)
+        tree = cKDTree(pos, balanced_tree=False, compact_nodes=False)  # 2x faster to build
+        scale = 1.0 / (meters_per_unit * 1000.0)  # mm -> scene units
+        centres = np.array([sp.centre for sp in spots])
+        radii = np.array([sp.radius_mm for sp in spots])
+        tints = np.array([sp.tint for sp in spots])
+        found = tree.query_ball_point(centres, 2.5 * radii * scale, workers=-1,
+                                      return_sorted=False)
+        counts = np.fromiter((len(f) for f in found), np.int64, len(found))
+        if counts.sum():
+            which = np.repeat(np.arange(len(spots)), counts)
+            texel = np.concatenate([np.asarray(f, np.int64) for f in found if f])
+            d_mm = np.linalg.norm(pos[texel] - centres[which], axis=1) / scale
+            falloff = np.exp(-0.5 * (d_mm / (0.6 * radii[which])) ** 4)[:, None]
+            np.multiply.at(base, texel, 1.0 - (1.0 - tints[which]) * falloff)
     out[covered] = np.clip(base, 0.0, 1.0)
     return out
 

@@ -26,7 +26,13 @@ from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
 from ..profile.types import FitResult, MeasuredProfile
 from ..render.albedo import bake_sample_albedo
-from ..render.renderer import Renderer, RenderOptions, render_files, write_outputs
+from ..render.renderer import (
+    Renderer,
+    RenderOptions,
+    ensure_skin_uvs,
+    render_files,
+    write_outputs,
+)
 from ..usd.author import (
     AssetPaths,
     RegionAssignment,
@@ -35,7 +41,7 @@ from ..usd.author import (
     read_landmarks,
 )
 from ..usd.io import USD_SUFFIXES, open_stage_guarded, usd_inputs
-from ..usd.mesh import load_mesh, prepare_scan, seal_scan
+from ..usd.mesh import MeshData, load_mesh, prepare_scan, seal_scan
 from ..usd.shot import author_shot
 from ..usd.validate import validate_file
 
@@ -104,12 +110,13 @@ def author_from_files(fits_paths: list[Path], mesh_path: Path, out: Path, *,
                       region_names: list[str] | None = None, blend_mm: float = 8.0,
                       profiles_dir: Path | None = None, meters_per_unit: float | None = None,
                       prepare: bool = False, target_faces: int = 60000, name: str = "Face",
-                      mesh_prim: str | None = None, progress: Progress = _quiet
-                      ) -> AssetPaths:
+                      mesh_prim: str | None = None, progress: Progress = _quiet,
+                      loaded: MeshData | None = None) -> AssetPaths:
     """The author stage from files: FIT.json files (or folders of them) and a mesh to a
-    USD asset, regions from landmarks or from a uniform primvar of a USD mesh."""
+    USD asset, regions from landmarks or from a uniform primvar of a USD mesh
+    (``loaded``: the mesh at ``mesh_path``, already loaded and validated)."""
     fits = read_fit_inputs(fits_paths)
-    mesh = load_mesh(mesh_path, meters_per_unit, mesh_prim)
+    mesh = loaded if loaded is not None else load_mesh(mesh_path, meters_per_unit, mesh_prim)
     seal = None
     if prepare:
         progress(f"preparing the scan ({mesh.n_faces} faces -> {target_faces})")
@@ -126,10 +133,12 @@ def author_from_files(fits_paths: list[Path], mesh_path: Path, out: Path, *,
                         measured=measured_for(fits, profiles_dir), seal=seal)
 
 
-def chain_inputs(captures: Path, mesh_path: Path, landmarks: Path, k: int) -> list[Path]:
-    """Check every input of :func:`run_chain` before its first write and return the files
-    it reads: the capture set, the mesh (loaded and validated), the landmarks (each
-    region's points on the mesh, one region per captured region) and ``k``."""
+def chain_inputs(captures: Path, mesh_path: Path, landmarks: Path, k: int
+                 ) -> tuple[list[Path], MeshData]:
+    """Check every input of :func:`run_chain` before its first write: the capture set,
+    the mesh (loaded and validated), the landmarks (each region's points on the mesh,
+    one region per captured region) and ``k``. Returns the files it reads and the mesh
+    (for :func:`run_chain`, which then does not load it again)."""
     if not 1 <= k <= 8:
         raise InputError(f"-k must be between 1 and 8 Gaussians, got {k}")
     capture_set = read_capture_set(captures)
@@ -139,7 +148,7 @@ def chain_inputs(captures: Path, mesh_path: Path, landmarks: Path, k: int) -> li
         raise InputError(f"the landmarks' regions {sorted(marks)} are not the captured ones "
                          f"{sorted(capture_set.regions)}", landmarks)
     assign_regions_from_landmarks(mesh, marks)
-    return capture_set.files + author_inputs([], mesh_path, landmarks, None)
+    return capture_set.files + author_inputs([], mesh_path, landmarks, None), mesh
 
 
 @dataclass
@@ -171,7 +180,8 @@ class ChainResult:
 def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
               prepare: bool, paint: bool, options: RenderOptions, ocio: str,
               truth: dict[str, Any] | None = None, comparisons: bool = False,
-              progress: Progress = _quiet) -> ChainResult:
+              progress: Progress = _quiet, loaded_mesh: MeshData | None = None
+              ) -> ChainResult:
     """ingest -> fit -> author -> (paint) -> validate -> shot -> render (-> the demo's
     comparison renders, which reuse the render's texture-space work)."""
     start = time.perf_counter()
@@ -203,9 +213,13 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
     progress(f"author {out / 'asset'}")
     paths = author_from_files([out / "fits"], mesh, out / "asset", landmarks=landmarks,
                               profiles_dir=out / "profiles", prepare=prepare,
-                              progress=progress)
+                              progress=progress, loaded=loaded_mesh)
     report["stages"]["author"] = {"seconds": time.perf_counter() - t0, "asset": str(paths.asset)}
     if paint:
+        # the unwrap is its own stage: painting then finds the asset's UVs
+        t0 = time.perf_counter()
+        uvs = ensure_skin_uvs(paths.asset, progress)
+        report["stages"]["unwrap"] = {"seconds": time.perf_counter() - t0, "uvs": uvs.note}
         t0 = time.perf_counter()
         texture = bake_sample_albedo(paths.asset, options.texture_size, progress=progress)
         report["stages"]["paint_albedo"] = {"seconds": time.perf_counter() - t0,
