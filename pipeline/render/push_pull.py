@@ -178,25 +178,44 @@ GUTTER_RING = 2
 lookup inside a chart reads at most one texel beyond it."""
 
 
+_NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1))
+"""Axial neighbours first: a ring texel takes an edge-adjacent chart texel when it has one."""
+
+
 @lru_cache(maxsize=4)
 def _nearest_sources(covered_bytes: bytes, shape: tuple[int, int], ring: int
                      ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Flat indices of the ring's texels and of their nearest covered texels (one
-    layout's coverage, cached: its irradiance, radiance and albedo share them)."""
-    from scipy.ndimage import distance_transform_edt  # lazy: 0.3 s to import
-
-    covered = np.frombuffer(covered_bytes, dtype=bool).reshape(shape)
-    dist, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
-    ring_mask = (dist > 0) & (dist <= ring)
-    dst = np.flatnonzero(ring_mask)
-    return dst, (iy * shape[1] + ix).ravel()[dst]
+    """Flat indices of the ring's texels and of the chart texels they copy (one layout's
+    coverage, cached: its irradiance, radiance and albedo share them). Grown one texel
+    a pass, each new texel taking a neighbour's source: memory stays a few bytes a
+    texel (scipy's distance transform needed 24)."""
+    h, w = shape
+    source = np.full(h * w, -1, np.int32)  # a 16384^2 atlas still fits int32
+    covered = np.frombuffer(covered_bytes, dtype=bool)
+    source[covered] = np.flatnonzero(covered)
+    grid = source.reshape(h, w)
+    added: list[NDArray[np.int64]] = []
+    for _ in range(ring):
+        new = np.full_like(grid, -1)
+        for dy, dx in _NEIGHBOURS:
+            # the neighbour at (y + dy, x + dx) of every texel, where it exists
+            dst = new[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
+            src = grid[max(dy, 0):h - max(-dy, 0), max(dx, 0):w - max(-dx, 0)]
+            empty = grid[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)] < 0
+            take = empty & (dst < 0) & (src >= 0)
+            dst[take] = src[take]
+        grown = np.flatnonzero((new >= 0).ravel() & (grid < 0).ravel())
+        grid.reshape(-1)[grown] = new.reshape(-1)[grown]
+        added.append(grown)
+    dst_all = np.concatenate(added) if added else np.zeros(0, np.int64)
+    return dst_all, source[dst_all].astype(np.int64)
 
 
 def dilate_charts(values: NDArray[Any], coverage: NDArray[Any], ring: int = GUTTER_RING
                   ) -> NDArray[np.float32]:
-    """``values`` (H, W[, C]) with each texel within ``ring`` texels of a chart set to its
-    nearest covered texel's value (Euclidean distance transform); in place when
-    ``values`` is float32, returned."""
+    """``values`` (H, W[, C]) with each texel within ``ring`` texels of a chart (8-connected
+    steps) set to a nearest covered texel's value; in place when ``values`` is float32,
+    returned."""
     v = np.asarray(values, dtype=np.float32)
     covered = np.asarray(coverage) > 0
     if covered.all() or not covered.any():

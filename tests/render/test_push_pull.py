@@ -53,3 +53,23 @@ def test_nothing_covered_gives_zeros_and_fractional_coverage_keeps_values() -> N
 def test_mismatched_shapes_are_refused() -> None:
     with pytest.raises(InputError, match="push-pull"):
         push_pull(np.zeros((8, 8, 3)), np.zeros((8, 9)))
+
+
+def test_dilation_copies_the_adjacent_chart_into_a_two_texel_ring() -> None:
+    """Two charts two texels apart: each ring texel takes its own chart's edge value
+    (axial neighbour first), texels beyond the ring keep the pyramid's fill."""
+    from pipeline.render.push_pull import dilate_charts
+
+    cov = np.zeros((12, 12), np.float32)
+    cov[2:10, 2:5] = 1  # chart A, value 1
+    cov[2:10, 7:10] = 1  # chart B, value 5, a two-texel gap from A
+    values = np.where(cov > 0, np.where(np.arange(12) < 6, 1.0, 5.0)[None, :], 9.0)
+    out = dilate_charts(values.astype(np.float32), cov)
+    assert np.all(out[2:10, 5] == 1) and np.all(out[2:10, 6] == 5)  # the gap, split
+    assert np.all(out[2:10, 0:2] == 1) and np.all(out[2:10, 10:12] == 5)
+    assert out[0, 3] == 1 and out[11, 8] == 5  # two texels above and below
+    np.testing.assert_array_equal(out[cov > 0], values[cov > 0])
+    big = np.zeros((12, 12), np.float32)
+    big[5, 5] = 1
+    far = dilate_charts(np.where(big > 0, 2.0, 9.0).astype(np.float32), big)
+    assert far[5, 8] == 9 and far[5, 7] == 2  # three texels away: untouched
