@@ -14,13 +14,14 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from colour_hdri import weighting_function_Debevec1997
 from numpy.typing import NDArray
-from scipy.ndimage import map_coordinates, median_filter
+from scipy.ndimage import gaussian_filter, map_coordinates, median_filter
 
 from ..errors import InputError
 from ..fileio import atomic_write_json, check_path_name
@@ -56,6 +57,8 @@ class CaptureSet:
     mm_per_pixel: float
     camera_colorspace: str
     regions: dict[str, list[Bracket]]
+    sensor: SensorNoise | None = None
+    """The camera's noise from the manifest's ``sensor``; None: estimated per region."""
 
     @property
     def files(self) -> list[Path]:
@@ -86,6 +89,7 @@ class RegionResult:
     brackets: int
     unresolved_fraction: float
     warnings: list[str] = field(default_factory=list)
+    noise: SensorNoise | None = None
 
 
 def read_capture_set(root: str | Path) -> CaptureSet:
@@ -132,13 +136,90 @@ def read_capture_set(root: str | Path) -> CaptureSet:
                     manifest)
             brackets.append(Bracket(root / img["file"], None if exp is None else float(exp)))
         regions[str(name)] = brackets
+    sensor = _read_sensor(doc.get("sensor"), manifest)
     subject = doc.get("subject", root.absolute().name)
     if not isinstance(subject, str) or not subject.strip():
         raise InputError(f"'subject' must be a non-empty string, got {subject!r}", manifest)
-    return CaptureSet(root, subject, float(mmpp), colorspace, regions)
+    return CaptureSet(root, subject, float(mmpp), colorspace, regions, sensor)
+
+
+def _read_sensor(doc: Any, manifest: Path) -> SensorNoise | None:
+    """``"sensor": {"full_well_e": N, "read_noise_e": s}`` (electrons at full scale, read
+    noise in electrons) as a :class:`SensorNoise`; absent: None."""
+    if doc is None:
+        return None
+    if not isinstance(doc, dict) or set(doc) != {"full_well_e", "read_noise_e"}:
+        raise InputError("'sensor' must be {\"full_well_e\": N, \"read_noise_e\": s}, got "
+                         f"{doc!r}", manifest)
+    well, read = doc["full_well_e"], doc["read_noise_e"]
+    for key, v, least in (("full_well_e", well, "> 0"), ("read_noise_e", read, ">= 0")):
+        number = not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+        if not number or not (v > 0 if least == "> 0" else v >= 0):
+            raise InputError(f"sensor.{key} must be a finite number {least}, got {v!r}",
+                             manifest)
+    return SensorNoise(1.0 / well, read / well, "manifest")
 
 
 # ------------------------------------------------------------------------------- merging
+
+
+def _is_scene_linear(colorspace: str) -> bool:
+    """Whether OCIO's transform from ``colorspace`` to ACEScg is linear (a matrix)."""
+    probe = np.array([[[0.02, 0.3, 0.7], [0.04, 0.6, 1.4]]], np.float32)
+    out = convert_colorspace(probe, colorspace, ACESCG).astype(np.float64)
+    return bool(np.allclose(out[0, 1], 2 * out[0, 0], rtol=1e-4, atol=1e-7))
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Noise of a linear sensor in code values (1 = full scale): a pixel that records c
+    has variance ``gain * c + read ** 2`` (shot noise: ``gain`` is one electron in
+    code values; read noise ``read``)."""
+
+    gain: float
+    read: float
+    source: str
+    """"manifest", or "estimated" from the brackets themselves."""
+
+
+def estimate_sensor_noise(codes: list[NDArray[Any]], exposures_s: list[float],
+                          clip_level: float = 0.98) -> SensorNoise:
+    """Shot and read noise from the brackets themselves (Granados et al. 2010, sec. 4):
+    for consecutive exposures t1 < t2 (ratio r) the difference d = c2 - r c1 of a pixel
+    unclipped in both has variance g mu2 (1 + r) + s^2 (1 + r^2), mu2 its expected code
+    in the longer one; a straight line through d's robust variance (MAD) in bins of
+    mu2 gives the gain g and read noise s."""
+    order = np.argsort(exposures_s)
+    xs, ys, ws = [], [], []
+    for a, b in pairwise(order):
+        r = exposures_s[b] / exposures_s[a]
+        c1, c2 = codes[a].astype(np.float64), codes[b].astype(np.float64)
+        ok = (c1 < clip_level) & (c2 < clip_level)
+        ok &= np.all(c2 < clip_level, axis=2, keepdims=True) & \
+            np.all(c1 < clip_level, axis=2, keepdims=True)
+        mu2 = gaussian_filter(c2, sigma=(1.5, 1.5, 0))  # expected code, not the noisy one
+        d = (c2 - r * c1)[ok]
+        m = mu2[ok]
+        if d.size < 200:
+            continue
+        edges = np.unique(np.quantile(m, np.linspace(0, 1, 21)))
+        for lo, hi in pairwise(edges):
+            sel = (m >= lo) & (m < hi)
+            if sel.sum() < 50:
+                continue
+            dd = d[sel]
+            mad = np.median(np.abs(dd - np.median(dd)))
+            xs.append([float(np.median(m[sel])) * (1 + r), 1 + r * r])
+            ys.append((1.4826 * mad) ** 2)
+            ws.append(float(sel.sum()))
+    if len(ys) < 3:
+        raise InputError("cannot estimate the sensor's noise from these brackets (too few "
+                         "unclipped pixels in consecutive exposures): give "
+                         "'sensor': {'full_well_e': ..., 'read_noise_e': ...} in capture.json")
+    x, y, w = np.asarray(xs), np.asarray(ys), np.sqrt(np.asarray(ws))
+    (gain, read2), *_ = np.linalg.lstsq(x * w[:, None], y * w, rcond=None)
+    return SensorNoise(max(float(gain), 1e-12), math.sqrt(max(float(read2), 1e-16)),
+                       "estimated")
 
 
 def merge_brackets(
@@ -147,15 +228,60 @@ def merge_brackets(
     colorspace: str,
     noise_floor: float | None = None,
     clip_level: float = 0.98,
+    noise: SensorNoise | None = None,
 ) -> tuple[FloatImage, NDArray[np.bool_]]:
     """Merge exposures into one scene-linear ACEScg HDR image (radiance per second).
 
-    Debevec & Malik 1997 weighting (colour-hdri's hat function, zero at the noise floor
-    and at clipping) times the exposure time, which favours the longer, less noisy
-    exposures (Robertson et al. 2003). A pixel clipped in any channel is not used from
-    that bracket at all, since the conversion to ACEScg mixes channels. Returns the HDR
-    image and a mask of pixels that no bracket resolved.
+    Linear integer captures: each unclipped bracket's radiance c / t weighted by its
+    inverse variance t^2 / (g mu t + s^2) from the sensor's noise (``noise``, else
+    estimated from the brackets, :func:`estimate_sensor_noise`), evaluated on a smoothed
+    estimate mu of the radiance, never on the pixel's own noisy value (Granados et al.
+    2010, "Optimal HDR reconstruction with linear digital cameras"; Hasinoff et al.
+    2010): a weight that follows the noisy value picks the short brackets' upward noise
+    in the dark and biases the flux. The only hard cut is saturation; a pixel clipped
+    in any channel is not used from that bracket. Merged in the camera's space, then
+    converted. Non-linear (8-bit sRGB) captures keep Debevec & Malik 1997's hat weights
+    (colour-hdri) times t. Returns the image and a mask of pixels no bracket resolved.
     """
+    if all(not img.is_float for img in images) and _is_scene_linear(colorspace):
+        return _merge_noise_optimal(images, exposures_s, colorspace, clip_level, noise)
+    return _merge_hat(images, exposures_s, colorspace, noise_floor, clip_level)
+
+
+def _merge_noise_optimal(images: list[LoadedImage], exposures_s: list[float],
+                         colorspace: str, clip_level: float, noise: SensorNoise | None
+                         ) -> tuple[FloatImage, NDArray[np.bool_]]:
+    codes = [img.pixels.astype(np.float64) for img in images]
+    t = np.asarray(exposures_s, np.float64)
+    if noise is None:  # one bracket: its weights cancel, no noise model is needed
+        noise = estimate_sensor_noise(codes, exposures_s, clip_level) if len(codes) > 1 \
+            else SensorNoise(1.0, 1.0, "not needed (one bracket)")
+    valid = [~np.any(c >= clip_level, axis=2, keepdims=True) for c in codes]
+    # first estimate: the longest unclipped bracket at each pixel
+    mu = np.zeros_like(codes[0])
+    for i in np.argsort(t):
+        mu = np.where(valid[i], codes[i] / t[i], mu)
+    for _ in range(2):
+        smooth = gaussian_filter(np.maximum(mu, 0.0), sigma=(1.0, 1.0, 0))
+        num = np.zeros_like(mu)
+        den = np.zeros_like(mu)
+        for c, ti, ok in zip(codes, t, valid, strict=True):
+            w = ok * ti * ti / (noise.gain * smooth * ti + noise.read ** 2)
+            num += w * c / ti
+            den += w
+        resolved = den > 0
+        mu = np.where(resolved, num / np.where(resolved, den, 1.0), mu)
+    shortest = int(np.argmin(t))
+    mu = np.where(resolved, mu, codes[shortest] / t[shortest])  # clipped everywhere
+    hdr = convert_colorspace(mu.astype(np.float32), colorspace, ACESCG)
+    return hdr.astype(np.float32), ~np.all(resolved, axis=2)
+
+
+def _merge_hat(images: list[LoadedImage], exposures_s: list[float], colorspace: str,
+               noise_floor: float | None, clip_level: float
+               ) -> tuple[FloatImage, NDArray[np.bool_]]:
+    """Debevec & Malik 1997 weighting (colour-hdri's hat function, zero at the noise
+    floor and at clipping) times the exposure time (Robertson et al. 2003)."""
     floor = noise_floor if noise_floor is not None else (2.0 / 255.0 if images[0].bits == 8
                                                          else 2e-4)
     num = np.zeros(images[0].pixels.shape, dtype=np.float64)
@@ -395,8 +521,12 @@ def ingest_region(
             raise InputError(f"region {region!r}: a single bracket that is clipped cannot be "
                              "merged; shoot several exposures", images[0].path)
         note("one bracket only: the profile's dynamic range is that of one exposure")
+    noise = captures.sensor
+    if noise is None and len(images) > 1 and not any(i.is_float for i in images) and \
+            _is_scene_linear(captures.camera_colorspace):
+        noise = estimate_sensor_noise([i.pixels for i in images], exposures, clip)
     hdr, unresolved = merge_brackets(images, exposures, captures.camera_colorspace,
-                                     options.noise_floor, clip)
+                                     options.noise_floor, clip, noise)
     centre = find_entry_point(hdr)
     profile = radial_profile(hdr, centre, captures.mm_per_pixel, options.ring_width_px,
                              options.max_radius_mm, options.mode)
@@ -405,7 +535,7 @@ def ingest_region(
     if not options.absolute:
         profile, _ = normalise_profile(profile)
     return RegionResult(region, profile, hdr, centre, time.perf_counter() - start, len(images),
-                        float(unresolved.mean()), notes)
+                        float(unresolved.mean()), notes, noise)
 
 
 def _centre_clipped(img: LoadedImage, clip: float) -> bool:
@@ -457,6 +587,9 @@ def ingest_capture_set(
             "samples": int(res.profile.radius_mm.size),
             "max_radius_mm": float(res.profile.radius_mm[-1]),
             "unresolved_pixel_fraction": res.unresolved_fraction, "warnings": res.warnings,
+            "sensor_noise": None if res.noise is None else {
+                "shot_code_per_electron": res.noise.gain, "read_noise_code": res.noise.read,
+                "source": res.noise.source},
         }
     atomic_write_json(out / "ingest.json", report)
     return report
