@@ -4,14 +4,15 @@ Each renderer is measured against its own converged reference of the same scene 
 demo's shot with scattering off and the seal deactivated in both; skinpipe: 256 light
 samples, every texel tracing all of them; Mitsuba: ``direct`` integrator, white
 Lambertian, low-discrepancy samples, one light and one cosine-weighted direction each
-with multiple importance sampling, 512 samples per pixel), as the relative RMS error of the irradiance over
-the face's pixels. skinpipe runs at its defaults (16 light samples, interleaved);
-Mitsuba's samples per pixel are swept, and since its error falls as 1/sqrt(spp) and
-its time grows linearly, the time it needs for skinpipe's error follows from the sweep.
-Prints the ratio skinpipe / Mitsuba (at equal error; < 1: skinpipe faster) and writes
-JSON. Mitsuba's LLVM variant is used where it runs (a probe in a child process: on
-LLVM 14/15 it aborts), its scalar one otherwise; the JSON says which. Without the
-``mitsuba`` package the Mitsuba column is skipped, with the reason.
+with multiple importance sampling, 512 samples per pixel), as the relative RMS error
+of the irradiance over the face's pixels. skinpipe runs at its defaults (16 light
+samples, interleaved); Mitsuba's samples per pixel are swept, and since its error
+falls as 1/sqrt(spp) and its time grows linearly, the time it needs for skinpipe's
+error follows from the sweep. Prints the ratio skinpipe / Mitsuba (at equal error;
+< 1: skinpipe faster) and writes JSON. Mitsuba's LLVM variant is used where it runs (a
+probe in a child process: on LLVM 14/15 it aborts), its scalar one otherwise; the
+JSON says which. Without the ``mitsuba`` package the Mitsuba column is skipped, with
+the reason.
 
     python benchmarks/bench_mitsuba.py [--scene DEMO/scene.usda] [--resolution 384]
                                        [-o benchmarks/results/mitsuba.json]
