@@ -55,9 +55,18 @@ class TaskBar:
             print("\r\033[K", end="", file=sys.stderr)
         _eprint(message)
 
-    def close(self) -> None:
+    def __enter__(self) -> TaskBar:
+        return self
+
+    def __exit__(self, exc_type: object, *_: object) -> None:
+        self.close(finished=exc_type is None)
+
+    def close(self, finished: bool = True) -> None:
+        """Clear the bar on a terminal; in a log, end a finished one with its total."""
         if self.tty:
             print("\r\033[K", end="", file=sys.stderr, flush=True)
+        elif finished and self.current is not None:
+            _eprint(f"[{'#' * self.width}] 100% done, {time.perf_counter() - self.start:.1f} s")
 
 
 def _resolution(text: str) -> tuple[int, int]:

@@ -79,20 +79,15 @@ def run_staged(args: argparse.Namespace, verb: str, captures: Path, mesh: Path,
     checks_start = time.perf_counter()
     reads, loaded = chain_inputs(captures, mesh, landmarks, args.k)
     checks_s = time.perf_counter() - checks_start
-    bar = TaskBar(TASK_SHARES)
-    try:
-        with staged_output_directory(args.output, verb, reads, args.force,
-                                     ["report.json", "scene.usda"]) as out:
-            result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
-                               options, ocio_source(args), truth=truth,
-                               comparisons=verb == "demo", loaded_mesh=loaded,
-                               progress=lambda m: bar(m.replace(str(out.path),
-                                                                str(args.output))))
-            result.report["stages"] = {"check_inputs": {"seconds": checks_s},
-                                       **result.report["stages"]}
-            atomic_write_json(out.path / "report.json", result.report)
-    finally:
-        bar.close()
+    with TaskBar(TASK_SHARES) as bar, staged_output_directory(
+            args.output, verb, reads, args.force, ["report.json", "scene.usda"]) as out:
+        result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
+                           options, ocio_source(args), truth=truth,
+                           comparisons=verb == "demo", loaded_mesh=loaded,
+                           progress=lambda m: bar(m.replace(str(out.path), str(args.output))))
+        result.report["stages"] = {"check_inputs": {"seconds": checks_s},
+                                   **result.report["stages"]}
+        atomic_write_json(out.path / "report.json", result.report)
     result.report = out.final(result.report)
     result.render_doc = out.final(result.render_doc)
     print_chain(result)
