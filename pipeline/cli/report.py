@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint, _int_pair
+from .common import _eprint, _int_pair, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -46,6 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
                    help="range of k to try, inclusive")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
+    add_force_option(p)
     p.set_defaults(handler=cmd_report)
 
 
@@ -99,19 +100,27 @@ def _report_fit(args: argparse.Namespace, profile_paths: list[Path]) -> None:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from ..fileio import check_writable_location
+    from ..fileio import check_output_file, check_writable_location, record_outputs
+    from ..usd.io import usd_inputs
     from ..workflow.report import write_report_page
 
     check_writable_location(args.output / "report.md")
     if args.output.exists() and not args.output.is_dir():
         raise InputError("is a file: give a folder for the report", args.output)
     scenes = [p for p in args.profiles if p.suffix in (".usd", ".usda", ".usdc", ".usdz")]
+    reads = [p for p in args.profiles if p not in scenes]
     if args.stage in ("render", "all"):
         if len(scenes) != 1:
             raise InputError(f"report {args.stage} needs exactly one SCENE (.usd/.usda/.usdc)")
         scene = scenes[0]
         if not scene.is_file():
             raise InputError("scene not found", scene)
+        reads += usd_inputs(scene)
+    stages = ("fit", "ingest", "render") if args.stage == "all" else (args.stage,)
+    written = [f"{s}_tradeoff.{ext}" for s in stages for ext in ("json", "png")] + \
+        ["report.md"]
+    for name in written:  # before minutes of measuring, not after
+        check_output_file(args.output / name, reads, args.force)
     if args.stage in ("fit", "all"):
         _report_fit(args, [p for p in args.profiles if p not in scenes])
     if args.stage in ("ingest", "all"):
@@ -119,6 +128,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     if args.stage in ("render", "all"):
         _report_render(args, scene)
     page = write_report_page(args.output)
+    record_outputs(args.output, written, "report")
     print(f"wrote {args.stage} trade-off JSON and PNG into {args.output}; page: {page}")
     return EXIT_OK
 

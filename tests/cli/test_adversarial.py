@@ -134,6 +134,8 @@ CASES: list[Case] = [
     ("ingest-over-user-file", lambda w: (w / "caps" / "cheek.csv").write_text("mine\n"),
      ["ingest", "caps", "-o", "caps"], ["cheek.csv", "did not write"]),
     ("simulate-over-captures", None, ["simulate", "-o", "caps"], ["capture.json"]),
+    ("report-over-a-users-page", lambda w: (w / "fits" / "report.md").write_text("mine\n"),
+     ["report", "fit", "forehead.csv", "--k", "1:1", "-o", "fits"], ["report.md"]),
     # 4. names that become paths
     ("ingest-region-traversal", lambda w: _rename_region(w, "../../../escaped_region"),
      ["ingest", "caps", "-o", "out"], ["capture.json", "escaped_region"]),
