@@ -29,12 +29,13 @@ from ..imageio import (
     ACESCG,
     LoadedImage,
     check_colorspace,
+    colorspace_matrix,
     convert_colorspace,
     read_image,
     write_exr,
 )
 from ..profile.io import write_profile_csv
-from ..profile.models import disk_radius_mm
+from ..profile.models import disk_radius_mm, expected_error_eq2c
 from ..profile.types import MeasuredProfile
 
 FloatImage = NDArray[np.float32]
@@ -262,19 +263,43 @@ def _merge_noise_optimal(images: list[LoadedImage], exposures_s: list[float],
     for i in np.argsort(t):
         mu = np.where(valid[i], codes[i] / t[i], mu)
     for _ in range(2):
-        smooth = gaussian_filter(np.maximum(mu, 0.0), sigma=(1.0, 1.0, 0))
-        num = np.zeros_like(mu)
-        den = np.zeros_like(mu)
-        for c, ti, ok in zip(codes, t, valid, strict=True):
-            w = ok * ti * ti / (noise.gain * smooth * ti + noise.read ** 2)
-            num += w * c / ti
-            den += w
+        weights = _inverse_variance_weights(mu, t, valid, noise)
+        num = sum(w * c / ti for w, c, ti in zip(weights, codes, t, strict=True))
+        den = sum(weights)
         resolved = den > 0
         mu = np.where(resolved, num / np.where(resolved, den, 1.0), mu)
     shortest = int(np.argmin(t))
     mu = np.where(resolved, mu, codes[shortest] / t[shortest])  # clipped everywhere
     hdr = convert_colorspace(mu.astype(np.float32), colorspace, ACESCG)
     return hdr.astype(np.float32), ~np.all(resolved, axis=2)
+
+
+def _inverse_variance_weights(mu: NDArray[np.float64], t: NDArray[np.float64],
+                              valid: list[NDArray[np.bool_]], noise: SensorNoise
+                              ) -> list[NDArray[np.float64]]:
+    """Each bracket's weight t^2 / (g mu t + s^2) (zero where clipped), the inverse
+    variance of its radiance estimate c / t, on a smoothed radiance estimate ``mu``
+    (camera space, code values per second)."""
+    smooth = gaussian_filter(np.maximum(mu, 0.0), sigma=(1.0, 1.0, 0))
+    return [ok * ti * ti / (noise.gain * smooth * ti + noise.read ** 2)
+            for ti, ok in zip(t, valid, strict=True)]
+
+
+def merged_variance(images: list[LoadedImage], exposures_s: list[float], colorspace: str,
+                    hdr: FloatImage, noise: SensorNoise, clip_level: float = 0.98
+                    ) -> NDArray[np.float64]:
+    """Per-pixel variance of the noise-optimal merge ``hdr`` (ACEScg, per second^2):
+    1 / sum of the brackets' weights in the camera's space, carried through the colour
+    matrix with independent channels (var' = (M o M) var); inf where no bracket
+    resolved the pixel."""
+    m = colorspace_matrix(colorspace, ACESCG)
+    mu = hdr.astype(np.float64) @ np.linalg.inv(m).T
+    t = np.asarray(exposures_s, np.float64)
+    valid = [~np.any(img.pixels >= clip_level, axis=2, keepdims=True) for img in images]
+    den = sum(_inverse_variance_weights(mu, t, valid, noise))
+    with np.errstate(divide="ignore"):
+        var = np.where(den > 0, 1.0 / np.where(den > 0, den, 1.0), np.inf)
+    return var @ (m * m).T
 
 
 def _merge_hat(images: list[LoadedImage], exposures_s: list[float], colorspace: str,
@@ -397,12 +422,15 @@ def radial_profile(
     ring_width_px: float = 1.0,
     max_radius_mm: float | None = None,
     mode: ProfileMode = "rings",
+    variance: NDArray[np.float64] | None = None,
 ) -> MeasuredProfile:
     """The radial profile around ``centre_px`` with per-sample standard errors.
 
     ``rings``: the median over each ring of width ``ring_width_px`` (robust to hair and
     follicle shadows), at the ring's median pixel distance; standard error from the
-    median absolute deviation (1.2533 * 1.4826 MAD / sqrt(n)).
+    median absolute deviation (1.2533 * 1.4826 MAD / sqrt(n)), and no smaller than what
+    the sensor's noise alone gives (``variance``, per pixel: sqrt(pi/2 sum var) / n, the
+    median's efficiency); without ``variance``, no smaller than 1% of the value.
     ``cross_section``: Park & Oh's single horizontal line through the entry point,
     bilinearly sampled, left and right sides averaged; their half-difference as error.
     """
@@ -429,8 +457,10 @@ def radial_profile(
     keep = ring < n_rings
     ring, dist = ring[keep], dist[keep]
     pix = hdr.reshape(-1, 3)[keep].astype(np.float64)
+    var = None if variance is None else variance.reshape(-1, 3)[keep]
     order = np.argsort(ring, kind="stable")
     ring, dist, pix = ring[order], dist[order], pix[order]
+    var = None if var is None else var[order]
     bounds = np.searchsorted(ring, np.arange(n_rings + 1))
     radii = np.empty(n_rings)
     values = np.empty((n_rings, 3))
@@ -448,7 +478,13 @@ def radial_profile(
         radii[i] = float(np.median(dist[a:b]))
         values[i] = med
         stderr[i] = 1.2533 * 1.4826 * mad / math.sqrt(b - a)
+        if var is not None:
+            stderr[i] = np.maximum(stderr[i], np.sqrt(0.5 * math.pi * var[a:b].sum(axis=0))
+                                   / (b - a))
     ok = np.isfinite(values).all(axis=1)
+    if var is not None:
+        ok &= np.isfinite(stderr).all(axis=1)
+        return MeasuredProfile(radii[ok] * mm_per_pixel, values[ok], stderr[ok])
     return MeasuredProfile(radii[ok] * mm_per_pixel, values[ok],
                            _floor_std(stderr[ok], values[ok]))
 
@@ -528,8 +564,11 @@ def ingest_region(
     hdr, unresolved = merge_brackets(images, exposures, captures.camera_colorspace,
                                      options.noise_floor, clip, noise)
     centre = find_entry_point(hdr)
+    variance = merged_variance(images, exposures, captures.camera_colorspace, hdr, noise,
+                               clip) if noise is not None and len(images) > 1 else None
     profile = radial_profile(hdr, centre, captures.mm_per_pixel, options.ring_width_px,
-                             options.max_radius_mm, options.mode)
+                             options.max_radius_mm, options.mode,
+                             variance if options.mode == "rings" else None)
     profile = MeasuredProfile(profile.radius_mm, profile.values, profile.stddev, region,
                               captures.root / "capture.json")
     if not options.absolute:
@@ -587,6 +626,9 @@ def ingest_capture_set(
             "samples": int(res.profile.radius_mm.size),
             "max_radius_mm": float(res.profile.radius_mm[-1]),
             "unresolved_pixel_fraction": res.unresolved_fraction, "warnings": res.warnings,
+            "expected_error_eq2c": expected_error_eq2c(
+                res.profile.radius_mm, res.profile.values, res.profile.stddev).tolist()
+            if res.profile.stddev is not None else None,
             "sensor_noise": None if res.noise is None else {
                 "shot_code_per_electron": res.noise.gain, "read_noise_code": res.noise.read,
                 "source": res.noise.source},

@@ -76,6 +76,21 @@ def fit_error_eq2c(
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.inf)
 
 
+def expected_error_eq2c(radius_mm: ArrayLike, values: ArrayLike, stddev: ArrayLike
+                        ) -> FloatArray:
+    """The eq. 2c error a profile's own noise gives it against the true one: per channel
+    sqrt(sum r dr s^2) / sqrt(sum r dr p^2), for independent samples of standard
+    deviation s (Park & Oh 2009, eq. 2c, in expectation). Biases are not in it."""
+    r = np.asarray(radius_mm, dtype=np.float64)
+    p = np.asarray(values, dtype=np.float64)
+    s = np.asarray(stddev, dtype=np.float64)
+    w = (r * ring_widths_mm(r)).reshape((-1,) + (1,) * (p.ndim - 1))
+    den = np.sqrt(np.sum(w * p**2, axis=0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0, np.sqrt(np.sum(w * s**2, axis=0)) / np.where(den > 0, den,
+                                                                              1.0), np.inf)
+
+
 def total_reflectance_numeric(radius_mm: ArrayLike, profile: ArrayLike) -> FloatArray:
     """2 pi \\int R(r) r dr by the trapezoid rule over the sampled radii (per channel)."""
     r = np.asarray(radius_mm, dtype=np.float64)

@@ -313,3 +313,24 @@ def test_the_hdr_merge_is_unbiased_in_the_dark() -> None:
     assert np.all(hat.mean(axis=(0, 1)) / truth - 1 > 0.005)  # what the hat weights did
     noise = estimate_sensor_noise([i.pixels for i in images], exposures)
     assert abs(noise.gain * 20000.0 - 1) < 0.15 and noise.source == "estimated"
+
+
+def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
+    """Issue 20: ingest.json's expected eq. 2c error (from the per-sample standard
+    errors: ring statistics, floored by the sensor's noise model) is neither
+    overconfident nor loose against the sample captures' known truth: within 0.5-3x
+    of the actual error in every channel of every region (measured: 0.73-1.73x, the
+    forehead 1.9-2.4x)."""
+    from pipeline.capture.ingest import ingest_capture_set
+    from pipeline.capture.simulate import read_truth
+    from pipeline.profile.io import read_profile_csv
+
+    captures = Path(__file__).parents[2] / "sample_assets" / "captures"
+    truth = read_truth(captures / "truth.json")
+    report = ingest_capture_set(captures, tmp_path)
+    for name, entry in report["regions"].items():
+        prof = read_profile_csv(entry["csv"])
+        actual = truth[name].profile_error(prof.radius_mm, prof.values)
+        ratio = np.asarray(entry["expected_error_eq2c"]) / actual
+        assert np.all((ratio > 0.5) & (ratio < 3.0)), (name, ratio)
+        assert entry["sensor_noise"]["source"] == "estimated"

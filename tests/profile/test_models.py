@@ -106,3 +106,17 @@ def test_fit_error_ignores_the_entry_point_weight() -> None:
     p = f.copy()
     p[0] = 100.0
     assert fit_error_eq2c(r, p, f)[0] == 0.0
+
+
+def test_expected_eq2c_error_matches_monte_carlo() -> None:
+    """The eq. 2c error that independent noise of known standard deviation gives a
+    profile, predicted, against 400 noisy copies measured."""
+    from pipeline.profile.models import expected_error_eq2c, fit_error_eq2c
+
+    r = np.linspace(0.01, 4.0, 160)
+    p = sum_of_gaussians(DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights, r)
+    s = 0.02 * p + 1e-4 * p.max(axis=0)
+    rng = np.random.default_rng(3)
+    measured = [fit_error_eq2c(r, p + s * rng.standard_normal(p.shape), p) for _ in range(400)]
+    rms = np.sqrt(np.mean(np.square(measured), axis=0))
+    np.testing.assert_allclose(expected_error_eq2c(r, p, s), rms, rtol=0.05)
