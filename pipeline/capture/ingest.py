@@ -23,7 +23,7 @@ from colour_hdri import weighting_function_Debevec1997
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter, map_coordinates, median_filter
 
-from ..errors import InputError
+from ..errors import InputError, SkinpipeError
 from ..fileio import atomic_write_json, check_path_name
 from ..imageio import (
     ACESCG,
@@ -423,6 +423,7 @@ def radial_profile(
     max_radius_mm: float | None = None,
     mode: ProfileMode = "rings",
     variance: NDArray[np.float64] | None = None,
+    exclude: NDArray[np.bool_] | None = None,
 ) -> MeasuredProfile:
     """The radial profile around ``centre_px`` with per-sample standard errors.
 
@@ -430,7 +431,8 @@ def radial_profile(
     follicle shadows), at the ring's median pixel distance; standard error from the
     median absolute deviation (1.2533 * 1.4826 MAD / sqrt(n)), and no smaller than what
     the sensor's noise alone gives (``variance``, per pixel: sqrt(pi/2 sum var) / n, the
-    median's efficiency); without ``variance``, no smaller than 1% of the value.
+    median's efficiency); without ``variance``, no smaller than 1% of the value. Pixels
+    in ``exclude`` (hair, :func:`hair_mask`) are left out of the rings.
     ``cross_section``: Park & Oh's single horizontal line through the entry point,
     bilinearly sampled, left and right sides averaged; their half-difference as error.
     """
@@ -455,6 +457,8 @@ def radial_profile(
     ring = np.floor(dist / ring_width_px + 0.5).astype(np.int64)
     n_rings = int(limit_px / ring_width_px)
     keep = ring < n_rings
+    if exclude is not None:
+        keep &= ~exclude.ravel()
     ring, dist = ring[keep], dist[keep]
     pix = hdr.reshape(-1, 3)[keep].astype(np.float64)
     var = None if variance is None else variance.reshape(-1, 3)[keep]
@@ -487,6 +491,43 @@ def radial_profile(
         return MeasuredProfile(radii[ok] * mm_per_pixel, values[ok], stderr[ok])
     return MeasuredProfile(radii[ok] * mm_per_pixel, values[ok],
                            _floor_std(stderr[ok], values[ok]))
+
+
+HAIR_RATIO = 0.6
+"""A pixel darker than this share of the radial model at its radius (3 x 3 median of
+the ratio: a strand is 1.5-3 px wide) is hair; the paper's strands pass 10-50% of the
+light."""
+HAIR_CORE_PX = 3.0
+HAIR_CORE_LIMIT = 0.5
+"""A capture whose entry point is hair, or whose core (within HAIR_CORE_PX of it) is
+more than this share hair, is refused: the paper re-shot such spots. A strand passing
+2-4 px beside the entry point covers 15-40% of the core and is masked."""
+
+
+def hair_mask(hdr: FloatImage, centre_px: tuple[float, float], profile_px: MeasuredProfile,
+              variance: NDArray[np.float64] | None = None) -> NDArray[np.bool_]:
+    """Hair strands as dark outliers against the radial model: pixels whose luminance,
+    3 x 3 median filtered, is below HAIR_RATIO of the profile at their radius, where the
+    model stands 10 noise sigmas above zero (or, without a noise model, above 1% of its
+    peak), grown by one pixel for the strands' soft edges. ``profile_px``: radii in px."""
+    h, w, _ = hdr.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = np.hypot(xx - centre_px[0], yy - centre_px[1])
+    lum = hdr.astype(np.float64).sum(axis=2)
+    model = np.interp(r, profile_px.radius_mm, profile_px.values.sum(axis=1), right=np.nan)
+    ratio = median_filter(lum / np.where(model > 0, model, np.nan), size=3, mode="nearest")
+    if variance is not None:
+        trusted = model > 10.0 * np.sqrt(np.where(np.isfinite(variance), variance, np.inf)
+                                         .sum(axis=2))
+    else:
+        trusted = model > 0.01 * np.nanmax(model)
+    dark = trusted & (ratio < HAIR_RATIO)
+    grown = dark.copy()
+    grown[1:] |= dark[:-1]
+    grown[:-1] |= dark[1:]
+    grown[:, 1:] |= dark[:, :-1]
+    grown[:, :-1] |= dark[:, 1:]
+    return grown
 
 
 def _floor_std(stderr: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -566,9 +607,26 @@ def ingest_region(
     centre = find_entry_point(hdr)
     variance = merged_variance(images, exposures, captures.camera_colorspace, hdr, noise,
                                clip) if noise is not None and len(images) > 1 else None
+    rings = variance if options.mode == "rings" else None
     profile = radial_profile(hdr, centre, captures.mm_per_pixel, options.ring_width_px,
-                             options.max_radius_mm, options.mode,
-                             variance if options.mode == "rings" else None)
+                             options.max_radius_mm, options.mode, rings)
+    if options.mode == "rings":
+        hair = hair_mask(hdr, centre, MeasuredProfile(profile.radius_mm / captures.mm_per_pixel,
+                                                      profile.values), variance)
+        yy, xx = np.mgrid[0:hdr.shape[0], 0:hdr.shape[1]]
+        core = np.hypot(xx - centre[0], yy - centre[1]) <= HAIR_CORE_PX
+        covered = float(hair[core].mean())
+        on_entry = bool(hair[round(centre[1]), round(centre[0])])
+        if covered > HAIR_CORE_LIMIT or on_entry:
+            raise SkinpipeError(
+                f"region {region!r}: hair covers {covered:.0%} of the core (within "
+                f"{HAIR_CORE_PX:g} px of the entry point): too little clean skin to measure "
+                "the narrow scattering; re-shoot this spot")
+        if hair.any():
+            note(f"{int(hair.sum())} pixels of hair masked before the ring statistics")
+            profile = radial_profile(hdr, centre, captures.mm_per_pixel,
+                                     options.ring_width_px, options.max_radius_mm,
+                                     options.mode, rings, hair)
     profile = MeasuredProfile(profile.radius_mm, profile.values, profile.stddev, region,
                               captures.root / "capture.json")
     if not options.absolute:

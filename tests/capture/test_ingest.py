@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -334,3 +335,54 @@ def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
         ratio = np.asarray(entry["expected_error_eq2c"]) / actual
         assert np.all((ratio > 0.5) & (ratio < 3.0)), (name, ratio)
         assert entry["sensor_noise"]["source"] == "estimated"
+
+
+def _draw_strand(captures: Path, region: str, offset_px: float, angle: float) -> None:
+    """A dark strand drawn into every bracket of ``region`` here (numpy, not skinpipe's
+    simulator): 2.5 px wide, passing 20% of the light, ``offset_px`` from the centre."""
+    import OpenImageIO as oiio
+
+    paths = sorted((captures / region).glob("*.tif"))
+    first = np.asarray(oiio.ImageBuf(str(paths[0])).get_pixels(oiio.FLOAT)).sum(axis=2)
+    cy, cx = np.unravel_index(int(np.argmax(first)), first.shape)  # the shortest: unclipped
+    for path in paths:
+        buf = oiio.ImageBuf(str(path))
+        spec = buf.spec()
+        px = np.asarray(buf.get_pixels(oiio.FLOAT))
+        h, w = px.shape[:2]
+        yy, xx = np.mgrid[0:h, 0:w]
+        d = np.abs((xx - cx) * -math.sin(angle) + (yy - cy) * math.cos(angle) - offset_px)
+        cover = np.clip(1.0 - (d - 1.25), 0.0, 1.0)
+        px *= (1.0 - 0.8 * cover)[..., None]
+        out = oiio.ImageBuf(oiio.ImageSpec(w, h, px.shape[2], oiio.UINT16))
+        out.set_pixels(oiio.ROI(), px.astype(np.float32))
+        for attr in spec.extra_attribs:
+            out.specmod().attribute(attr.name, attr.type, attr.value)
+        assert out.write(str(path))
+
+
+def test_hair_beside_the_entry_point_is_masked_and_over_it_refused(tmp_path: Path) -> None:
+    """Issue 20: strands drawn by this test 7 and 12 px from the entry point are found
+    as outliers against the radial model and masked (eq. 2c against the truth: 0.22%,
+    0.34% without the mask, 0.20% without the strands); a strand through the entry
+    point is a clear refusal naming the region. (A strand 4 px away still pulls the
+    entry point 2.6 px and the profile to 1-3%: not solved.)"""
+    from pipeline.capture.ingest import ingest_capture_set
+    from pipeline.capture.simulate import read_truth
+    from pipeline.errors import SkinpipeError
+    from pipeline.profile.io import read_profile_csv
+
+    truths = [t for t in sample_subject_truths() if t.name == "cheek"]
+    caps = tmp_path / "caps"
+    simulate_capture_set(truths, caps, CaptureSettings(), seed=5)
+    for offset, angle in ((-7.0, 1.2), (12.0, 2.0)):
+        _draw_strand(caps, "cheek", offset, angle)
+    report = ingest_capture_set(caps, tmp_path / "out")
+    entry = report["regions"]["cheek"]
+    assert any("hair masked" in w for w in entry["warnings"])
+    prof = read_profile_csv(entry["csv"])
+    truth = read_truth(caps / "truth.json")["cheek"]
+    assert truth.profile_error(prof.radius_mm, prof.values).max() < 0.003
+    _draw_strand(caps, "cheek", 0.0, 0.7)
+    with pytest.raises(SkinpipeError, match="'cheek': hair covers"):
+        ingest_capture_set(caps, tmp_path / "out2")
