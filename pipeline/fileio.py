@@ -121,6 +121,16 @@ def stale_siblings(target: str | Path) -> list[Path]:
                   if p.name.startswith((f".{target.name}.tmp-", f".{target.name}.old-")))
 
 
+def relocate_records(folder: Path, final: Path) -> None:
+    """The JSON records written under ``folder`` (a temporary output folder, recursively)
+    rewritten to name ``final`` instead, where they mention ``folder``."""
+    for path in folder.rglob("*.json"):
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        moved = relocate_paths(doc, str(folder), str(final))
+        if moved != doc:
+            atomic_write_json(path, moved)
+
+
 def relocate_paths(doc: Any, old: str, new: str) -> Any:
     """``doc`` (JSON data) with every string that starts with the path ``old`` pointing
     under ``new`` instead: records written in a temporary directory name their final
@@ -255,10 +265,7 @@ def staged_output_directory(target: str | Path, verb: str,
             if (target / rel).is_dir():
                 raise InputError("is a folder where skinpipe writes a file", target / rel)
             check_output_file(target / rel, reads, force)
-        for rel in files:
-            if rel.suffix == ".json":
-                doc = json.loads((stage / rel).read_text(encoding="utf-8"))
-                atomic_write_json(stage / rel, staged.final(doc))
+        relocate_records(stage, target)
         for rel in files:
             (target / rel).parent.mkdir(parents=True, exist_ok=True)
             os.replace(stage / rel, target / rel)

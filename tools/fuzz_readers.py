@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -87,35 +88,27 @@ def mutated(draw: st.DrawFn, seed: bytes) -> bytes:
     return bytes(data)
 
 
-def _check_usd(data: bytes, folder: Path) -> None:
-    from pipeline.usd.io import open_stage_guarded
+def _reader(target: str) -> Callable[[Path], object]:
+    """The skinpipe reader that a file of ``target``'s kind goes through."""
+    if target == "usd":
+        from pipeline.usd.io import open_stage_guarded
 
-    path = folder / "fuzz.usda"
-    path.write_bytes(data)
-    try:
-        open_stage_guarded(path)
-    except InputError:
-        pass
+        return open_stage_guarded
+    if target in ("obj", "ply"):
+        from pipeline.usd.mesh import load_mesh
 
-
-def _check_mesh(data: bytes, folder: Path, suffix: str) -> None:
-    from pipeline.usd.mesh import load_mesh
-
-    path = folder / f"fuzz{suffix}"
-    path.write_bytes(data)
-    try:
-        load_mesh(path)
-    except InputError:
-        pass
-
-
-def _check_image(data: bytes, folder: Path, suffix: str) -> None:
+        return load_mesh
     from pipeline.imageio import read_image
 
-    path = folder / f"fuzz{suffix}"
+    return read_image
+
+
+def _read_or_refuse(read: Callable[[Path], object], data: bytes, path: Path) -> None:
+    """Read ``data`` from ``path``: accepted, or refused with skinpipe's InputError; any
+    other exception fails the example (and a crash kills the process)."""
     path.write_bytes(data)
     try:
-        read_image(path)
+        read(path)
     except InputError:
         pass
 
@@ -126,18 +119,15 @@ TARGETS = ("usd", "obj", "ply", "exr", "tif")
 def run(target: str, examples: int, folder: Path, random_seed: int = 0) -> None:
     seeds = {"usd": USDA_SEED, "obj": OBJ_SEED, "ply": PLY_SEED}
     seed = seeds.get(target) or _image_seed(f".{target}")
+    read = _reader(target)
+    path = folder / f"fuzz.{'usda' if target == 'usd' else target}"
 
     @hypothesis_seed(random_seed)
     @settings(max_examples=examples, deadline=None, database=None,
               suppress_health_check=list(HealthCheck))
     @given(mutated(seed))
     def one(data: bytes) -> None:
-        if target == "usd":
-            _check_usd(data, folder)
-        elif target in ("obj", "ply"):
-            _check_mesh(data, folder, f".{target}")
-        else:
-            _check_image(data, folder, f".{target}")
+        _read_or_refuse(read, data, path)
 
     one()
 

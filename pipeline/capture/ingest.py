@@ -223,14 +223,26 @@ def estimate_sensor_noise(codes: list[NDArray[Any]], exposures_s: list[float],
                        "estimated")
 
 
-def merge_brackets(
+@dataclass(frozen=True)
+class MergedExposures:
+    """A merge's result: the ACEScg image (radiance per second), the pixels no bracket
+    resolved, and for a noise-optimal merge its per-pixel variance (ACEScg, per
+    second^2; inf where unresolved) and the noise model it used."""
+
+    hdr: FloatImage
+    unresolved: NDArray[np.bool_]
+    variance: NDArray[np.float64] | None = None
+    noise: SensorNoise | None = None
+
+
+def merge_exposures(
     images: list[LoadedImage],
     exposures_s: list[float],
     colorspace: str,
     noise_floor: float | None = None,
     clip_level: float = 0.98,
     noise: SensorNoise | None = None,
-) -> tuple[FloatImage, NDArray[np.bool_]]:
+) -> MergedExposures:
     """Merge exposures into one scene-linear ACEScg HDR image (radiance per second).
 
     Linear integer captures: each unclipped bracket's radiance c / t weighted by its
@@ -241,37 +253,59 @@ def merge_brackets(
     2010): a weight that follows the noisy value picks the short brackets' upward noise
     in the dark and biases the flux. The only hard cut is saturation; a pixel clipped
     in any channel is not used from that bracket. Merged in the camera's space, then
-    converted. Non-linear (8-bit sRGB) captures keep Debevec & Malik 1997's hat weights
-    (colour-hdri) times t. Returns the image and a mask of pixels no bracket resolved.
+    converted; the merge's variance is 1 / the sum of the weights, carried through the
+    colour matrix with independent channels (var' = (M o M) var). Non-linear (8-bit
+    sRGB) captures keep Debevec & Malik 1997's hat weights (colour-hdri) times t.
     """
     if all(not img.is_float for img in images) and _is_scene_linear(colorspace):
         return _merge_noise_optimal(images, exposures_s, colorspace, clip_level, noise)
-    return _merge_hat(images, exposures_s, colorspace, noise_floor, clip_level)
+    return MergedExposures(*_merge_hat(images, exposures_s, colorspace, noise_floor,
+                                       clip_level))
+
+
+def merge_brackets(
+    images: list[LoadedImage],
+    exposures_s: list[float],
+    colorspace: str,
+    noise_floor: float | None = None,
+    clip_level: float = 0.98,
+    noise: SensorNoise | None = None,
+) -> tuple[FloatImage, NDArray[np.bool_]]:
+    """:func:`merge_exposures`' image and the mask of pixels no bracket resolved."""
+    merged = merge_exposures(images, exposures_s, colorspace, noise_floor, clip_level, noise)
+    return merged.hdr, merged.unresolved
 
 
 def _merge_noise_optimal(images: list[LoadedImage], exposures_s: list[float],
                          colorspace: str, clip_level: float, noise: SensorNoise | None
-                         ) -> tuple[FloatImage, NDArray[np.bool_]]:
+                         ) -> MergedExposures:
     codes = [img.pixels.astype(np.float64) for img in images]
     t = np.asarray(exposures_s, np.float64)
-    if noise is None:  # one bracket: its weights cancel, no noise model is needed
-        noise = estimate_sensor_noise(codes, exposures_s, clip_level) if len(codes) > 1 \
-            else SensorNoise(1.0, 1.0, "not needed (one bracket)")
+    single = len(codes) == 1  # one bracket: its weights cancel, no noise model is needed
+    if noise is None and not single:
+        noise = estimate_sensor_noise(codes, exposures_s, clip_level)
+    model = noise or SensorNoise(1.0, 1.0, "not needed (one bracket)")
     valid = [~np.any(c >= clip_level, axis=2, keepdims=True) for c in codes]
     # first estimate: the longest unclipped bracket at each pixel
     mu = np.zeros_like(codes[0])
     for i in np.argsort(t):
         mu = np.where(valid[i], codes[i] / t[i], mu)
     for _ in range(2):
-        weights = _inverse_variance_weights(mu, t, valid, noise)
+        weights = _inverse_variance_weights(mu, t, valid, model)
         num = sum(w * c / ti for w, c, ti in zip(weights, codes, t, strict=True))
         den = sum(weights)
         resolved = den > 0
         mu = np.where(resolved, num / np.where(resolved, den, 1.0), mu)
     shortest = int(np.argmin(t))
     mu = np.where(resolved, mu, codes[shortest] / t[shortest])  # clipped everywhere
-    hdr = convert_colorspace(mu.astype(np.float32), colorspace, ACESCG)
-    return hdr.astype(np.float32), ~np.all(resolved, axis=2)
+    hdr = convert_colorspace(mu.astype(np.float32), colorspace, ACESCG).astype(np.float32)
+    variance = None
+    if not single:
+        m = colorspace_matrix(colorspace, ACESCG)
+        with np.errstate(divide="ignore"):
+            variance = np.where(resolved, 1.0 / np.where(resolved, den, 1.0), np.inf) @ \
+                (m * m).T
+    return MergedExposures(hdr, ~np.all(resolved, axis=2), variance, noise)
 
 
 def _inverse_variance_weights(mu: NDArray[np.float64], t: NDArray[np.float64],
@@ -283,23 +317,6 @@ def _inverse_variance_weights(mu: NDArray[np.float64], t: NDArray[np.float64],
     smooth = gaussian_filter(np.maximum(mu, 0.0), sigma=(1.0, 1.0, 0))
     return [ok * ti * ti / (noise.gain * smooth * ti + noise.read ** 2)
             for ti, ok in zip(t, valid, strict=True)]
-
-
-def merged_variance(images: list[LoadedImage], exposures_s: list[float], colorspace: str,
-                    hdr: FloatImage, noise: SensorNoise, clip_level: float = 0.98
-                    ) -> NDArray[np.float64]:
-    """Per-pixel variance of the noise-optimal merge ``hdr`` (ACEScg, per second^2):
-    1 / sum of the brackets' weights in the camera's space, carried through the colour
-    matrix with independent channels (var' = (M o M) var); inf where no bracket
-    resolved the pixel."""
-    m = colorspace_matrix(colorspace, ACESCG)
-    mu = hdr.astype(np.float64) @ np.linalg.inv(m).T
-    t = np.asarray(exposures_s, np.float64)
-    valid = [~np.any(img.pixels >= clip_level, axis=2, keepdims=True) for img in images]
-    den = sum(_inverse_variance_weights(mu, t, valid, noise))
-    with np.errstate(divide="ignore"):
-        var = np.where(den > 0, 1.0 / np.where(den > 0, den, 1.0), np.inf)
-    return var @ (m * m).T
 
 
 def _merge_hat(images: list[LoadedImage], exposures_s: list[float], colorspace: str,
@@ -530,6 +547,15 @@ def hair_mask(hdr: FloatImage, centre_px: tuple[float, float], profile_px: Measu
     return grown
 
 
+def hair_over_core(hair: NDArray[np.bool_], centre_px: tuple[float, float]
+                   ) -> tuple[float, bool]:
+    """The share of the core (within HAIR_CORE_PX of the entry point) that ``hair``
+    covers, and whether it covers the entry point's own pixel."""
+    yy, xx = np.mgrid[0:hair.shape[0], 0:hair.shape[1]]
+    core = np.hypot(xx - centre_px[0], yy - centre_px[1]) <= HAIR_CORE_PX
+    return float(hair[core].mean()), bool(hair[round(centre_px[1]), round(centre_px[0])])
+
+
 def _floor_std(stderr: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:
     # A ring of one or two pixels has no spread to measure: assume 1% of the value.
     floor = 0.01 * np.abs(values) + 1e-12 * np.abs(values).max()
@@ -598,25 +624,17 @@ def ingest_region(
             raise InputError(f"region {region!r}: a single bracket that is clipped cannot be "
                              "merged; shoot several exposures", images[0].path)
         note("one bracket only: the profile's dynamic range is that of one exposure")
-    noise = captures.sensor
-    if noise is None and len(images) > 1 and not any(i.is_float for i in images) and \
-            _is_scene_linear(captures.camera_colorspace):
-        noise = estimate_sensor_noise([i.pixels for i in images], exposures, clip)
-    hdr, unresolved = merge_brackets(images, exposures, captures.camera_colorspace,
-                                     options.noise_floor, clip, noise)
+    merged = merge_exposures(images, exposures, captures.camera_colorspace,
+                             options.noise_floor, clip, captures.sensor)
+    hdr, unresolved, variance = merged.hdr, merged.unresolved, merged.variance
     centre = find_entry_point(hdr)
-    variance = merged_variance(images, exposures, captures.camera_colorspace, hdr, noise,
-                               clip) if noise is not None and len(images) > 1 else None
     rings = variance if options.mode == "rings" else None
     profile = radial_profile(hdr, centre, captures.mm_per_pixel, options.ring_width_px,
                              options.max_radius_mm, options.mode, rings)
     if options.mode == "rings":
         hair = hair_mask(hdr, centre, MeasuredProfile(profile.radius_mm / captures.mm_per_pixel,
                                                       profile.values), variance)
-        yy, xx = np.mgrid[0:hdr.shape[0], 0:hdr.shape[1]]
-        core = np.hypot(xx - centre[0], yy - centre[1]) <= HAIR_CORE_PX
-        covered = float(hair[core].mean())
-        on_entry = bool(hair[round(centre[1]), round(centre[0])])
+        covered, on_entry = hair_over_core(hair, centre)
         if covered > HAIR_CORE_LIMIT or on_entry:
             raise SkinpipeError(
                 f"region {region!r}: hair covers {covered:.0%} of the core (within "
@@ -632,7 +650,7 @@ def ingest_region(
     if not options.absolute:
         profile, _ = normalise_profile(profile)
     return RegionResult(region, profile, hdr, centre, time.perf_counter() - start, len(images),
-                        float(unresolved.mean()), notes, noise)
+                        float(unresolved.mean()), notes, merged.noise)
 
 
 def _centre_clipped(img: LoadedImage, clip: float) -> bool:

@@ -95,21 +95,21 @@ def cmd_batch(args: argparse.Namespace) -> int:
                                processes=True, dashboard_address=None)
         client = Client(cluster)
         client.register_plugin(ignore_interrupts())
+    interrupted = False
     try:
         _eprint(f"batch: {len(subjects)} subject(s), stages {','.join(args.stages)}, "
                 f"{len(client.scheduler_info().get('workers', {}))} worker(s)")
         result = run_batch(client, subjects, args.output, args.stages, progress=_bar)
     except KeyboardInterrupt:
+        interrupted = True
         logging.getLogger("distributed").setLevel(logging.ERROR)  # shutdown chatter
-        client.close()
-        if cluster is not None:
-            cluster.close()
-        remove_temporaries(args.output)
         raise
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+        if interrupted:  # the stopped workers' task temporaries, once they are gone
+            remove_temporaries(args.output)
     doc = batch_document(result, args.output, args.stages)
     atomic_write_json(args.output / "batch.json", doc)
     record_outputs(args.output, ["batch.json"], "batch")

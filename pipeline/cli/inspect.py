@@ -56,5 +56,5 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         if path in plots:
             plot_profile(fit, measured, plots[path], log_radius=args.log_radius)
             record_outputs(plots[path].parent, [plots[path].name], "inspect")
-            print(f"  plot: {target}")
+            print(f"  plot: {plots[path]}")
     return EXIT_OK

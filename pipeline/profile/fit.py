@@ -214,12 +214,21 @@ def prepare_profile(
     return MeasuredProfile(r, p, s, profile.name, profile.source), notes
 
 
+MAX_TERMS = 8
+"""The most Gaussians a fit takes (k)."""
+
+
+def check_terms(k: int) -> int:
+    """``k`` if a fit can take it (1 to :data:`MAX_TERMS`); InputError otherwise."""
+    if not 1 <= k <= MAX_TERMS:
+        raise InputError(f"k must be between 1 and {MAX_TERMS}, got {k}")
+    return k
+
+
 def _k_of(options: FitOptions) -> int:
     if options.fixed_variances_mm2 is not None:
         return len(options.fixed_variances_mm2)
-    if not 1 <= options.k <= 8:
-        raise InputError(f"k must be between 1 and 8, got {options.k}")
-    return options.k
+    return check_terms(options.k)
 
 
 def _variance_bounds_mm2(profiles: Sequence[MeasuredProfile]) -> tuple[float, float]:

@@ -70,7 +70,7 @@ def read_profile_csv(path: str | Path, name: str | None = None) -> MeasuredProfi
     has_std = all(c in header for c in STDDEV_COLUMNS)
     wanted = PROFILE_COLUMNS + (STDDEV_COLUMNS if has_std else ())
     index = [header.index(c) for c in wanted]
-    data = _parse_rows(path, body, index, wanted, len(header))
+    data = _parse_rows(path, body, index, wanted)
     values, std = data[:, 1:4], data[:, 4:7] if has_std else None
     negative = values < (-3.0 * np.nan_to_num(std, nan=0.0) if std is not None else 0.0)
     if negative.any():
@@ -83,7 +83,7 @@ def read_profile_csv(path: str | Path, name: str | None = None) -> MeasuredProfi
 
 
 def _parse_rows(path: Path, body: list[tuple[int, str]], index: list[int],
-                wanted: tuple[str, ...], n_columns: int) -> np.ndarray:
+                wanted: tuple[str, ...]) -> np.ndarray:
     """The ``index`` columns of ``body`` as floats: numpy's parser, and on failure the
     row-by-row reading that names the line and column at fault."""
     try:

@@ -241,12 +241,9 @@ def _read_camera(prim: Any, time: Any) -> Camera:
     m = _world_matrix(prim, time)
     rot = m[:3, :3].T  # columns = world images of local x, y, z
     rot = rot / np.linalg.norm(rot, axis=0, keepdims=True)
-    focal = float(cam.GetFocalLengthAttr().Get(time))
-    hap = float(cam.GetHorizontalApertureAttr().Get(time))
-    vap = float(cam.GetVerticalApertureAttr().Get(time))
-    if not all(math.isfinite(v) and v > 0 for v in (focal, hap, vap)):
-        raise InputError(f"camera {prim.GetPath()}: focal length and apertures must be > 0 "
-                         f"and finite, got {focal}, {hap}, {vap}")
+    focal = _positive(prim, "focalLength", cam.GetFocalLengthAttr().Get(time))
+    hap = _positive(prim, "horizontalAperture", cam.GetHorizontalApertureAttr().Get(time))
+    vap = _positive(prim, "verticalAperture", cam.GetVerticalApertureAttr().Get(time))
     near, far = cam.GetClippingRangeAttr().Get(time) or (1.0, 1e6)
     if not (math.isfinite(near) and 0 < near < far):
         raise InputError(f"camera {prim.GetPath()}: clipping range must be 0 < near < far, "

@@ -98,6 +98,23 @@ def read_landmarks(path: str | Path) -> dict[str, NDArray[np.float64]]:
     return out
 
 
+def check_landmarks_on_mesh(mesh: MeshData, landmarks: dict[str, NDArray[np.float64]]
+                            ) -> None:
+    """InputError naming the region whose landmarks lie farther from the mesh's nearest
+    vertex than :data:`LANDMARK_TOLERANCE` of its bounding-box diagonal."""
+    from scipy.spatial import cKDTree  # lazy: 0.39 s to import
+
+    diagonal = float(np.linalg.norm(np.ptp(mesh.points, axis=0)))
+    tree = cKDTree(mesh.points)
+    for name, points in landmarks.items():
+        off = float(tree.query(points)[0].max())
+        if off > LANDMARK_TOLERANCE * diagonal:
+            raise InputError(
+                f"region {name!r}: a landmark lies {off:.4g} mesh units from the nearest "
+                f"mesh vertex, more than {LANDMARK_TOLERANCE:.0%} of its {diagonal:.4g}-unit "
+                "diagonal (landmarks in another unit or for another mesh?)", mesh.source)
+
+
 def assign_regions_from_landmarks(
     mesh: MeshData, landmarks: dict[str, NDArray[np.float64]], blend_mm: float = 8.0,
 ) -> RegionAssignment:
@@ -108,18 +125,9 @@ def assign_regions_from_landmarks(
 
     if not (math.isfinite(blend_mm) and blend_mm > 0):
         raise InputError(f"the region border width (blend) must be > 0 mm, got {blend_mm}")
+    check_landmarks_on_mesh(mesh, landmarks)
     names = tuple(landmarks)
     blend = blend_mm / (mesh.meters_per_unit * 1000.0)
-    diagonal = float(np.linalg.norm(np.ptp(mesh.points, axis=0)))
-    tree = cKDTree(mesh.points)
-    for name in names:
-        off = float(tree.query(landmarks[name])[0].max())
-        if off > LANDMARK_TOLERANCE * diagonal:
-            raise InputError(
-                f"region {name!r}: a landmark lies {off:.4g} mesh units from the nearest "
-                f"mesh vertex, more than {LANDMARK_TOLERANCE:.0%} of its {diagonal:.4g}-unit "
-                "diagonal "
-                "(landmarks in another unit or for another mesh?)", mesh.source)
     dist = np.stack([cKDTree(landmarks[n]).query(mesh.points)[0] for n in names], axis=1)
     w = np.exp(-(dist - dist.min(axis=1, keepdims=True)) / max(blend, 1e-12))
     w /= w.sum(axis=1, keepdims=True)

@@ -88,7 +88,8 @@ def composed_layer_files(path: str | Path) -> list[Path]:
         file = todo.pop()
         if file in seen:
             continue
-        check_usd_file(file)
+        if file != root:  # the root was checked above, under the name it was given
+            check_usd_file(file)
         seen[file] = None
         if file.suffix.lower() == ".usdz":
             continue

@@ -27,7 +27,7 @@ import pymeshlab
 from .. import __version__
 from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
-from ..fileio import atomic_directory, atomic_write_json, relocate_paths, stale_siblings
+from ..fileio import atomic_directory, atomic_write_json, relocate_records, stale_siblings
 from ..profile.io import read_profile_csv, write_fit_json
 from ..render.albedo import bake_sample_albedo
 from ..render.renderer import RenderOptions, ensure_skin_uvs, render_files
@@ -192,16 +192,6 @@ def _done(spec: TaskSpec) -> dict[str, Any] | None:
     return doc
 
 
-def _relocate_records(tmp: Path, final: Path) -> None:
-    """JSON records a stage wrote in its temporary directory (ingest.json, render.json)
-    name the final directory instead."""
-    for path in tmp.glob("*.json"):
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        moved = relocate_paths(doc, str(tmp), str(final))
-        if moved != doc:
-            atomic_write_json(path, moved)
-
-
 def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
               work: Callable[[Path], dict[str, Any]]) -> dict[str, Any]:
     """Skip a finished task, skip when upstream failed, else run ``work`` into a
@@ -236,7 +226,7 @@ def _run_task(spec: TaskSpec, upstream: list[dict[str, Any]],
     try:
         with atomic_directory(spec.out_dir) as tmp:
             result = work(tmp)
-            _relocate_records(tmp, spec.out_dir)
+            relocate_records(tmp, spec.out_dir)
             doc = {**base, **result, "status": "done",
                    "seconds": time.perf_counter() - start}
             atomic_write_json(tmp / "done.json", doc)

@@ -22,7 +22,7 @@ from pxr import UsdGeom
 from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
 from ..imageio import oiio_error, write_ldr
-from ..profile.fit import FitOptions, fit_sum_of_gaussians
+from ..profile.fit import FitOptions, check_terms, fit_sum_of_gaussians
 from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
 from ..profile.types import FitResult, MeasuredProfile
 from ..render.albedo import bake_sample_albedo
@@ -38,6 +38,7 @@ from ..usd.author import (
     RegionAssignment,
     assign_regions_from_landmarks,
     author_asset,
+    check_landmarks_on_mesh,
     read_landmarks,
 )
 from ..usd.io import USD_SUFFIXES, open_stage_guarded, usd_inputs
@@ -139,15 +140,14 @@ def chain_inputs(captures: Path, mesh_path: Path, landmarks: Path, k: int
     the mesh (loaded and validated), the landmarks (each region's points on the mesh,
     one region per captured region) and ``k``. Returns the files it reads and the mesh
     (for :func:`run_chain`, which then does not load it again)."""
-    if not 1 <= k <= 8:
-        raise InputError(f"-k must be between 1 and 8 Gaussians, got {k}")
+    check_terms(k)
     capture_set = read_capture_set(captures)
     mesh = load_mesh(mesh_path)
     marks = read_landmarks(landmarks)
     if set(marks) != set(capture_set.regions):
         raise InputError(f"the landmarks' regions {sorted(marks)} are not the captured ones "
                          f"{sorted(capture_set.regions)}", landmarks)
-    assign_regions_from_landmarks(mesh, marks)
+    check_landmarks_on_mesh(mesh, marks)
     return capture_set.files + author_inputs([], mesh_path, landmarks, None), mesh
 
 
