@@ -108,3 +108,22 @@ def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:
                  "-o", str(tmp_path / "cheek.json")]) == 0
     doc = json.loads((tmp_path / "cheek.json").read_text())
     assert max(doc["error"]) < 0.01 and len(doc["total_reflectance"]) == 3
+
+
+def test_the_progress_bar_in_a_log(capsys: pytest.CaptureFixture[str]) -> None:
+    """Not a terminal: one line per task with the share done rising, other messages as
+    they are, a finished bar's total; a failed one ends without it."""
+    from pipeline.cli.common import TaskBar
+
+    shares = {"irradiance": 0.5, "diffusion": 0.3, "shade": 0.2}
+    with TaskBar(shares) as bar:
+        for message in ("irradiance", "unwrap /Mesh with xatlas", "diffusion", "shade"):
+            bar(message)
+    lines = capsys.readouterr().err.strip().splitlines()
+    shares_seen = [int(line.split("%")[0].split()[-1]) for line in lines if "%" in line]
+    assert shares_seen == [0, 50, 80, 100] and "unwrap /Mesh with xatlas" in lines
+    assert lines[-1].startswith("[" + "#" * 24 + "] 100% done")
+    with pytest.raises(RuntimeError), TaskBar(shares) as bar:
+        bar("irradiance")
+        raise RuntimeError("stop")
+    assert "done" not in capsys.readouterr().err

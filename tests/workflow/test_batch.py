@@ -233,3 +233,29 @@ def test_real_scheduler_and_workers_with_one_killed(tmp_path: Path) -> None:
         for p in procs:
             p.kill()
             p.wait(timeout=30)
+
+
+def test_batch_never_replaces_a_folder_it_did_not_make(cluster, tmp_path: Path) -> None:
+    """On a real Dask cluster: a user's folder where a task would write (no done.json)
+    fails that task with the folder named, keeps the folder's files, and skips what
+    depends on it; batch.json of someone else is refused before anything runs."""
+    from pipeline.cli import main
+
+    _copy_captures(tmp_path, "a")
+    batch = _write_batch(tmp_path, ["a"])
+    out = tmp_path / "out"
+    mine = out / "a" / "ingest" / "notes.txt"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("mine\n")
+    assert main(["batch", str(batch), "--scheduler", cluster.scheduler_address,
+                 "--stages", "ingest,fit", "-o", str(out)]) == 1
+    assert mine.read_text() == "mine\n"
+    statuses = _statuses(out)
+    assert statuses[("a", "ingest", "ingest")] == "failed"
+    assert {s for (_, stage, _), s in statuses.items() if stage == "fit"} == {"skipped"}
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "batch.json").write_text("{}")
+    assert main(["batch", str(batch), "--scheduler", cluster.scheduler_address,
+                 "-o", str(other)]) == 2
+    assert (other / "batch.json").read_text() == "{}"
