@@ -263,19 +263,6 @@ def merge_exposures(
                                        clip_level))
 
 
-def merge_brackets(
-    images: list[LoadedImage],
-    exposures_s: list[float],
-    colorspace: str,
-    noise_floor: float | None = None,
-    clip_level: float = 0.98,
-    noise: SensorNoise | None = None,
-) -> tuple[FloatImage, NDArray[np.bool_]]:
-    """:func:`merge_exposures`' image and the mask of pixels no bracket resolved."""
-    merged = merge_exposures(images, exposures_s, colorspace, noise_floor, clip_level, noise)
-    return merged.hdr, merged.unresolved
-
-
 def _merge_noise_optimal(images: list[LoadedImage], exposures_s: list[float],
                          colorspace: str, clip_level: float, noise: SensorNoise | None
                          ) -> MergedExposures:

@@ -300,14 +300,15 @@ def test_the_hdr_merge_is_unbiased_in_the_dark() -> None:
     the true flux where the hat merge is 0.8-1.1% high; its noise model, estimated from
     the brackets alone, finds the gain within 15% (11% on this one flat level; 1-5% on
     the sample captures, whose spots span the range)."""
-    from pipeline.capture.ingest import _merge_hat, estimate_sensor_noise, merge_brackets
+    from pipeline.capture.ingest import _merge_hat, estimate_sensor_noise, merge_exposures
     from pipeline.imageio import convert_colorspace
 
     exposures = [1 / 500 * 4.0 ** i for i in range(5)]
     images = _flat_brackets(0.02, exposures)
     truth = convert_colorspace(np.full((1, 1, 3), 0.02, np.float32), "lin_rec709_scene",
                                "lin_ap1_scene")[0, 0]
-    optimal, unresolved = merge_brackets(images, exposures, "lin_rec709_scene")
+    merged = merge_exposures(images, exposures, "lin_rec709_scene")
+    optimal, unresolved = merged.hdr, merged.unresolved
     hat, _ = _merge_hat(images, exposures, "lin_rec709_scene", None, 0.98)
     assert not unresolved.any()
     assert np.all(np.abs(optimal.mean(axis=(0, 1)) / truth - 1) < 0.003)
