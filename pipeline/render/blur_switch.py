@@ -21,6 +21,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
@@ -29,21 +30,31 @@ from .. import __version__
 from ..errors import InputError
 from .direct_blur import (
     FIR_MAX_RADIUS_PER_TEXEL,
+    built_radius,
     direct_kernels,
     direct_radius,
     fir_weight_table,
 )
-from .opencl import cl_context, device_buffer, device_cache, device_choice
+from .opencl import (
+    STREAM_MIN_BYTES,
+    cl_context,
+    device_buffer,
+    device_cache,
+    device_choice,
+    wait_for_prewarm,
+)
 from .opencl_runtimes import cache_root
-from .recursive_blur import iir_kernels
+from .recursive_blur import iir_kernels, pass_kernels
 
 FIR_MAX_RADIUS_TUNED = 32
 """Widest one-sigma direct kernel the tuner may pick (its ring still fits local memory
 with 16-column bands)."""
-TUNE_SIZE = 2048
-"""Side of the texture the switch is measured on (64 MiB RGBA float32: past the caches,
-with streaming stores, as a face texture is; at 1024 the blurs take 3-12 ms and the
-crossover moved by 10 radii between runs)."""
+TUNE_SIZE = 1024
+"""Side of the texture the switch is measured on (16 MiB RGBA float32, the demo's own
+size: with streaming stores, as a face texture is, and on the kernels a 1024 render
+runs anyway, so a cold first render does not compile extra ones for it). Measured here
+(PoCL, 2 cores): eight runs in a row gave 11 / 8 every time in 0.4 s each, against
+12 / 8-9 at 2048^2 in 1.5 s."""
 TUNE_REPEATS = 3
 """Timed runs of each blur; the fastest counts (a shared host only ever adds time)."""
 DIRECT_RADII = (4, 11, 16)
@@ -99,6 +110,7 @@ def _sigma_for_radius(radius: int) -> float:
 
 def measure_direct_limits(size: int = TUNE_SIZE) -> DirectLimits:
     """Time the direct and recursive blurs on this device and return where they meet."""
+    wait_for_prewarm()  # compilations on the other core would slow what is timed
     start = time.perf_counter()
     ctx, queue = cl_context()
     rng = np.random.default_rng(0)
@@ -131,6 +143,15 @@ def measure_direct_limits(size: int = TUNE_SIZE) -> DirectLimits:
         "measured", time.perf_counter() - start)
 
 
+def tuning_kernels() -> list[Any]:
+    """The kernels :func:`measure_direct_limits` times (for :class:`~.opencl.Prewarm`)."""
+    stream = TUNE_SIZE * TUNE_SIZE * 16 >= STREAM_MIN_BYTES
+    direct = direct_kernels()
+    one = [built_radius(direct_radius(_sigma_for_radius(r))) for r in DIRECT_RADII]
+    return [*pass_kernels(stream), *(direct.kernel(r, r, stream) for r in one),
+            *(direct.kernel(r, r, stream, True) for r in TEXEL_RADII)]
+
+
 def _cache_path() -> str:
     d = device_choice().device
     key = "|".join(str(x) for x in (device_choice().candidate.label, d.driver_version,
@@ -156,20 +177,27 @@ def fixed_limits(text: str) -> DirectLimits:
     return DirectLimits(r, rt, "fixed")
 
 
-@device_cache()
-def direct_limits() -> DirectLimits:
-    """The switch for the chosen device: :data:`SWITCH_ENV` if set, else from the disk
-    cache, else measured (about a second) and stored."""
+def known_limits() -> DirectLimits | None:
+    """The switch from :data:`SWITCH_ENV` or the disk cache; None if it must be measured."""
     if os.environ.get(SWITCH_ENV):
         return fixed_limits(os.environ[SWITCH_ENV])
-    path = _cache_path()
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(_cache_path(), encoding="utf-8") as f:
             saved = json.load(f)
         return DirectLimits(int(saved["max_radius"]), int(saved["max_radius_per_texel"]),
                             "cache")
     except (OSError, ValueError, KeyError, TypeError):
-        pass
+        return None
+
+
+@device_cache()
+def direct_limits() -> DirectLimits:
+    """The switch for the chosen device: :data:`SWITCH_ENV` if set, else from the disk
+    cache, else measured (about a second) and stored."""
+    known = known_limits()
+    if known is not None:
+        return known
+    path = _cache_path()
     limits = measure_direct_limits()
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)

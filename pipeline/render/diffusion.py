@@ -346,13 +346,12 @@ __kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
 // One batch of blurred terms added up at each texel, each (sum_r rw[r] tw[job, r]) times
 // rgb / alpha of its blurred (E cov, cov) texture (normalised convolution: texels off
 // the charts give nothing and take nothing), read at this texel or bilinearly from a
-// pyramid level 2^-level as large. Job n of the batch: jobs[4n .. 4n+3] = (offset of its
-// texture in `terms` in float4; job index into tw; level width; level height),
-// levels[n] its level (-1: the unblurred irradiance, `base`). The region weights are
-// read once for the whole
-// batch (a pass per term read them, 24 bytes a texel with six regions, once per term).
-// The sum goes to `rgb` (the result's own memory on a CPU device); ACC_IN: added to what
-// the previous batches left there.
+// pyramid level 2^-level as large. Job n of the batch: jobs[5n .. 5n+4] = (offset of its
+// texture in `terms` in float4; job index into tw; level width; level height; its
+// level, -1 for the unblurred irradiance `base`). The region weights are read once for
+// the whole batch (a pass per term read them, 24 bytes a texel with six regions, once
+// per term). The sum goes to `rgb` (the result's own memory on a CPU device); acc_in:
+// added to what the previous batches left there.
 #define INL __attribute__((always_inline)) inline
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
 // from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
@@ -378,29 +377,27 @@ INL float4 bilinear(__global const float4 *level, int x, int y, int lw, int lh, 
 __kernel void accumulate_terms(__global const float4 *terms, __global const float4 *base,
                                __constant int *jobs, __global float *rgb,
                                __global const float *cover, __global const float *rw,
-                               __constant float4 *tw, const int w, const int h)
+                               __constant float4 *tw, const int w, const int h,
+                               const int n_jobs, const int acc_in)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const int i = y * w + x;
-    const int levels[N_JOBS] = {LEVELS};  // compiled in: the branches below fold away
-    float4 sum = 0.0f;
-#if ACC_IN
-    sum = (float4)(rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2], 0.0f);
-#endif
+    // every work item takes the same branches (the jobs are uniform): no divergence
+    float4 sum = acc_in ? (float4)(rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2], 0.0f)
+                        : (float4)(0.0f);
 #if REGIONS > 0
     float r[REGIONS];
 #pragma unroll
     for (int k = 0; k < REGIONS; ++k) r[k] = rw[(size_t)i * REGIONS + k];
 #endif
-#pragma unroll
-    for (int n = 0; n < N_JOBS; ++n) {
-        const int off = jobs[4 * n], job = jobs[4 * n + 1];
+    for (int n = 0; n < n_jobs; ++n) {
+        const int off = jobs[5 * n], job = jobs[5 * n + 1], level = jobs[5 * n + 4];
         float4 t;
-        if (levels[n] < 0) t = base[i];
-        else if (levels[n] == 0) t = terms[(size_t)off + i];
-        else t = bilinear(terms + off, x, y, jobs[4 * n + 2], jobs[4 * n + 3],
-                          1.0f / (float)(1 << levels[n]));
+        if (level < 0) t = base[i];
+        else if (level == 0) t = terms[(size_t)off + i];
+        else t = bilinear(terms + off, x, y, jobs[5 * n + 2], jobs[5 * n + 3],
+                          1.0f / (float)(1 << level));
 #if REGIONS > 0
         float4 wgt = 0.0f;
 #pragma unroll
@@ -416,18 +413,18 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 """
 
 
-@device_cache(maxsize=64)
-def _pyramid_kernels(regions: int, levels: tuple[int, ...], acc_in: bool) -> dict[str, Any]:
-    """The pack, downsample and accumulation kernels, the last for one batch of jobs on
-    these pyramid levels (-1: the unblurred irradiance) and ``regions`` region weights
-    a texel (0: one region); in one program, built when first needed (each build costs
-    PoCL about 60 ms, and a diffusion needs the first batch's program anyway)."""
+@device_cache(maxsize=8)
+def pyramid_kernels(regions: int) -> dict[str, Any]:
+    """The pack, downsample and accumulation kernels for ``regions`` region weights a
+    texel (0: one region), in one program. The accumulation's jobs (their pyramid
+    levels, whether to add to the output) are arguments, not compiled in: a program a
+    batch cost a cold render a PoCL build (0.3 s) and a compilation of each kernel per
+    batch, for no measurable gain in the accumulation itself."""
 
-    options = [f"-DREGIONS={regions}", f"-DN_JOBS={len(levels)}",
-               "-DLEVELS=" + ",".join(map(str, levels)), f"-DACC_IN={int(acc_in)}"]
-    program = build(_PACK_KERNEL + _PYRAMID_KERNEL, options)
-    return {name: Kernel(program, name)
-            for name in ("pack_coverage", "downsample_tent", "accumulate_terms")}
+    program = build(_PACK_KERNEL + _PYRAMID_KERNEL, [f"-DREGIONS={regions}"])
+    return {name: Kernel(program, name, dims)
+            for name, dims in (("pack_coverage", 1), ("downsample_tent", 2),
+                               ("accumulate_terms", 2))}
 
 
 def _added_variance_texels2(level: int) -> float:
@@ -763,16 +760,14 @@ def diffuse_prepared(
     pyramid = [layout.buffer("level0", nbytes)]
     batches = _term_batches([0 if var == 0.0 else shapes[k][0] * shapes[k][1] * 16
                              for var, k in jobs], TERM_BUFFER_TEXTURES * nbytes)
-    variants = [_pyramid_kernels(layout.n_regions,
-                                 tuple(jobs[j][1] if jobs[j][0] > 0 else -1 for j in batch),
-                                 b > 0) for b, batch in enumerate(batches)]
+    kernels = pyramid_kernels(layout.n_regions)
     source = host_buffer(e)  # RGB: 12 of its 16 bytes a texel, read where it is
-    variants[0]["pack_coverage"](queue, (h * w,), None, source, layout.cover_buf,
+    kernels["pack_coverage"](queue, (h * w,), None, source, layout.cover_buf,
                                  pyramid[0], np.int32(h * w))
     for k in range(1, need + 1):
         (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
         pyramid.append(layout.buffer(f"level{k}", dh * dw * 16))
-        variants[0]["downsample_tent"](queue, (dw, dh), None, pyramid[k - 1], pyramid[k],
+        kernels["downsample_tent"](queue, (dw, dh), None, pyramid[k - 1], pyramid[k],
                                        np.int32(sw), np.int32(sh), np.int32(dw), np.int32(dh))
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
@@ -783,21 +778,22 @@ def diffuse_prepared(
 
     blurred_texels = 0.0
     for b, batch in enumerate(batches):
-        table = np.zeros((len(batch), 4), np.int32)
+        table = np.zeros((len(batch), 5), np.int32)
         for n, (j, (start, end)) in enumerate(batch.items()):
             variance, k = jobs[j]
             lh, lw = shapes[k]
-            table[n] = (start // 16, j, lw, lh)
+            table[n] = (start // 16, j, lw, lh, k if variance > 0 else -1)
             if variance == 0.0:
                 continue
             work = terms.get_sub_region(start, end - start)
             _blur_job(layout, pyramid[k], tmp, work, variance, k, stats)
             stats.levels.append(k)
             blurred_texels += lh * lw
-        variants[b]["accumulate_terms"](
+        kernels["accumulate_terms"](
             queue, (w, h), None, terms, pyramid[0],
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
-            out_buf, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h))
+            out_buf, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h),
+            np.int32(len(batch)), np.int32(b > 0))
     read_output(queue, out_buf, out)
     stats.full_blurs = blurred_texels / (h * w)
     return out, stats

@@ -40,6 +40,7 @@ from .opencl import (
     build,
     cl_context,
     device_cache,
+    jit_at_first_launch,
 )
 
 FIR_MAX_ERROR = 6e-4
@@ -353,15 +354,24 @@ __kernel void KERNEL_NAME(__global const float4 *src, __global float4 *dst, WEIG
 """
 
 
-def _texel_source(radius: int) -> str:
-    """One program with the per-texel kernel of ``radius`` (the same on both axes) for
-    both kinds of store. One program a radius, not one for every radius: PoCL's cost
-    to build a program is per program (about 60 ms from its cache, measured: five
-    kernels 43 ms, one 58 ms), but Intel's CPU runtime compiles every kernel of it
-    (cold: 8.4 s for all 22 kernels of radii 1-11, against 0.4 s for two), and a
-    render uses only a few radii."""
+def texel_radii_per_program(radius: int) -> tuple[int, ...]:
+    """The per-texel radii built in one program with ``radius``. Where kernels are
+    compiled at their first launch (PoCL), every built radius: its cost to build a
+    program is per program (0.29 s cold whatever it holds, measured; about 60 ms from
+    its cache), and only the kernels launched are compiled. Elsewhere one radius:
+    Intel's CPU runtime compiles every kernel of a program when it builds it (cold:
+    8.4 s for all 22 kernels of radii 1-11, against 0.4 s for two), and a render uses
+    only a few radii."""
+    if jit_at_first_launch():
+        return tuple(r for r in BUILT_RADII if r <= FIR_MAX_RADIUS_PER_TEXEL)
+    return (radius,)
+
+
+def _texel_source(radii: tuple[int, ...]) -> str:
+    """One program with the per-texel kernels of ``radii`` (each the same on both axes)
+    for both kinds of store (:func:`texel_radii_per_program`)."""
     parts = [_HELPERS]
-    for stream in (0, 1):
+    for radius, stream in ((r, s) for r in radii for s in (0, 1)):
         parts += [f"#define RU {radius}\n#define RV {radius}\n#define B {band_columns(radius)}\n"
                   f"#define STREAM {stream}\n#define PER_TEXEL 1\n"
                   f"#define KERNEL_NAME fir_band_texel_{radius}_{stream}\n", STORE_MACRO,
@@ -388,14 +398,16 @@ class DirectKernels:
                     raise InputError(f"per-texel direct blur: radius {ru}, {rv} (one radius "
                                      f"1-{FIR_MAX_RADIUS_PER_TEXEL} for both axes)")
                 if ru not in self._texel_programs:
-                    self._texel_programs[ru] = build(_texel_source(ru))
+                    radii = texel_radii_per_program(ru)
+                    program = build(_texel_source(radii))
+                    self._texel_programs.update(dict.fromkeys(radii, program))
                 self._kernels[key] = Kernel(self._texel_programs[ru],
-                                            f"fir_band_texel_{ru}_{int(stream)}")
+                                            f"fir_band_texel_{ru}_{int(stream)}", (1, 1))
             else:
                 options = [f"-DRU={ru}", f"-DRV={rv}", f"-DB={band_columns(rv)}",
                            f"-DSTREAM={int(stream)}", "-DPER_TEXEL=0", "-DKERNEL_NAME=fir_band"]
                 self._kernels[key] = Kernel(build(STORE_MACRO + _HELPERS + _KERNEL,
-                                                  options), "fir_band")
+                                                  options), "fir_band", (1, 1))
         return self._kernels[key]
 
     def weights(self, sigma: float) -> tuple[int, Any]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -321,7 +322,7 @@ def _sample_kernel(kind: str, count: int, interleaved: bool) -> Any:
 
     options = [f"-DKIND={1 if kind == 'sphere' else 2}", f"-DCOUNT={count}",
                f"-DINTERLEAVED={int(interleaved)}"]
-    return Kernel(build(_SAMPLE_KERNEL, options), "sample_entering")
+    return Kernel(build(_SAMPLE_KERNEL, options), "sample_entering", 1)
 
 
 class LightSampler:
@@ -523,6 +524,34 @@ def _interleave_kernel(lights: int) -> Any:
 
     program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}"])
     return Kernel(program, "filter_interleaved")
+
+
+def sample_plan(light: Light, samples: int, interleaved: bool) -> tuple[int, bool]:
+    """(samples each point traces, whether they are interleaved) for ``light`` at
+    ``samples`` per point, as :class:`LightSampler` takes them."""
+    if is_delta_light(light):
+        samples = 1
+    if interleaved and samples >= 4:
+        return int(interleaved_strata(samples).shape[1]), True
+    nx, ny = grid_shape(samples)
+    return nx * ny, False
+
+
+def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
+                       textured_domes: Collection[str] = ()) -> list[Any]:
+    """The device kernels :func:`irradiance` and :func:`filter_interleaved` will launch
+    for these lights (for :class:`~.opencl.Prewarm`)."""
+    kernels, filtered = [], 0
+    for light in lights:
+        if not np.any(light.radiance > 0):
+            continue
+        count, inter = sample_plan(light, samples, interleaved)
+        filtered += inter
+        if light.kind in DEVICE_SAMPLED_KINDS and light.path not in textured_domes:
+            kernels.append(_sample_kernel(light.kind, count, inter))
+    for start in range(0, filtered, MAX_FILTER_LIGHTS):
+        kernels.append(_interleave_kernel(min(MAX_FILTER_LIGHTS, filtered - start)))
+    return kernels
 
 
 def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],

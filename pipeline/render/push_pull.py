@@ -133,17 +133,18 @@ __kernel void normalise(__global float *lvl, __global const float *lvl_c, const 
 
 
 @device_cache()
-def _kernels() -> tuple[Any, Any, Any]:
+def push_pull_kernels() -> tuple[Any, Any, Any]:
 
     program = build(_KERNEL)
-    return tuple(Kernel(program, name) for name in ("pull", "push", "normalise"))
+    return tuple(Kernel(program, name, dims)
+                 for name, dims in (("pull", 2), ("push", 2), ("normalise", 1)))
 
 
 def push_pull(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray[np.float32]:
     """Fill texels outside the charts (``coverage`` 0) of (H, W[, C]) ``values`` from
     their surroundings, on the OpenCL device; covered texels are returned unchanged.
     The same maps as :func:`push_pull_reference` within float32 rounding."""
-    pull, push, normalise = _kernels()
+    pull, push, normalise = push_pull_kernels()
     v, c, squeeze = _checked(values, coverage)
     _, queue = cl_context()
     h, w, ch = v.shape

@@ -37,22 +37,31 @@ from ..imageio import (
 from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
-from .blur_switch import direct_limits
-from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
+from .blur_switch import direct_limits, known_limits, tuning_kernels
+from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared, pyramid_kernels
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
+    irradiance_kernels,
     irradiance_texture,
     light_direction,
     specular_albedo,
     torrance_sparrow,
 )
-from .opencl import LEDGER, KernelLedger, device_choice, set_device
+from .opencl import (
+    LEDGER,
+    STREAM_MIN_BYTES,
+    KernelLedger,
+    device_choice,
+    set_device,
+    start_prewarm,
+)
 from .options import AOVS, DATA_AOVS, RenderOptions
-from .push_pull import dilate_charts, push_pull
+from .push_pull import dilate_charts, push_pull, push_pull_kernels
 from .raytrace import RayScene, offset_ray_origin
+from .recursive_blur import pass_kernels
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import TextureMaps, rasterize, vertex_normals
+from .texture_maps import TextureMaps, rasterize, texture_kernels, vertex_normals
 from .unwrap import triangulate, unwrap
 
 EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
@@ -365,6 +374,7 @@ class Renderer:
         self.progress = progress or (lambda _msg: None)
         self._cache: dict[str, Any] = {}
         self.textures: list[SkinTextures] = []
+        self._prewarmed = False
 
     def close(self) -> None:
         self.delegate.close()
@@ -401,6 +411,28 @@ class Renderer:
             return uv, uv_tris
 
         return self._cached(log, "unwrap", mesh.geometry_key(), compute)
+
+    def _kernel_plan(self, scene: SceneData) -> list[Callable[[], Any]]:
+        """The device kernels this render will need, in the order it needs them, for a
+        :class:`~.opencl.Prewarm` to build and compile while the host works (a cold
+        first render of the demo otherwise spent 10 s of its 16 s in compilations)."""
+        opts = self.options
+        domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
+        steps: list[Callable[[], Any]] = [
+            texture_kernels,
+            lambda: irradiance_kernels(scene.lights, opts.light_samples,
+                                       opts.shadow_sampling == "interleaved", domes),
+            push_pull_kernels]
+        if opts.scattering and opts.blur == "recursive":
+            regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
+                              for m in scene.skin})
+            steps += [lambda r=r: pyramid_kernels(r) for r in regions]
+            if known_limits() is None:
+                steps.append(tuning_kernels)
+            stream = opts.texture_size ** 2 * 16 >= STREAM_MIN_BYTES
+            # the finest level, then the coarser ones (smaller: plain stores)
+            steps += [lambda: pass_kernels(stream), lambda: pass_kernels(False)]
+        return steps
 
     def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
         opts = self.options
@@ -551,6 +583,9 @@ class Renderer:
                              "RectLight or DomeLight): nothing would be lit")
         if scene.camera is None:
             raise InputError("the stage has no UsdGeomCamera (add one, or pass --camera)")
+        if not self._prewarmed:  # later frames find every kernel built
+            start_prewarm(self._kernel_plan(scene))
+            self._prewarmed = True
         rays = self._cached(log, "bvh", scene_geometry_key(scene), lambda: RayScene(
             [(m.mesh.points, triangulate(m.mesh)) for m in scene.meshes]))
         domes = {}

@@ -239,10 +239,10 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
 
 
 @device_cache()
-def _kernels() -> tuple[Any, Any]:
+def texture_kernels() -> tuple[Any, Any]:
 
     program = build(_KERNEL)
-    return Kernel(program, "claim_texels"), Kernel(program, "texel_attributes")
+    return Kernel(program, "claim_texels", 1), Kernel(program, "texel_attributes", 2)
 
 
 def rasterize(
@@ -256,7 +256,7 @@ def rasterize(
     tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
                                                       meters_per_unit)
     _, queue = cl_context()
-    claim, attributes = _kernels()
+    claim, attributes = texture_kernels()
     n_tris = tq.shape[0]
     n_regions = 0 if region_weights is None else int(np.shape(region_weights)[1])
 

@@ -136,14 +136,15 @@ def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
 
     assert opencl.device_choice().candidate.runtime == cl_device.runtime
     before = opencl.LEDGER.copy()
-    program = opencl.build("__kernel void twice(__global float *a)"
-                           "{ a[get_global_id(0)] *= 2.0f; }")
-    kernel = opencl.Kernel(program, "twice")
+    # launched without a local size, the grid is padded: the kernel tests its bounds
+    program = opencl.build("__kernel void twice(__global float *a, const int n)"
+                           "{ if (get_global_id(0) < n) a[get_global_id(0)] *= 2.0f; }")
+    kernel = opencl.Kernel(program, "twice", 1)
     ctx, queue = opencl.cl_context()
     a = np.arange(8, dtype=np.float32)
     buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
-    kernel(queue, (8,), None, buf)
-    kernel(queue, (8,), None, buf)
+    kernel(queue, (8,), None, buf, np.int32(8))
+    kernel(queue, (8,), None, buf, np.int32(8))
     out = np.empty_like(a)
     cl.enqueue_copy(queue, out, buf)
     np.testing.assert_array_equal(out, 4 * a)

@@ -1,0 +1,97 @@
+"""Compiling ahead of use: padded launches, the prewarm thread, and the render's plan of
+kernels (pipeline/render/opencl.py, lighting.sample_plan)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from pipeline.render import (
+    diffusion,
+    direct_blur,
+    lighting,
+    opencl,
+    push_pull,
+    recursive_blur,
+    texture_maps,
+)
+from pipeline.render.lighting import LightSampler, sample_plan
+from pipeline.render.opencl import Candidate, fixed_local_size
+from pipeline.render.scene import Light
+
+KERNEL_SOURCES = {
+    "diffusion": diffusion._KERNEL + diffusion._PACK_KERNEL + diffusion._PYRAMID_KERNEL,
+    "direct_blur": direct_blur._KERNEL,
+    "lighting": lighting._SAMPLE_KERNEL + lighting._INTERLEAVE_KERNEL,
+    "push_pull": push_pull._KERNEL,
+    "recursive_blur": recursive_blur._KERNEL,
+    "texture_maps": texture_maps._KERNEL,
+}
+
+
+def test_fixed_local_size_pads_the_grid_and_fits_the_kernel() -> None:
+    assert fixed_local_size((1000,), 1024) == ((1024,), (256,))
+    assert fixed_local_size((1000, 3), 1024) == ((1024, 8), (32, 8))
+    # a kernel that allows 64 work items: the first axis halves first
+    assert fixed_local_size((1000, 3), 64) == ((1000, 8), (8, 8))
+    assert fixed_local_size((5, 5), 1) == ((5, 5), (1, 1))
+
+
+@pytest.mark.parametrize("module", sorted(KERNEL_SOURCES))
+def test_every_kernel_returns_at_its_bounds_test(module: str) -> None:
+    """A padded grid (and Kernel.warm's launch with every size 0) runs work items past
+    the data: each kernel must return before it touches memory."""
+    source = KERNEL_SOURCES[module]
+    kernels = list(re.finditer(r"__kernel\s+void\s+(\w+)\s*\(", source))
+    assert kernels, module
+    for k in kernels:
+        body = source[source.index("{", k.end()):]
+        head = body[:body.index("return;") + 7] if "return;" in body else ""
+        assert re.search(r"if \(!?\(?[^;{}]*>=[^;{}]*\)\s*return;", head), \
+            f"{module}: kernel {k.group(1)} has no bounds test before its first statement"
+        # the test comes before any store: nothing is assigned through a pointer first
+        assert "] =" not in head and "STORE(" not in head, k.group(1)
+
+
+def test_prewarm_builds_ahead_and_the_render_finds_its_programs(cl_device: Candidate
+                                                                ) -> None:
+    def fails() -> None:
+        raise RuntimeError("a step that fails is skipped")
+
+    push_pull.push_pull_kernels.cache_clear()
+    before = opencl.LEDGER.copy()
+    pre = opencl.start_prewarm([fails, push_pull.push_pull_kernels])
+    opencl.wait_for_prewarm()
+    since = opencl.LEDGER.since(before)
+    assert since["kernels_prewarmed"] == 3 and pre.seconds > 0
+    # the render's own call finds the program built (no second build)
+    built = since["programs_built"]
+    pull, _, _ = push_pull.push_pull_kernels()
+    assert opencl.LEDGER.since(before)["programs_built"] == built
+    # and the prewarmed kernel computes (the fill of an empty texel)
+    v = np.zeros((6, 5, 3), np.float32)
+    c = np.zeros((6, 5), np.float32)
+    v[2, 3], c[2, 3] = (1.0, 2.0, 3.0), 1.0
+    out = push_pull.push_pull(v, c)
+    np.testing.assert_allclose(out[0, 0], (1.0, 2.0, 3.0), rtol=1e-5)
+    assert pull.name == "pull"
+
+
+@pytest.mark.parametrize("kind", ["sphere", "distant", "dome"])
+@pytest.mark.parametrize("samples", [1, 4, 9, 16])
+@pytest.mark.parametrize("interleaved", [False, True])
+def test_sample_plan_is_what_the_sampler_traces(kind: str, samples: int,
+                                                interleaved: bool) -> None:
+    matrix = np.eye(4)
+    matrix[3, :3] = (0.0, 0.0, 50.0)
+    light = Light("/L", kind, np.ones(3), matrix, radius=4.0,
+                  angle_deg=0.0 if kind == "distant" else 0.53)
+    pts = np.zeros((4, 3), np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (4, 1))
+    classes = np.arange(4) if interleaved else None
+    sampler = LightSampler(light, pts, nrm, samples, np.random.default_rng(0),
+                           interleave=classes, device=False)
+    count, inter = sample_plan(light, samples, interleaved)
+    assert (count, inter) == (sampler.count, sampler.strata is not None)
