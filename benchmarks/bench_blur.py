@@ -86,7 +86,7 @@ def main() -> None:
     import cv2
     from scipy.ndimage import gaussian_filter
 
-    from pipeline.render.blur_switch import direct_limits, prefers_direct
+    from pipeline.render.blur_switch import DirectLimits, direct_limits, prefers_direct
     from pipeline.render.diffusion import OpenCLBlur
     from pipeline.render.direct_blur import DirectBlur, fir_radius
     from pipeline.render.opencl import device_choice
@@ -188,7 +188,8 @@ def main() -> None:
         row["ours_vs_floor"] = row["ours_s"] / floor_s
         row["recursive_uniform_vs_floor"] = row["recursive_uniform_s"] / floor_s
     doc = {"benchmark": "blur", "device": device_choice().summary(),
-           "blur_switch": asdict(direct_limits()), "size": n, "channels": 4, "dtype": "float32",
+           "blur_switch": asdict(direct_limits() or DirectLimits(None, None, "unused")),
+           "size": n, "channels": 4, "dtype": "float32",
            "copy_bandwidth_gbps": bandwidth / 1e9, "floor_s": floor_s,
            "one_pass_floor_s": floor_s / 2, "rows": rows}
     args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,6 @@ from .. import __version__
 from ..errors import InputError
 from .direct_blur import (
     FIR_MAX_RADIUS_PER_TEXEL,
-    built_radius,
     direct_kernels,
     direct_radius,
     fir_weight_table,
@@ -44,7 +43,7 @@ from .opencl import (
     wait_for_prewarm,
 )
 from .opencl_runtimes import cache_root
-from .recursive_blur import iir_kernels, pass_kernels
+from .recursive_blur import iir_kernels
 
 FIR_MAX_RADIUS_TUNED = 32
 """Widest one-sigma direct kernel the tuner may pick (its ring still fits local memory
@@ -65,10 +64,11 @@ TEXEL_RADII = (4, 7, 11)
 
 @dataclass(frozen=True)
 class DirectLimits:
-    """Widest direct kernels that beat the recursive blur on this device (texels)."""
+    """Widest direct kernels that beat the recursive blur on this device (texels); None
+    for a kind not measured (each kind is measured when a blur of it first asks)."""
 
-    max_radius: int
-    max_radius_per_texel: int
+    max_radius: int | None
+    max_radius_per_texel: int | None
     source: str
     """"measured" (this process), "cache" (measured before on this device) or "fixed"."""
     seconds: float = 0.0
@@ -108,8 +108,11 @@ def _sigma_for_radius(radius: int) -> float:
     return lo
 
 
-def measure_direct_limits(size: int = TUNE_SIZE) -> DirectLimits:
-    """Time the direct and recursive blurs on this device and return where they meet."""
+def measure_direct_limits(size: int = TUNE_SIZE, one_sigma: bool = True,
+                          per_texel: bool = True) -> DirectLimits:
+    """Time the direct and recursive blurs on this device and return where they meet,
+    for one-sigma and/or per-texel blurs (a kind not asked for: None, and none of its
+    kernels built)."""
     wait_for_prewarm()  # compilations on the other core would slow what is timed
     start = time.perf_counter()
     ctx, queue = cl_context()
@@ -117,39 +120,46 @@ def measure_direct_limits(size: int = TUNE_SIZE) -> DirectLimits:
     src = device_buffer(rng.random((size, size, 4), dtype=np.float32))
     tmp, dst = device_buffer(size * size * 16), device_buffer(size * size * 16)
     iir, direct = iir_kernels(), direct_kernels()
-    co = iir.coefficients(4.0)
-    sigmas = [_sigma_for_radius(r) for r in DIRECT_RADII]
-    radii = tuple(direct_radius(s) for s in sigmas)
-    # per texel: two table rows, every texel on row 0 (the cost does not depend on which)
-    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-    rows16 = cl.Buffer(ctx, flags, hostbuf=np.zeros(size * size, np.uint16))
-    rows32 = cl.Buffer(ctx, flags, hostbuf=np.zeros(size * size, np.int32))
-    co_t = iir.coefficients(np.array([4.0, 4.1]))
-    tables = [fir_weight_table(np.array([0.6, 1.0]) * _sigma_for_radius(r))
-              for r in TEXEL_RADII]
-    texel_radii = tuple(t.shape[1] - 1 for t in tables)
-    runs: list[Callable[[], None]] = [
-        lambda: iir.blur(src, tmp, dst, size, size, co, co),
-        lambda: iir.blur(src, tmp, dst, size, size, co_t, co_t, rows32, rows32),
-        *(lambda s=s: direct.blur(src, dst, size, size, s, s) for s in sigmas),
-        *(lambda t=t: direct.blur_per_texel(src, dst, size, size, t, t, rows16, rows16)
-          for t in tables)]
+    runs: list[Callable[[], None]] = []
+    if one_sigma:
+        co = iir.coefficients(4.0)
+        sigmas = [_sigma_for_radius(r) for r in DIRECT_RADII]
+        radii = tuple(direct_radius(s) for s in sigmas)
+        runs += [lambda: iir.blur(src, tmp, dst, size, size, co, co),
+                 *(lambda s=s: direct.blur(src, dst, size, size, s, s) for s in sigmas)]
+    if per_texel:
+        # two table rows, every texel on row 0 (the cost does not depend on which)
+        flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        rows16 = cl.Buffer(ctx, flags, hostbuf=np.zeros(size * size, np.uint16))
+        rows32 = cl.Buffer(ctx, flags, hostbuf=np.zeros(size * size, np.int32))
+        co_t = iir.coefficients(np.array([4.0, 4.1]))
+        tables = [fir_weight_table(np.array([0.6, 1.0]) * _sigma_for_radius(r))
+                  for r in TEXEL_RADII]
+        texel_radii = tuple(t.shape[1] - 1 for t in tables)
+        runs += [lambda: iir.blur(src, tmp, dst, size, size, co_t, co_t, rows32, rows32),
+                 *(lambda t=t: direct.blur_per_texel(src, dst, size, size, t, t, rows16,
+                                                     rows16) for t in tables)]
     ms = _best_ms(runs, queue)
-    recursive, recursive_t = ms[0], ms[1]
-    one, per_texel = tuple(ms[2:2 + len(sigmas)]), tuple(ms[2 + len(sigmas):])
-    return DirectLimits(
-        _crossover(radii, one, recursive, FIR_MAX_RADIUS_TUNED),
-        _crossover(texel_radii, per_texel, recursive_t, FIR_MAX_RADIUS_PER_TEXEL),
-        "measured", time.perf_counter() - start)
+    one = tex = None
+    if one_sigma:
+        one = _crossover(radii, tuple(ms[1:1 + len(radii)]), ms[0], FIR_MAX_RADIUS_TUNED)
+        ms = ms[1 + len(radii):]
+    if per_texel:
+        tex = _crossover(texel_radii, tuple(ms[1:]), ms[0], FIR_MAX_RADIUS_PER_TEXEL)
+    return DirectLimits(one, tex, "measured", time.perf_counter() - start)
+
+
+TUNE_STREAM = TUNE_SIZE * TUNE_SIZE * 16 >= STREAM_MIN_BYTES
+"""Whether the measured blurs write with streaming stores."""
 
 
 def tuning_kernels() -> list[Any]:
-    """The kernels :func:`measure_direct_limits` times (for :class:`~.opencl.Prewarm`)."""
-    stream = TUNE_SIZE * TUNE_SIZE * 16 >= STREAM_MIN_BYTES
+    """The per-texel direct kernels :func:`measure_direct_limits` times (for
+    :class:`~.opencl.Prewarm`; its recursive ones are
+    ``recursive_blur.pass_kernels(TUNE_STREAM)``). The one-sigma switch is measured
+    only by a render that runs one-sigma blurs: the demo runs none."""
     direct = direct_kernels()
-    one = [built_radius(direct_radius(_sigma_for_radius(r))) for r in DIRECT_RADII]
-    return [*pass_kernels(stream), *(direct.kernel(r, r, stream) for r in one),
-            *(direct.kernel(r, r, stream, True) for r in TEXEL_RADII)]
+    return [direct.kernel(r, r, TUNE_STREAM, True) for r in TEXEL_RADII]
 
 
 def _cache_path() -> str:
@@ -177,43 +187,81 @@ def fixed_limits(text: str) -> DirectLimits:
     return DirectLimits(r, rt, "fixed")
 
 
-def known_limits() -> DirectLimits | None:
-    """The switch from :data:`SWITCH_ENV` or the disk cache; None if it must be measured."""
-    if os.environ.get(SWITCH_ENV):
-        return fixed_limits(os.environ[SWITCH_ENV])
+_KINDS = {False: "max_radius", True: "max_radius_per_texel"}
+
+
+def _read_cache() -> dict[str, Any]:
     try:
         with open(_cache_path(), encoding="utf-8") as f:
             saved = json.load(f)
-        return DirectLimits(int(saved["max_radius"]), int(saved["max_radius_per_texel"]),
-                            "cache")
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
+        return saved if isinstance(saved, dict) else {}
+    except (OSError, ValueError):
+        return {}
 
 
-@device_cache()
-def direct_limits() -> DirectLimits:
-    """The switch for the chosen device: :data:`SWITCH_ENV` if set, else from the disk
-    cache, else measured (about a second) and stored."""
-    known = known_limits()
+def known_limit(per_texel: bool) -> int | None:
+    """The switch of one kind from :data:`SWITCH_ENV` or the disk cache; None if it must
+    be measured."""
+    if os.environ.get(SWITCH_ENV):
+        return getattr(fixed_limits(os.environ[SWITCH_ENV]), _KINDS[per_texel])
+    value = _read_cache().get(_KINDS[per_texel])
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+@device_cache(maxsize=2)
+def direct_limit(per_texel: bool) -> tuple[int, str, float]:
+    """(widest direct radius, source, seconds measuring) for one-sigma or per-texel
+    blurs on the chosen device: :data:`SWITCH_ENV` if set, else from the disk cache,
+    else measured now (that kind only, about 0.2 s) and stored beside the other."""
+    known = known_limit(per_texel)
     if known is not None:
-        return known
+        return known, "fixed" if os.environ.get(SWITCH_ENV) else "cache", 0.0
+    measured = measure_direct_limits(one_sigma=not per_texel, per_texel=per_texel)
+    value = getattr(measured, _KINDS[per_texel])
+    assert value is not None
     path = _cache_path()
-    limits = measure_direct_limits()
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(asdict(limits), f)
+            json.dump({**_read_cache(), _KINDS[per_texel]: value}, f)
         os.replace(tmp, path)
     except OSError:
         pass  # a read-only cache costs a measurement per process, nothing else
-    return limits
+    return value, "measured", measured.seconds
+
+
+def direct_limits() -> DirectLimits | None:
+    """The switch this process used, for ``render.json`` (a kind no blur asked for:
+    None; None if no blur asked at all)."""
+    asked = {k: direct_limit(k) for k in (False, True) if _asked(k)}
+    if not asked:
+        return None
+    sources = sorted({v[1] for v in asked.values()})
+    return DirectLimits(asked[False][0] if False in asked else None,
+                        asked[True][0] if True in asked else None, "+".join(sources),
+                        sum(v[2] for v in asked.values()))
+
+
+@device_cache()
+def _asked_kinds() -> set[bool]:
+    """The kinds a blur has asked :func:`prefers_direct` about on this device."""
+    return set()
+
+
+def _asked(per_texel: bool) -> bool:
+    return per_texel in _asked_kinds()
 
 
 def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False,
                    limits: DirectLimits | None = None) -> bool:
     """Whether the direct blur is the faster one for these sigmas (texels; per texel: the
-    widest) on this device: both radii within :func:`direct_limits`."""
-    lim = limits or direct_limits()
-    limit = lim.max_radius_per_texel if per_texel else lim.max_radius
+    widest) on this device: both radii within the switch (``limits``, else
+    :func:`direct_limit` of that kind)."""
+    if limits is not None:
+        limit = limits.max_radius_per_texel if per_texel else limits.max_radius
+        assert limit is not None, "limits without this kind"
+    else:
+        limit = direct_limit(per_texel)[0]
+        _asked_kinds().add(per_texel)
     return max(direct_radius(sigma_u), direct_radius(sigma_v)) <= limit

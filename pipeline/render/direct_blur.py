@@ -470,6 +470,14 @@ def direct_kernels() -> DirectKernels:
     return DirectKernels()
 
 
+def texel_kernels(stream: bool) -> list[Any]:
+    """The per-texel kernels of every built radius (for :class:`~.opencl.Prewarm`: a
+    render's radii follow its stretch map, not known before it)."""
+    kernels = direct_kernels()
+    return [kernels.kernel(r, r, stream, True) for r in BUILT_RADII
+            if r <= FIR_MAX_RADIUS_PER_TEXEL]
+
+
 class DirectBlur(DeviceTexture):
     """One-pass direct Gaussian blurs of an RGBA float32 texture on the device (one sigma
     per axis, in texels); the same interface as :class:`~.recursive_blur.RecursiveBlur`

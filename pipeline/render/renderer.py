@@ -37,8 +37,8 @@ from ..imageio import (
 from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
-from .blur_switch import direct_limits, known_limits, tuning_kernels
-from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared, pyramid_kernels
+from .blur_switch import TUNE_STREAM, direct_limits, known_limit
+from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -52,16 +52,16 @@ from .opencl import (
     LEDGER,
     STREAM_MIN_BYTES,
     KernelLedger,
+    PlannedStep,
     device_choice,
     set_device,
     start_prewarm,
 )
 from .options import AOVS, DATA_AOVS, RenderOptions
-from .push_pull import dilate_charts, push_pull, push_pull_kernels
+from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
-from .recursive_blur import pass_kernels
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import TextureMaps, rasterize, texture_kernels, vertex_normals
+from .texture_maps import TextureMaps, rasterize, vertex_normals
 from .unwrap import triangulate, unwrap
 
 EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
@@ -418,20 +418,30 @@ class Renderer:
         first render of the demo otherwise spent 10 s of its 16 s in compilations)."""
         opts = self.options
         domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
+        render = "pipeline.render."
         steps: list[Callable[[], Any]] = [
-            texture_kernels,
+            PlannedStep(render + "texture_maps", "texture_kernels"),
             lambda: irradiance_kernels(scene.lights, opts.light_samples,
                                        opts.shadow_sampling == "interleaved", domes),
-            push_pull_kernels]
+            PlannedStep(render + "push_pull", "push_pull_kernels")]
         if opts.scattering and opts.blur == "recursive":
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
                               for m in scene.skin})
-            steps += [lambda r=r: pyramid_kernels(r) for r in regions]
-            if known_limits() is None:
-                steps.append(tuning_kernels)
+            steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))
+                      for r in regions]
             stream = opts.texture_size ** 2 * 16 >= STREAM_MIN_BYTES
-            # the finest level, then the coarser ones (smaller: plain stores)
-            steps += [lambda: pass_kernels(stream), lambda: pass_kernels(False)]
+            # a cold cache (the switch not measured yet): the blurs' kernels, needed
+            # last, on the compile worker (about half the work; warm, it would only
+            # cost its start)
+            tune = known_limit(per_texel=True) is None
+            # the finest level, the coarser ones (smaller: plain stores), the switch's
+            steps += [PlannedStep(render + "recursive_blur", "pass_kernels", (s,))
+                      for s in dict.fromkeys((stream, False, *([TUNE_STREAM] * tune)))]
+            if tune:
+                steps.append(PlannedStep(render + "blur_switch", "tuning_kernels",
+                                         worker=True))
+            steps.append(PlannedStep(render + "direct_blur", "texel_kernels", (stream,),
+                                     worker=tune))
         return steps
 
     def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
@@ -906,8 +916,9 @@ def opencl_summary(before: KernelLedger) -> dict[str, Any]:
     """The device, why the others were not used, the programs built and their seconds,
     the kernels launched since ``before``, and the direct/recursive blur switch used."""
     doc = {**device_choice().summary(), **LEDGER.since(before)}
-    if direct_limits.cache_info().currsize:  # only if a blur asked for it
-        doc["blur_switch"] = asdict(direct_limits())
+    used = direct_limits()
+    if used is not None:  # only if a blur asked for it
+        doc["blur_switch"] = asdict(used)
     return doc
 
 

@@ -44,17 +44,26 @@ def test_measured_on_each_device_and_cached(monkeypatch: pytest.MonkeyPatch,
                                             tmp_path: object) -> None:
     monkeypatch.delenv(SWITCH_ENV)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    blur_switch.direct_limits.cache_clear()
+    blur_switch.direct_limit.cache_clear()
     try:
-        first = blur_switch.direct_limits()
-        assert first.source == "measured" and first.seconds > 0
-        assert 0 <= first.max_radius <= FIR_MAX_RADIUS_TUNED
-        assert 0 <= first.max_radius_per_texel <= FIR_MAX_RADIUS_PER_TEXEL
-        blur_switch.direct_limits.cache_clear()
-        again = blur_switch.direct_limits()
-        assert again.source == "cache"
-        assert (again.max_radius, again.max_radius_per_texel) == \
-            (first.max_radius, first.max_radius_per_texel)
+        # each kind measured when first asked, and only that kind
+        tex, source, seconds = blur_switch.direct_limit(per_texel=True)
+        assert source == "measured" and seconds > 0
+        assert 0 <= tex <= FIR_MAX_RADIUS_PER_TEXEL
+        assert blur_switch.known_limit(per_texel=False) is None
+        one, source, _ = blur_switch.direct_limit(per_texel=False)
+        assert source == "measured" and 0 <= one <= FIR_MAX_RADIUS_TUNED
+        blur_switch.direct_limit.cache_clear()
+        assert blur_switch.direct_limit(per_texel=True)[:2] == (tex, "cache")
+        assert blur_switch.direct_limit(per_texel=False)[:2] == (one, "cache")
     finally:
-        blur_switch.direct_limits.cache_clear()
+        blur_switch.direct_limit.cache_clear()
     assert opencl.device_choice() is not None
+
+
+def test_measuring_one_kind_times_only_its_kernels(cl_device: object) -> None:
+    before = opencl.LEDGER.copy()
+    limits = blur_switch.measure_direct_limits(256, one_sigma=False)
+    assert limits.max_radius is None and limits.max_radius_per_texel is not None
+    launched = opencl.LEDGER.since(before)["kernel_launches"]
+    assert "fir_band" not in launched and any(k.startswith("fir_band_texel") for k in launched)

@@ -1,0 +1,31 @@
+"""A second process that compiles part of a render's kernels into the disk caches.
+
+PoCL compiles one program or kernel at a time per process (its compiler is behind one
+lock), so a cold first render's compilations form one chain however many threads ask
+for them. A render that starts a :class:`~.opencl.Prewarm` hands the later part of its
+plan to this process (``python -m pipeline.render.compile_worker SPECS``), which builds
+and compiles them on the same device into the same caches (pyopencl's binaries and
+PoCL's kernels, both written by rename) while the render's own thread compiles the
+first part; the render then loads them from the caches. Nothing it does is needed for
+a correct render: if it fails or is killed, the render compiles what it needs itself.
+
+``SPECS`` is JSON: a list of ``[module, function, args]``, each a step of the plan
+(:class:`~.opencl.PlannedStep`).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def main(argv: list[str]) -> int:
+    from .opencl import PlannedStep, Prewarm
+
+    steps = [PlannedStep(m, f, tuple(a)) for m, f, a in json.loads(argv[0])]
+    Prewarm(steps).wait()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
