@@ -35,7 +35,12 @@ from ..imageio import (
     write_exr,
 )
 from ..profile.io import write_profile_csv
-from ..profile.models import disk_radius_mm, expected_error_eq2c
+from ..profile.models import (
+    TailExtrapolation,
+    expected_error_eq2c,
+    extrapolated_tail,
+    ring_areas_mm2,
+)
 from ..profile.types import MeasuredProfile
 
 FloatImage = NDArray[np.float32]
@@ -91,6 +96,7 @@ class RegionResult:
     unresolved_fraction: float
     warnings: list[str] = field(default_factory=list)
     noise: SensorNoise | None = None
+    tail: TailExtrapolation | None = None
 
 
 def read_capture_set(root: str | Path) -> CaptureSet:
@@ -549,16 +555,26 @@ def _floor_std(stderr: NDArray[np.float64], values: NDArray[np.float64]) -> NDAr
     return np.maximum(stderr, floor)
 
 
-def normalise_profile(profile: MeasuredProfile) -> tuple[MeasuredProfile, NDArray[np.float64]]:
-    """Scale each channel so that 2 pi int p r dr = 1 over the measured disk (ring areas)."""
+TAIL_WARN_FRACTION = 0.25
+"""A channel with more of its light extrapolated beyond the image than this is noted:
+the field of view is too small for it."""
+
+
+def normalise_profile(profile: MeasuredProfile
+                      ) -> tuple[MeasuredProfile, NDArray[np.float64], TailExtrapolation]:
+    """Scale each channel so that 2 pi int p r dr = 1 over the whole plane: the measured
+    disk (ring areas) plus the tail beyond it, extrapolated from the measured tail
+    (:func:`~pipeline.profile.models.extrapolated_tail`). Returns the profile, each
+    channel's flux and the tail."""
     r = profile.radius_mm
-    edges = np.concatenate([[0.0], 0.5 * (r[1:] + r[:-1]), [disk_radius_mm(r)]])
-    areas = np.pi * np.diff(edges**2)
-    flux = (profile.values * areas[:, None]).sum(axis=0)
-    if not np.all(flux > 0):
-        raise InputError(f"a channel has no light in the spot (flux {flux.tolist()})")
+    disk = (profile.values * ring_areas_mm2(r)[:, None]).sum(axis=0)
+    if not np.all(disk > 0):
+        raise InputError(f"a channel has no light in the spot (flux {disk.tolist()})")
+    tail = extrapolated_tail(r, profile.values, profile.stddev)
+    flux = disk + tail.flux_beyond
     std = None if profile.stddev is None else profile.stddev / flux
-    return MeasuredProfile(r, profile.values / flux, std, profile.name, profile.source), flux
+    return (MeasuredProfile(r, profile.values / flux, std, profile.name, profile.source),
+            flux, tail)
 
 
 # ------------------------------------------------------------------------------ the stage
@@ -634,10 +650,16 @@ def ingest_region(
                                      options.mode, rings, hair)
     profile = MeasuredProfile(profile.radius_mm, profile.values, profile.stddev, region,
                               captures.root / "capture.json")
+    tail = None
     if not options.absolute:
-        profile, _ = normalise_profile(profile)
+        profile, _, tail = normalise_profile(profile)
+        wide = [f"{c} {f:.0%}" for c, f in zip("RGB", tail.fraction_beyond, strict=True)
+                if f > TAIL_WARN_FRACTION]
+        if wide:
+            note(f"light beyond the image, extrapolated: {', '.join(wide)} of the channel's "
+                 "flux; a wider field of view would measure it")
     return RegionResult(region, profile, hdr, centre, time.perf_counter() - start, len(images),
-                        float(unresolved.mean()), notes, merged.noise)
+                        float(unresolved.mean()), notes, merged.noise, tail)
 
 
 def _centre_clipped(img: LoadedImage, clip: float) -> bool:
@@ -689,9 +711,15 @@ def ingest_capture_set(
             "samples": int(res.profile.radius_mm.size),
             "max_radius_mm": float(res.profile.radius_mm[-1]),
             "unresolved_pixel_fraction": res.unresolved_fraction, "warnings": res.warnings,
-            "expected_error_eq2c": expected_error_eq2c(
-                res.profile.radius_mm, res.profile.values, res.profile.stddev).tolist()
-            if res.profile.stddev is not None else None,
+            # the shape's error from noise and ring statistics; the scale's uncertainty
+            # (the tail beyond the image) is tail_beyond_image's
+            "expected_error_eq2c": None if res.profile.stddev is None else
+            expected_error_eq2c(res.profile.radius_mm, res.profile.values,
+                                res.profile.stddev).tolist(),
+            "tail_beyond_image": None if res.tail is None else {
+                "model": list(res.tail.model),
+                "fraction_of_flux": res.tail.fraction_beyond.tolist(),
+                "scale_uncertainty": res.tail.scale_uncertainty.tolist()},
             "sensor_noise": None if res.noise is None else {
                 "shot_code_per_electron": res.noise.gain, "read_noise_code": res.noise.read,
                 "source": res.noise.source},

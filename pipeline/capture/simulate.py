@@ -27,6 +27,7 @@ from ..profile.models import (
     dipole_total_reflectance,
     disk_radius_mm,
     fit_error_eq2c,
+    ring_areas_mm2,
     sum_of_gaussians,
 )
 from ..profile.reference_data import (
@@ -74,20 +75,40 @@ class RegionTruth:
         self, radius_mm: NDArray[np.float64], disk_radius_mm: float
     ) -> NDArray[np.float64]:
         """The ACEScg truth scaled to integrate to 1 over a disk: what a perfect ingest of
-        an image that sees nothing beyond ``disk_radius_mm`` reports."""
+        an image that sees nothing beyond ``disk_radius_mm`` would report without
+        extrapolating the tail."""
         rf = np.linspace(0.0, disk_radius_mm, 8000)
         tf = self.acescg_profile(rf)
         disk = 2.0 * np.pi * np.trapezoid(tf * rf[:, None], rf, axis=0)
         return self.acescg_profile(radius_mm) / disk
 
+    def share_beyond_mm(self, edge_mm: float) -> NDArray[np.float64]:
+        """The share of each channel's flux (ACEScg) beyond ``edge_mm`` from the entry
+        point (integrated to 400 mm)."""
+        rf = np.linspace(0.0, 400.0, 800001)
+        tf = self.acescg_profile(rf) * rf[:, None]
+        inside = rf <= edge_mm
+        return 1.0 - np.trapezoid(tf[inside], rf[inside], axis=0) / np.trapezoid(tf, rf,
+                                                                                  axis=0)
+
     def profile_error(self, radius_mm: NDArray[np.float64], values: NDArray[np.float64],
-                      lo_mm: float = 0.05, hi_mm: float = 4.0) -> NDArray[np.float64]:
-        """eq. 2c between ingested ``values`` (ring samples at ``radius_mm``, normalised
-        over their disk) and the truth, over ``lo_mm``..``hi_mm``, per channel."""
+                      lo_mm: float = 0.05, hi_mm: float = 4.0, over: str = "plane"
+                      ) -> NDArray[np.float64]:
+        """eq. 2c between ingested ``values`` (ring samples at ``radius_mm``) and the
+        truth, over ``lo_mm``..``hi_mm``, per channel. ``over="plane"``: both integrate
+        to 1 over the plane (ingest extrapolates the tail beyond the image); ``"disk"``:
+        ``values`` rescaled to, and compared with the truth normalised over, the
+        measured disk (the profile's shape alone, without the tail's extrapolation)."""
         r = np.asarray(radius_mm, dtype=np.float64)
         sel = (r >= lo_mm) & (r <= hi_mm)
-        expected = self.disk_normalised_profile(r[sel], disk_radius_mm(r))
-        return fit_error_eq2c(r[sel], np.asarray(values)[sel], expected)
+        v = np.asarray(values, dtype=np.float64)
+        if over == "plane":
+            return fit_error_eq2c(r[sel], v[sel], self.acescg_profile(r[sel]))
+        if over != "disk":
+            raise ValueError(f"over must be 'plane' or 'disk', got {over!r}")
+        v = v / (v * ring_areas_mm2(r)[:, None]).sum(axis=0)
+        return fit_error_eq2c(r[sel], v[sel],
+                              self.disk_normalised_profile(r[sel], disk_radius_mm(r)))
 
     def camera_albedo(self) -> NDArray[np.float64]:
         if self.kind == "gaussians":

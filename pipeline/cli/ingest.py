@@ -18,7 +18,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "brackets into a scene-linear ACEScg HDR image, find the entry point to sub-pixel "
             "accuracy and extract the radial profile per channel in mm. Writes "
             "OUT_DIR/<region>.csv (radius_mm,R,G,B,std_R,std_G,std_B; integrating to 1 over "
-            "the measured disk unless --absolute), OUT_DIR/<region>.exr and ingest.json. "
+            "the plane, the tail beyond the image extrapolated, unless --absolute), "
+            "OUT_DIR/<region>.exr and ingest.json. "
             "Nothing is written unless every region succeeds."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,

@@ -58,8 +58,11 @@ TUNE_REPEATS = 3
 """Timed runs of each blur; the fastest counts (a shared host only ever adds time)."""
 DIRECT_RADII = (4, 11, 16)
 """One-sigma direct radii timed for the line (radius -> ms, least squares)."""
-TEXEL_RADII = (4, 7, 11)
-"""Per-texel direct radii timed for its line."""
+TEXEL_RADII = (4, 7)
+"""Per-texel direct radii timed for its line: two that a face's render runs anyway (a
+third, 11, costs a cold render a compilation, 0.35 s on PoCL, and moved nothing:
+eight measurements each gave 8-9 on PoCL with and without it, 8-11 and 9-11 on
+Intel's runtime)."""
 
 
 @dataclass(frozen=True)
@@ -155,9 +158,11 @@ TUNE_STREAM = TUNE_SIZE * TUNE_SIZE * 16 >= STREAM_MIN_BYTES
 
 def tuning_kernels() -> list[Any]:
     """The per-texel direct kernels :func:`measure_direct_limits` times (for
-    :class:`~.opencl.Prewarm`; its recursive ones are
+    :class:`~.opencl.Prewarm`; its recursive one is
     ``recursive_blur.pass_kernels(TUNE_STREAM)``). The one-sigma switch is measured
     only by a render that runs one-sigma blurs: the demo runs none."""
+    if known_limit(per_texel=True) is not None:
+        return []  # measured before: nothing will be timed
     direct = direct_kernels()
     return [direct.kernel(r, r, TUNE_STREAM, True) for r in TEXEL_RADII]
 

@@ -18,9 +18,18 @@ from __future__ import annotations
 import json
 import sys
 
+WORKER_NICENESS = 10
+"""The worker runs below the render's priority: the render's own work (Embree's rays,
+numpy) comes first, the compilations fill what it leaves."""
+
 
 def main(argv: list[str]) -> int:
+    import os
+
     from .opencl import PlannedStep, Prewarm
+
+    if hasattr(os, "nice"):
+        os.nice(WORKER_NICENESS)
 
     steps = [PlannedStep(m, f, tuple(a)) for m, f, a in json.loads(argv[0])]
     Prewarm(steps).wait()

@@ -470,12 +470,17 @@ def direct_kernels() -> DirectKernels:
     return DirectKernels()
 
 
+PREWARMED_TEXEL_RADII = (2, 4, 7)
+"""Per-texel radii compiled ahead (:func:`texel_kernels`): those below every measured
+switch (8-11); a render that needs 11 compiles it when it first does."""
+
+
 def texel_kernels(stream: bool) -> list[Any]:
-    """The per-texel kernels of every built radius (for :class:`~.opencl.Prewarm`: a
-    render's radii follow its stretch map, not known before it)."""
+    """The per-texel kernels of :data:`PREWARMED_TEXEL_RADII` (for
+    :class:`~.opencl.Prewarm`: a render's radii follow its stretch map, not known
+    before it)."""
     kernels = direct_kernels()
-    return [kernels.kernel(r, r, stream, True) for r in BUILT_RADII
-            if r <= FIR_MAX_RADIUS_PER_TEXEL]
+    return [kernels.kernel(r, r, stream, True) for r in PREWARMED_TEXEL_RADII]
 
 
 class DirectBlur(DeviceTexture):

@@ -266,10 +266,10 @@ def _iir_kernel(uniform: bool, stream: bool) -> Any:
     return Kernel(program, f"iir_rows_transposed_{int(uniform)}{int(stream)}", (1,))
 
 
-def pass_kernels(stream: bool) -> list[Any]:
-    """The one-sigma and per-texel recursive passes with or without streaming stores
-    (for :class:`~.opencl.Prewarm`)."""
-    return [_iir_kernel(True, stream), _iir_kernel(False, stream)]
+def pass_kernels(stream: bool, uniform: bool = False) -> list[Any]:
+    """The per-texel (or one-sigma) recursive pass with or without streaming stores (for
+    :class:`~.opencl.Prewarm`; a face's layout runs per-texel blurs)."""
+    return [_iir_kernel(uniform, stream)]
 
 
 class IIRKernels:

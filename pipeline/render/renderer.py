@@ -37,7 +37,7 @@ from ..imageio import (
 from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
-from .blur_switch import TUNE_STREAM, direct_limits, known_limit
+from .blur_switch import TUNE_STREAM, direct_limits
 from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
 from .lighting import (
     IrradianceResult,
@@ -53,6 +53,7 @@ from .opencl import (
     STREAM_MIN_BYTES,
     KernelLedger,
     PlannedStep,
+    cache_is_cold,
     device_choice,
     set_device,
     start_prewarm,
@@ -430,18 +431,16 @@ class Renderer:
             steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))
                       for r in regions]
             stream = opts.texture_size ** 2 * 16 >= STREAM_MIN_BYTES
-            # a cold cache (the switch not measured yet): the blurs' kernels, needed
-            # last, on the compile worker (about half the work; warm, it would only
-            # cost its start)
-            tune = known_limit(per_texel=True) is None
+            # a cold cache (no program built yet: asking the switch's cache would probe
+            # the device here): the blurs' kernels, needed last, on the compile worker
+            # (about half the work; warm, it would only cost its start)
+            cold = cache_is_cold()
             # the finest level, the coarser ones (smaller: plain stores), the switch's
             steps += [PlannedStep(render + "recursive_blur", "pass_kernels", (s,))
-                      for s in dict.fromkeys((stream, False, *([TUNE_STREAM] * tune)))]
-            if tune:
-                steps.append(PlannedStep(render + "blur_switch", "tuning_kernels",
-                                         worker=True))
-            steps.append(PlannedStep(render + "direct_blur", "texel_kernels", (stream,),
-                                     worker=tune))
+                      for s in dict.fromkeys((stream, False, TUNE_STREAM))]
+            steps += [PlannedStep(render + "blur_switch", "tuning_kernels", worker=cold),
+                      PlannedStep(render + "direct_blur", "texel_kernels", (stream,),
+                                  worker=cold)]
         return steps
 
     def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:

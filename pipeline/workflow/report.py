@@ -170,7 +170,7 @@ def write_ingest_report(rows: Sequence[dict[str, Any]], out_dir: Path) -> dict:
     front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
     doc = {"stage": "ingest",
            "error_measure": "max over channels of eq. 2c, measured profile vs the simulator's "
-                            "truth normalised over the measured disk, 0.05-4 mm",
+                            "truth (normalised over the plane), 0.05-4 mm",
            "default": default | {"on_pareto_front": [
                i in front for i, r in enumerate(rows) if r["brackets"] == default["brackets"]
                and r["ring_width_px"] == default["ring_width_px"]]},

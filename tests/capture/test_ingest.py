@@ -318,11 +318,13 @@ def test_the_hdr_merge_is_unbiased_in_the_dark() -> None:
 
 
 def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
-    """Issue 20: ingest.json's expected eq. 2c error (from the per-sample standard
-    errors: ring statistics, floored by the sensor's noise model) is neither
-    overconfident nor loose against the sample captures' known truth: within 0.5-3x
-    of the actual error in every channel of every region (measured: 0.73-1.73x, the
-    forehead 1.9-2.4x)."""
+    """Issue 20: ingest.json's expected eq. 2c error of the profile's shape (from the
+    per-sample standard errors: ring statistics, floored by the sensor's noise model) is
+    neither overconfident nor loose against the sample captures' known truth over the
+    measured disk: within 0.5-3x of the actual error in every channel of every region
+    (measured: 0.73-1.73x, the forehead 1.9-2.4x). The scale (the tail beyond the image)
+    is stated apart: the truth's share beyond the image within the stated uncertainty
+    on every channel of every region."""
     from pipeline.capture.ingest import ingest_capture_set
     from pipeline.capture.simulate import read_truth
     from pipeline.profile.io import read_profile_csv
@@ -332,9 +334,14 @@ def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
     report = ingest_capture_set(captures, tmp_path)
     for name, entry in report["regions"].items():
         prof = read_profile_csv(entry["csv"])
-        actual = truth[name].profile_error(prof.radius_mm, prof.values)
+        actual = truth[name].profile_error(prof.radius_mm, prof.values, over="disk")
         ratio = np.asarray(entry["expected_error_eq2c"]) / actual
         assert np.all((ratio > 0.5) & (ratio < 3.0)), (name, ratio)
+        tail = entry["tail_beyond_image"]
+        true_share = truth[name].share_beyond_mm(float(prof.radius_mm[-1]
+                                                       + 0.5 * np.diff(prof.radius_mm)[-1]))
+        assert np.all(np.abs(np.asarray(tail["fraction_of_flux"]) - true_share)
+                      <= np.asarray(tail["scale_uncertainty"]) + 1e-3), (name, tail, true_share)
         assert entry["sensor_noise"]["source"] == "estimated"
 
 
@@ -383,7 +390,9 @@ def test_hair_beside_the_entry_point_is_masked_and_over_it_refused(tmp_path: Pat
     assert any("hair masked" in w for w in entry["warnings"])
     prof = read_profile_csv(entry["csv"])
     truth = read_truth(caps / "truth.json")["cheek"]
-    assert truth.profile_error(prof.radius_mm, prof.values).max() < 0.003
+    # the profile's shape (over the measured disk): the tail's extrapolation, which
+    # scales the whole profile by 1-2% here, is not what hair changes
+    assert truth.profile_error(prof.radius_mm, prof.values, over="disk").max() < 0.003
     _draw_strand(caps, "cheek", 0.0, 0.7)
     with pytest.raises(SkinpipeError, match="'cheek': hair covers"):
         ingest_capture_set(caps, tmp_path / "out2")
