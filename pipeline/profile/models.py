@@ -185,9 +185,9 @@ factor of two."""
 
 @dataclass(frozen=True)
 class TailExtrapolation:
-    """Per channel: the model the measured tail follows ("gaussian", "exponential" or
-    "none"), the flux beyond the measured disk (2 pi int_R^inf p r dr, in the profile's
-    units) and its share of the plane's flux."""
+    """Per channel: the model the measured tail follows (a key of :data:`TAIL_MODELS`,
+    or "none"), the flux beyond the measured disk (2 pi int_R^inf p r dr, in the
+    profile's units) and its share of the plane's flux."""
 
     model: tuple[str, ...]
     flux_beyond: FloatArray

@@ -35,11 +35,11 @@ from .direct_blur import (
     fir_weight_table,
 )
 from .opencl import (
-    STREAM_MIN_BYTES,
     cl_context,
     device_buffer,
     device_cache,
     device_choice,
+    streams,
     wait_for_prewarm,
 )
 from .opencl_runtimes import cache_root
@@ -152,7 +152,7 @@ def measure_direct_limits(size: int = TUNE_SIZE, one_sigma: bool = True,
     return DirectLimits(one, tex, "measured", time.perf_counter() - start)
 
 
-TUNE_STREAM = TUNE_SIZE * TUNE_SIZE * 16 >= STREAM_MIN_BYTES
+TUNE_STREAM = streams(TUNE_SIZE * TUNE_SIZE * 16)
 """Whether the measured blurs write with streaming stores."""
 
 
@@ -239,7 +239,7 @@ def direct_limit(per_texel: bool) -> tuple[int, str, float]:
 def direct_limits() -> DirectLimits | None:
     """The switch this process used, for ``render.json`` (a kind no blur asked for:
     None; None if no blur asked at all)."""
-    asked = {k: direct_limit(k) for k in (False, True) if _asked(k)}
+    asked = {k: direct_limit(k) for k in (False, True) if k in _asked_kinds()}
     if not asked:
         return None
     sources = sorted({v[1] for v in asked.values()})
@@ -252,10 +252,6 @@ def direct_limits() -> DirectLimits | None:
 def _asked_kinds() -> set[bool]:
     """The kinds a blur has asked :func:`prefers_direct` about on this device."""
     return set()
-
-
-def _asked(per_texel: bool) -> bool:
-    return per_texel in _asked_kinds()
 
 
 def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False,

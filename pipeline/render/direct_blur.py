@@ -34,13 +34,13 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from .opencl import (
     STORE_MACRO,
-    STREAM_MIN_BYTES,
     DeviceTexture,
     Kernel,
     build,
     cl_context,
     device_cache,
     jit_at_first_launch,
+    streams,
 )
 
 FIR_MAX_ERROR = 6e-4
@@ -423,7 +423,7 @@ class DirectKernels:
         # enough work items for every core, without a halo larger than a quarter strip
         strip = min(MAX_STRIP_ROWS, max(8 * rv, -(-height * bands // 64)))
         strips = -(-height // strip)
-        stream = height * width * 16 >= STREAM_MIN_BYTES
+        stream = streams(height * width * 16)
         self.kernel(ru, rv, stream, per_texel)(
             self.queue, (bands, strips), (1, 1), src, dst, *weights,
             cl.LocalMemory((2 * rv + 1) * b * 16), np.int32(width), np.int32(height),

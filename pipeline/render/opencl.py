@@ -38,6 +38,11 @@ a normal store first reads the line it writes, so a texture that will not stay i
 cache anyway is read twice (measured at 2048^2 RGBA float32, 64 MiB: the one-sigma
 recursive blur 45-47 -> 34-36 ms, the direct blur at sigma 1 17 -> 10 ms). Smaller
 images are left in the cache for the kernel that reads them next."""
+
+
+def streams(nbytes: int) -> bool:
+    """Whether a blur writing an image of ``nbytes`` uses streaming stores."""
+    return nbytes >= STREAM_MIN_BYTES
 HUGE_PAGE_MIN_BYTES = 4 << 20
 """Work buffers this large live in host memory backed by 2 MiB pages on a CPU device
 (:func:`device_buffer`)."""
@@ -578,9 +583,11 @@ class Prewarm:
                     self._wait_for_worker()  # its programs and kernels are in the caches
                 try:
                     made = step()
-                    made = made.values() if isinstance(made, dict) else made
-                    for kernel in made if isinstance(made, (list, tuple, type({}.values()))) \
-                            else [made]:
+                    if isinstance(made, dict):
+                        made = list(made.values())
+                    elif not isinstance(made, (list, tuple)):
+                        made = [made]
+                    for kernel in made:
                         if isinstance(kernel, Kernel):
                             self.kernels += 1
                             if jit:

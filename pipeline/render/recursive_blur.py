@@ -30,13 +30,13 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from .opencl import (
     STORE_MACRO,
-    STREAM_MIN_BYTES,
     DeviceTexture,
     Kernel,
     build,
     cl_context,
     device_cache,
     jit_at_first_launch,
+    streams,
 )
 
 # Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
@@ -294,7 +294,7 @@ class IIRKernels:
             raise InputError(f"recursive blur: lines of {n} texels exceed this device's "
                              f"local memory ({self.max_line} at most)")
         # the one-sigma kernel never reads `index`: any buffer fills the argument
-        stream = n * lines * 16 >= STREAM_MIN_BYTES
+        stream = streams(n * lines * 16)
         _iir_kernel(index is None, stream)(
             self.queue, (-(-lines // LINES_PER_ITEM),), (1,), src, dst,
             cl.LocalMemory(16 * LINES_PER_ITEM * n), coefs if index is None else index,

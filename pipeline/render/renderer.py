@@ -50,13 +50,13 @@ from .lighting import (
 )
 from .opencl import (
     LEDGER,
-    STREAM_MIN_BYTES,
     KernelLedger,
     PlannedStep,
     cache_is_cold,
     device_choice,
     set_device,
     start_prewarm,
+    streams,
 )
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
@@ -430,7 +430,7 @@ class Renderer:
                               for m in scene.skin})
             steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))
                       for r in regions]
-            stream = opts.texture_size ** 2 * 16 >= STREAM_MIN_BYTES
+            stream = streams(opts.texture_size ** 2 * 16)
             # a cold cache (no program built yet: asking the switch's cache would probe
             # the device here): the blurs' kernels, needed last, on the compile worker
             # (about half the work; warm, it would only cost its start)
