@@ -22,21 +22,30 @@ from numpy.typing import NDArray
 
 from ..errors import InputError, SkinpipeError
 from ..fileio import atomic_write_json, check_path_name
-from ..imageio import ACESCG, LoadedImage, check_colorspace, read_image, write_exr
+from ..imageio import (
+    ACESCG,
+    LoadedImage,
+    check_colorspace,
+    colorspace_matrix,
+    read_image,
+    write_exr,
+)
 from ..profile.io import write_profile_csv
 from ..profile.models import (
     TailExtrapolation,
+    disk_flux,
     expected_error_eq2c,
     extrapolated_tail,
-    ring_areas_mm2,
 )
 from ..profile.types import MeasuredProfile
-from .merge import SensorNoise, merge_exposures
+from .merge import MergedExposures, MergeMethod, SensorNoise, merge_exposures
 from .radial import (
     HAIR_CORE_LIMIT,
     HAIR_CORE_PX,
+    CoreModel,
     ProfileMode,
     find_entry_point,
+    fit_core_model,
     hair_mask,
     hair_over_core,
     radial_profile,
@@ -73,7 +82,8 @@ class CaptureSet:
 
 @dataclass(frozen=True)
 class IngestOptions:
-    """Ring width in pixels, fit range in mm, and the merge's trusted code-value range."""
+    """Ring width in pixels, fit range in mm, the merge's trusted code-value range, and
+    the methods (each a switch, for comparison: ``skinpipe report ingest``)."""
 
     ring_width_px: float = 1.0
     max_radius_mm: float | None = None
@@ -81,6 +91,15 @@ class IngestOptions:
     absolute: bool = False
     noise_floor: float | None = None  # code value below which a bracket is not trusted
     clip_level: float = 0.98  # code value above which a bracket is clipped
+    merge: MergeMethod = "optimal"
+    """"optimal": noise-optimal for linear captures (docs/ingest.md); "hat": Debevec &
+    Malik's hat weights for every capture (the earlier merge, for comparison)."""
+    core_model: bool = True
+    """Model the core below the pixel's size (:func:`~.radial.fit_core_model`); False:
+    ring medians from the entry point out, the centre from symmetry alone."""
+    extrapolate_tail: bool = True
+    """Normalise over the plane with the tail beyond the image extrapolated; False: over
+    the measured disk."""
 
 
 @dataclass
@@ -149,20 +168,32 @@ def read_capture_set(root: str | Path) -> CaptureSet:
 
 
 def _read_sensor(doc: Any, manifest: Path) -> SensorNoise | None:
-    """``"sensor": {"full_well_e": N, "read_noise_e": s}`` (electrons at full scale, read
-    noise in electrons) as a :class:`SensorNoise`; absent: None."""
+    """``"sensor": {"full_well_e": N, "read_noise_e": s[, "black_level": b]}`` (electrons
+    at full scale, read noise in electrons, the code value of no light, 0-0.5) as a
+    :class:`SensorNoise`; absent: None. Without a black level, the merge estimates it
+    from the brackets."""
     if doc is None:
         return None
-    if not isinstance(doc, dict) or set(doc) != {"full_well_e", "read_noise_e"}:
-        raise InputError("'sensor' must be {\"full_well_e\": N, \"read_noise_e\": s}, got "
-                         f"{doc!r}", manifest)
-    well, read = doc["full_well_e"], doc["read_noise_e"]
-    for key, v, least in (("full_well_e", well, "> 0"), ("read_noise_e", read, ">= 0")):
+    usage = ("'sensor' must be {\"full_well_e\": N, \"read_noise_e\": s} with an optional "
+             f"\"black_level\": b, got {doc!r}")
+    if not isinstance(doc, dict) or not {"full_well_e", "read_noise_e"} <= set(doc) <= {
+            "full_well_e", "read_noise_e", "black_level"}:
+        raise InputError(usage, manifest)
+    checks = (("full_well_e", "> 0", lambda v: v > 0), ("read_noise_e", ">= 0", lambda v: v >= 0),
+              ("black_level", "in [0, 0.5)", lambda v: 0 <= v < 0.5))
+    for key, least, ok in checks:
+        if key not in doc:
+            continue
+        v = doc[key]
         number = not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
-        if not number or not (v > 0 if least == "> 0" else v >= 0):
+        if not number or not ok(v):
             raise InputError(f"sensor.{key} must be a finite number {least}, got {v!r}",
                              manifest)
-    return SensorNoise(1.0 / well, read / well, "manifest")
+    well = doc["full_well_e"]
+    if "black_level" in doc:
+        return SensorNoise(1.0 / well, doc["read_noise_e"] / well, "manifest",
+                           float(doc["black_level"]), "manifest")
+    return SensorNoise(1.0 / well, doc["read_noise_e"] / well, "manifest")
 
 
 TAIL_WARN_FRACTION = 0.25
@@ -170,21 +201,34 @@ TAIL_WARN_FRACTION = 0.25
 the field of view is too small for it."""
 
 
-def normalise_profile(profile: MeasuredProfile
+def normalise_profile(profile: MeasuredProfile, to_acescg: NDArray[np.float64] | None = None,
+                      extrapolate: bool = True
                       ) -> tuple[MeasuredProfile, NDArray[np.float64], TailExtrapolation]:
     """Scale each channel so that 2 pi int p r dr = 1 over the whole plane: the measured
     disk (ring areas) plus the tail beyond it, extrapolated from the measured tail
-    (:func:`~pipeline.profile.models.extrapolated_tail`). Returns the profile, each
-    channel's flux and the tail."""
+    (:func:`~pipeline.profile.models.extrapolated_tail`; ``extrapolate=False``: over the
+    disk alone). ``to_acescg``: the matrix from the profile's (camera) space to ACEScg;
+    each camera channel's tail is extrapolated there (one band of the spectrum, where a
+    diffusion model holds; ACEScg channels mix several bands' tails), and the profile,
+    its standard deviations and the tail's shares are converted. Returns the ACEScg
+    profile, each ACEScg channel's flux and the tail (its shares in ACEScg, its models
+    per camera channel)."""
+    m = np.eye(3) if to_acescg is None else np.asarray(to_acescg, dtype=np.float64)
     r = profile.radius_mm
-    disk = (profile.values * ring_areas_mm2(r)[:, None]).sum(axis=0)
+    disk = disk_flux(r, profile.values)
     if not np.all(disk > 0):
         raise InputError(f"a channel has no light in the spot (flux {disk.tolist()})")
-    tail = extrapolated_tail(r, profile.values, profile.stddev)
-    flux = disk + tail.flux_beyond
-    std = None if profile.stddev is None else profile.stddev / flux
-    return (MeasuredProfile(r, profile.values / flux, std, profile.name, profile.source),
-            flux, tail)
+    camera_tail = extrapolated_tail(r, profile.values, profile.stddev) if extrapolate else \
+        TailExtrapolation(("none",) * 3, np.zeros(3), np.zeros(3), np.zeros(3))
+    camera_flux = disk + camera_tail.flux_beyond
+    flux = m @ camera_flux
+    values = profile.values @ m.T / flux
+    std = None if profile.stddev is None else \
+        np.sqrt(profile.stddev**2 @ (m * m).T) / flux
+    tail = TailExtrapolation(camera_tail.model, m @ camera_tail.flux_beyond,
+                             (m @ camera_tail.flux_beyond) / flux,
+                             (np.abs(m) @ (camera_tail.scale_uncertainty * camera_flux)) / flux)
+    return MeasuredProfile(r, values, std, profile.name, profile.source), flux, tail
 
 
 # ------------------------------------------------------------------------------ the stage
@@ -212,11 +256,59 @@ def _load_region(captures: CaptureSet, region: str) -> tuple[list[LoadedImage], 
     return images, exposures
 
 
+HAIR_PASSES = 3
+"""Hair masks and core fits alternate until the mask stops changing, at most this often:
+each mask is measured against a profile read around the last fit's centre."""
+
+
+def _rings_and_hair(merged: MergedExposures, mm_per_pixel: float, options: IngestOptions,
+                    region: str, note: Callable[[str], None]
+                    ) -> tuple[MeasuredProfile, tuple[float, float]]:
+    """The ring profile (camera space) and the entry point, hair masked: hair found
+    against ring medians around the centre of symmetry, then that centre found again
+    without the hair, the core model (:func:`~.radial.fit_core_model`) fitted without
+    it (which refines the centre) and hair found again against that profile, until the
+    mask settles (:data:`HAIR_PASSES`).
+    A capture whose entry point or core is hair is refused (the paper re-shot such
+    spots)."""
+    image, variance = merged.radiance, merged.variance
+    centre = find_entry_point(image)
+    hair = np.zeros(image.shape[:2], bool)
+    core: CoreModel | None = None
+    for n in range(HAIR_PASSES + 1):
+        # the first pass: ring medians alone (robust to strands), whose hair mask the
+        # core model's first fit then leaves out
+        if n > 0:
+            centre = find_entry_point(image, exclude=hair, start=centre)
+            if options.core_model:
+                core = fit_core_model(image, variance, centre, hair)
+                centre = core.centre_px
+        profile = radial_profile(image, centre, mm_per_pixel, options.ring_width_px,
+                                 options.max_radius_mm, "rings", variance, hair, core)
+        found = hair_mask(image, centre, MeasuredProfile(profile.radius_mm / mm_per_pixel,
+                                                         profile.values), variance)
+        covered, on_entry = hair_over_core(found, centre)
+        if covered > HAIR_CORE_LIMIT or on_entry:
+            raise SkinpipeError(
+                f"region {region!r}: hair covers {covered:.0%} of the core (within "
+                f"{HAIR_CORE_PX:g} px of the entry point): too little clean skin to measure "
+                "the narrow scattering; re-shoot this spot")
+        if n > 0 and np.array_equal(found, hair):
+            break
+        hair = found
+    if hair.any():
+        note(f"{int(hair.sum())} pixels of hair masked before the ring statistics")
+    return profile, centre
+
+
 def ingest_region(
     captures: CaptureSet, region: str, options: IngestOptions | None = None,
     warn: Callable[[str], None] | None = None,
 ) -> RegionResult:
-    """Merge one region's brackets and extract its radial profile (ACEScg, mm)."""
+    """Merge one region's brackets and extract its radial profile (ACEScg, mm).
+
+    The profile is read in the camera's linear space (the merge's; ACEScg for
+    non-linear captures) and converted to ACEScg once normalised."""
     options = options or IngestOptions()
     notes: list[str] = []
 
@@ -238,38 +330,31 @@ def ingest_region(
                              "merged; shoot several exposures", images[0].path)
         note("one bracket only: the profile's dynamic range is that of one exposure")
     merged = merge_exposures(images, exposures, captures.camera_colorspace,
-                             options.noise_floor, clip, captures.sensor)
-    hdr, unresolved, variance = merged.hdr, merged.unresolved, merged.variance
-    centre = find_entry_point(hdr)
-    rings = variance if options.mode == "rings" else None
-    profile = radial_profile(hdr, centre, captures.mm_per_pixel, options.ring_width_px,
-                             options.max_radius_mm, options.mode, rings)
+                             options.noise_floor, clip, captures.sensor, options.merge)
     if options.mode == "rings":
-        hair = hair_mask(hdr, centre, MeasuredProfile(profile.radius_mm / captures.mm_per_pixel,
-                                                      profile.values), variance)
-        covered, on_entry = hair_over_core(hair, centre)
-        if covered > HAIR_CORE_LIMIT or on_entry:
-            raise SkinpipeError(
-                f"region {region!r}: hair covers {covered:.0%} of the core (within "
-                f"{HAIR_CORE_PX:g} px of the entry point): too little clean skin to measure "
-                "the narrow scattering; re-shoot this spot")
-        if hair.any():
-            note(f"{int(hair.sum())} pixels of hair masked before the ring statistics")
-            profile = radial_profile(hdr, centre, captures.mm_per_pixel,
-                                     options.ring_width_px, options.max_radius_mm,
-                                     options.mode, rings, hair)
+        profile, centre = _rings_and_hair(merged, captures.mm_per_pixel, options, region, note)
+    else:
+        centre = find_entry_point(merged.radiance)
+        profile = radial_profile(merged.radiance, centre, captures.mm_per_pixel,
+                                 options.ring_width_px, options.max_radius_mm, options.mode)
     profile = MeasuredProfile(profile.radius_mm, profile.values, profile.stddev, region,
                               captures.root / "capture.json")
+    to_acescg = colorspace_matrix(merged.space, ACESCG)
     tail = None
-    if not options.absolute:
-        profile, _, tail = normalise_profile(profile)
+    if options.absolute:
+        profile = MeasuredProfile(profile.radius_mm, profile.values @ to_acescg.T,
+                                  None if profile.stddev is None else
+                                  np.sqrt(profile.stddev**2 @ (to_acescg**2).T),
+                                  profile.name, profile.source)
+    else:
+        profile, _, tail = normalise_profile(profile, to_acescg, options.extrapolate_tail)
         wide = [f"{c} {f:.0%}" for c, f in zip("RGB", tail.fraction_beyond, strict=True)
                 if f > TAIL_WARN_FRACTION]
         if wide:
             note(f"light beyond the image, extrapolated: {', '.join(wide)} of the channel's "
                  "flux; a wider field of view would measure it")
-    return RegionResult(region, profile, hdr, centre, time.perf_counter() - start, len(images),
-                        float(unresolved.mean()), notes, merged.noise, tail)
+    return RegionResult(region, profile, merged.hdr, centre, time.perf_counter() - start,
+                        len(images), float(merged.unresolved.mean()), notes, merged.noise, tail)
 
 
 def _centre_clipped(img: LoadedImage, clip: float) -> bool:
@@ -332,7 +417,8 @@ def ingest_capture_set(
                 "scale_uncertainty": res.tail.scale_uncertainty.tolist()},
             "sensor_noise": None if res.noise is None else {
                 "shot_code_per_electron": res.noise.gain, "read_noise_code": res.noise.read,
-                "source": res.noise.source},
+                "source": res.noise.source, "black_level_code": res.noise.black,
+                "black_level_source": res.noise.black_source},
         }
     atomic_write_json(out / "ingest.json", report)
     return report

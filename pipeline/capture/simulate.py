@@ -1,10 +1,16 @@
 """Physically based simulator of single-pixel scattering captures (the ingest stage's truth).
 
-It renders what the paper's camera saw: one projector pixel (a small square footprint)
-lights the skin, light exits with the region's radial profile R(r), each camera pixel
+It renders what the paper's camera saw: one projector pixel lights the skin with a small
+smooth footprint, light exits with the region's radial profile R(r), each camera pixel
 integrates the exitant light over its area, dark hair strands may shade the spot, and
-each bracket adds photon and read noise, clips and quantises (16-bit linear or 8-bit
-sRGB). Exposure times go into the manifest and/or the files' EXIF.
+each bracket adds photon and read noise above the sensor's black level, clips and
+quantises (16-bit linear in the camera's colour space, or 8-bit sRGB). Exposure times go
+into the manifest and/or the files' EXIF.
+
+The truth is the *observed* profile: R convolved with the projector's footprint (what
+any camera sees around the entry point), each channel normalised over the whole plane.
+Every effect has a switch in :class:`CaptureSettings`; :data:`PRESETS` names the
+defaults (``realistic``) and the simulator's earlier ones (``legacy``).
 """
 
 from __future__ import annotations
@@ -12,22 +18,23 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import special
 
 from ..errors import InputError
 from ..fileio import atomic_write_json
-from ..imageio import ACESCG, colorspace_matrix, convert_colorspace, write_ldr
+from ..imageio import ACESCG, check_colorspace, colorspace_matrix, convert_colorspace, write_ldr
 from ..profile.models import (
     dipole_profile,
     dipole_total_reflectance,
+    disk_flux,
     disk_radius_mm,
     fit_error_eq2c,
-    ring_areas_mm2,
     sum_of_gaussians,
 )
 from ..profile.reference_data import (
@@ -37,17 +44,43 @@ from ..profile.reference_data import (
     normalized_weights,
 )
 
-CAMERA_LINEAR = "lin_rec709_scene"
+TRUTH_LINEAR = "lin_rec709_scene"
+"""The colour space the true profiles are given in (scene-linear Rec.709)."""
 CAMERA_SRGB = "srgb_rec709_scene"
+
+
+def gaussian_blurred_radial(profile: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+                            radius_mm: NDArray[np.float64], sigma_mm: float,
+                            nodes: int = 32) -> NDArray[np.float64]:
+    """A radial profile f (mm^-2, (n,) -> (n, C)) convolved in the plane with an isotropic
+    Gaussian of standard deviation ``sigma_mm``: (f * g)(r) = int_0^inf f(p) (p / s^2)
+    exp(-(r - p)^2 / (2 s^2)) I0e(r p / s^2) dp (the angular integral of the 2D
+    convolution, with the exponentially scaled Bessel function I0e), by Gauss-Legendre
+    quadrature over [max(0, r - 7 s), r + 7 s] (32 nodes: within 1e-10 of the exact
+    convolution of a sum of Gaussians). The total 2 pi int f r dr is unchanged."""
+    r = np.asarray(radius_mm, dtype=np.float64).reshape(-1)
+    if sigma_mm <= 0:
+        return profile(r)
+    s = float(sigma_mm)
+    t, w = np.polynomial.legendre.leggauss(nodes)
+    lo = np.maximum(r - 7.0 * s, 0.0)[:, None]
+    half = 0.5 * (r[:, None] + 7.0 * s - lo)
+    rho = lo + half * (t[None, :] + 1.0)
+    kernel = (rho / s**2) * np.exp(-0.5 * (r[:, None] - rho) ** 2 / s**2) \
+        * special.i0e(r[:, None] * rho / s**2) * half * w[None, :]
+    values = profile(rho.reshape(-1)).reshape(*rho.shape, -1)
+    return np.einsum("nk,nkc->nc", kernel, values)
 
 
 @dataclass(frozen=True)
 class RegionTruth:
-    """A region's true profile in camera-linear RGB (Rec.709 primaries).
+    """A region's true profile in scene-linear Rec.709 RGB (:data:`TRUTH_LINEAR`).
 
     ``kind="gaussians"``: per-channel weights (each channel sums to 1) on
     ``variances_mm2``, scaled by ``albedo``. ``kind="dipole"``: Jensen et al.'s dipole
-    for ``coefficients`` (its own total reflectance is the albedo).
+    for ``coefficients`` (its own total reflectance is the albedo). The observed
+    profile is R convolved with the projector's footprint, a Gaussian of standard
+    deviation ``footprint_sigma_mm`` (0: a point).
     """
 
     name: str
@@ -57,19 +90,32 @@ class RegionTruth:
     albedo: tuple[float, float, float] = (1.0, 1.0, 1.0)
     coefficients: ScatteringCoefficients | None = None
     note: str = ""
+    footprint_sigma_mm: float = 0.0
 
-    def camera_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Exitant light per unit incident flux, R(r) in mm^-2, camera-linear RGB."""
+    def scattering_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """R(r): exitant light per unit incident flux, mm^-2, Rec.709 RGB, for a pencil
+        of light (no footprint)."""
         if self.kind == "gaussians":
             return sum_of_gaussians(self.variances_mm2, np.array(self.weights), radius_mm) \
                 * np.asarray(self.albedo)
         assert self.coefficients is not None
         return dipole_profile(radius_mm, self.coefficients)
 
+    def observed_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """R convolved with the footprint (Rec.709, mm^-2): what a camera sees. For a sum
+        of Gaussians the footprint's variance adds to every term exactly."""
+        s = self.footprint_sigma_mm
+        if self.kind == "gaussians":
+            v = np.asarray(self.variances_mm2) + s * s
+            return sum_of_gaussians(v, np.array(self.weights), radius_mm) \
+                * np.asarray(self.albedo)
+        return gaussian_blurred_radial(self.scattering_profile, radius_mm, s)
+
     def acescg_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The true profile as ingest reports it: ACEScg, each channel integrating to 1."""
-        m = colorspace_matrix(CAMERA_LINEAR, ACESCG)
-        return (self.camera_profile(radius_mm) @ m.T) / (self.camera_albedo() @ m.T)
+        """The true profile as ingest reports it: the observed profile in ACEScg, each
+        channel integrating to 1 over the plane."""
+        m = colorspace_matrix(TRUTH_LINEAR, ACESCG)
+        return (self.observed_profile(radius_mm) @ m.T) / (self.albedo_rec709() @ m.T)
 
     def disk_normalised_profile(
         self, radius_mm: NDArray[np.float64], disk_radius_mm: float
@@ -84,9 +130,11 @@ class RegionTruth:
 
     def share_beyond_mm(self, edge_mm: float) -> NDArray[np.float64]:
         """The share of each channel's flux (ACEScg) beyond ``edge_mm`` from the entry
-        point (integrated to 400 mm)."""
+        point (integrated to 400 mm; of the pencil profile: the footprint, a few
+        hundredths of a mm, moves a share of order s^2 f' / f at the edge, < 1e-4)."""
+        m = colorspace_matrix(TRUTH_LINEAR, ACESCG)
         rf = np.linspace(0.0, 400.0, 800001)
-        tf = self.acescg_profile(rf) * rf[:, None]
+        tf = (self.scattering_profile(rf) @ m.T) * rf[:, None]
         inside = rf <= edge_mm
         return 1.0 - np.trapezoid(tf[inside], rf[inside], axis=0) / np.trapezoid(tf, rf,
                                                                                   axis=0)
@@ -106,11 +154,12 @@ class RegionTruth:
             return fit_error_eq2c(r[sel], v[sel], self.acescg_profile(r[sel]))
         if over != "disk":
             raise ValueError(f"over must be 'plane' or 'disk', got {over!r}")
-        v = v / (v * ring_areas_mm2(r)[:, None]).sum(axis=0)
+        v = v / disk_flux(r, v)
         return fit_error_eq2c(r[sel], v[sel],
                               self.disk_normalised_profile(r[sel], disk_radius_mm(r)))
 
-    def camera_albedo(self) -> NDArray[np.float64]:
+    def albedo_rec709(self) -> NDArray[np.float64]:
+        """Total diffuse reflectance per channel (Rec.709): the profile's integral."""
         if self.kind == "gaussians":
             return np.asarray(self.albedo, dtype=np.float64)
         assert self.coefficients is not None
@@ -131,61 +180,109 @@ single hair covered); each strand costs a pass over the image."""
 
 @dataclass(frozen=True)
 class CaptureSettings:
-    """Camera and projector: geometry, sensor noise, encoding, brackets."""
+    """Camera and projector: geometry, footprint, sensor noise, encoding, brackets, hair.
 
-    mm_per_pixel: float = 0.025
+    Each effect an ingest must handle has a switch here; the defaults are the
+    ``realistic`` preset (:data:`PRESETS`):
+    - ``mm_per_pixel`` 0.04: coarse pixels, the narrowest scattering (the forehead's
+      first term with the footprint, sigma 0.092 mm) only 2.3 pixels wide in sigma;
+    - ``footprint_sigma_mm`` 0.03: the projector pixel's smooth (Gaussian) footprint on
+      the skin, part of the observed profile;
+    - ``black_level`` 2048/65535: the sensor's offset in 16-bit files, so the short
+      brackets' dark surround sits at the read-noise floor without being clipped at
+      zero (0: the legacy sensor, which clips negative noise at zero, as 8-bit files
+      are);
+    - ``size_px`` 320: a 12.8 mm field, across which red light is still present at the
+      border (5-11% of the red flux of the dipole regions lies beyond it);
+    - ``hair_clearance_px`` (3, 40): hard-edged strands (1.5-3 px wide, passing 15% of
+      the light, anti-aliased only by the pixel's area) whose nearest edge passes this
+      far from the entry point (``hair_strands`` of them);
+    - ``camera_colorspace`` lin_p3d65_scene: the camera's linear space, named in the
+      manifest (16-bit; 8-bit captures are sRGB-encoded Rec.709).
+    """
+
+    mm_per_pixel: float = 0.04
     size_px: int = 320
-    footprint_mm: float = 0.03
+    footprint_sigma_mm: float = 0.03
     full_well_e: float = 20000.0
     read_noise_e: float = 4.0
+    black_level: float = 2048.0 / 65535.0
     bits: Literal[8, 16] = 16
     exposures_s: tuple[float, ...] = (1 / 500, 1 / 125, 1 / 30, 1 / 8, 1 / 2)
     peak_fraction: float = 0.6
     hair_strands: int = 0
+    hair_clearance_px: tuple[float, float] = (3.0, 40.0)
+    camera_colorspace: str = "lin_p3d65_scene"
     exposure_in_manifest: bool = True
     image_format: Literal["tif", "png"] = "tif"
 
     def __post_init__(self) -> None:
+        lo, hi = self.hair_clearance_px
         checks = {"mm_per_pixel": 0 < self.mm_per_pixel < 10,
                   "size_px": 32 <= self.size_px <= MAX_SIZE_PX,
-                  "footprint_mm": 0 <= self.footprint_mm < 10,
+                  "footprint_sigma_mm": 0 <= self.footprint_sigma_mm < 1,
                   "full_well_e": self.full_well_e > 0, "read_noise_e": self.read_noise_e >= 0,
+                  "black_level": 0 <= self.black_level < 0.5,
                   "peak_fraction": 0 < self.peak_fraction <= 1,
                   "hair_strands": 0 <= self.hair_strands <= MAX_HAIR_STRANDS,
+                  "hair_clearance_px": 0 <= lo <= hi,
                   "exposures_s": bool(self.exposures_s) and all(
                       math.isfinite(t) and t > 0 for t in self.exposures_s)}
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise InputError("capture settings out of range: " + ", ".join(
                 f"{k} = {getattr(self, k)!r}" for k in bad) + f" (size_px 32-{MAX_SIZE_PX}, "
-                f"hair_strands 0-{MAX_HAIR_STRANDS}, mm_per_pixel in (0, 10))")
+                f"hair_strands 0-{MAX_HAIR_STRANDS}, mm_per_pixel in (0, 10), "
+                "footprint_sigma_mm in [0, 1), black_level in [0, 0.5))")
+        check_colorspace(self.camera_colorspace)
 
     @property
     def colorspace(self) -> str:
-        return CAMERA_LINEAR if self.bits == 16 else CAMERA_SRGB
+        """The colour space of the files' code values."""
+        return self.camera_colorspace if self.bits == 16 else CAMERA_SRGB
+
+
+PRESETS: dict[str, CaptureSettings] = {
+    "realistic": CaptureSettings(),
+    "legacy": CaptureSettings(mm_per_pixel=0.025, footprint_sigma_mm=0.03 / math.sqrt(12.0),
+                              black_level=0.0, hair_clearance_px=(4.5, 38.5),
+                              camera_colorspace=TRUTH_LINEAR),
+}
+"""``realistic``: every effect of :class:`CaptureSettings` on (its defaults).
+``legacy``: the simulator's earlier defaults (0.025 mm pixels, a 0.03 mm square
+footprint, here as the Gaussian of the same variance, a sensor that clips noise at
+zero, strands at least 4.5 px from the entry point, Rec.709 camera)."""
 
 
 @dataclass
 class SimulatedRegion:
     truth: RegionTruth
     entry_point_px: tuple[float, float]
+    flux_in_frame: NDArray[np.float64]
+    """The noise-free image's sum (ACEScg, code values per second): what an unbiased
+    merge of the brackets adds up to."""
     files: list[str] = field(default_factory=list)
 
 
 def spot_image(
     truth: RegionTruth, settings: CaptureSettings, centre_px: tuple[float, float],
-    rng: np.random.Generator,
 ) -> NDArray[np.float64]:
-    """Camera-linear irradiance image of the spot for unit incident flux (per mm^2).
+    """Noise-free image of the spot in the camera's linear space, per unit incident flux.
 
-    Each pixel averages R(|x - c - f|) over stratified points x in the pixel and f in the
-    projector pixel's square footprint; more points where the profile is peaked.
+    Each pixel averages the observed profile over stratified points in its area (16 x
+    16 near the entry point, 6 x 6 to 40 px, 2 x 2 beyond), from a radial table uniform
+    in sqrt(r) (8000 steps: 0.1 um apart at 0.01 mm, 3 um at 9 mm; linear interpolation
+    within 1e-5 of the narrowest profile here).
     """
     n = settings.size_px
     mmpp = settings.mm_per_pixel
     cx, cy = centre_px
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
     dist = np.hypot(xx - cx, yy - cy)
+    root_max = math.sqrt((float(dist.max()) + 1.0) * mmpp)
+    table_u = np.linspace(0.0, root_max, 8000)
+    table = truth.observed_profile(table_u**2) @ colorspace_matrix(
+        TRUTH_LINEAR, settings.camera_colorspace if settings.bits == 16 else TRUTH_LINEAR).T
     out = np.zeros((n, n, 3))
     tiers = [(dist < 8, 16), ((dist >= 8) & (dist < 40), 6), (dist >= 40, 2)]
     for mask, s in tiers:
@@ -193,35 +290,32 @@ def spot_image(
         if py.size == 0:
             continue
         grid = (np.arange(s) + 0.5) / s - 0.5
-        sx, sy = np.meshgrid(grid, grid)
-        sx, sy = sx.ravel(), sy.ravel()
-        # The footprint offsets are a random permutation of another stratified grid, so
-        # pixel area and footprint are sampled jointly without a product of the two.
-        perm = rng.permutation(s * s)
-        fx = sx[perm] * settings.footprint_mm / mmpp
-        fy = sy[perm] * settings.footprint_mm / mmpp
         acc = np.zeros((py.size, 3))
-        for j in range(s * s):
-            r_px = np.hypot(px + sx[j] - cx - fx[j], py + sy[j] - cy - fy[j])
-            acc += truth.camera_profile(r_px * mmpp)
+        for oy in grid:
+            for ox in grid:
+                root = np.sqrt(np.hypot(px + ox - cx, py + oy - cy) * mmpp)
+                acc += np.stack([np.interp(root, table_u, table[:, c]) for c in range(3)],
+                                axis=1)
         out[py, px] = acc / (s * s)
     return out
 
 
 def hair_transmission(
-    size_px: int, centre_px: tuple[float, float], strands: int, rng: np.random.Generator,
+    size_px: int, centre_px: tuple[float, float], strands: int,
+    clearance_px: tuple[float, float], rng: np.random.Generator,
 ) -> NDArray[np.float64]:
-    """Transmission map of dark hair strands crossing the spot (not the entry point itself:
-    the paper re-shot spots whose entry point a hair covered)."""
+    """Transmission map of dark hair strands (1.5-3 px wide, passing 15% of the light)
+    whose nearest edge passes ``clearance_px`` (low, high) from the entry point. The
+    edges are sharp, anti-aliased by the pixel's area only (a one-pixel ramp)."""
     yy, xx = np.mgrid[0:size_px, 0:size_px].astype(np.float64)
     trans = np.ones((size_px, size_px))
     for _ in range(strands):
         angle = rng.uniform(0, math.pi)
-        offset = rng.uniform(6.0, 40.0) * rng.choice([-1.0, 1.0])
         width = rng.uniform(1.5, 3.0)
+        offset = (rng.uniform(*clearance_px) + width / 2) * rng.choice([-1.0, 1.0])
         nx, ny = -math.sin(angle), math.cos(angle)
         d = np.abs((xx - centre_px[0]) * nx + (yy - centre_px[1]) * ny - offset)
-        cover = np.clip(1.0 - (d - width / 2), 0.0, 1.0)  # one-pixel anti-aliased edge
+        cover = np.clip(width / 2 + 0.5 - d, 0.0, 1.0)
         trans *= 1.0 - 0.85 * cover
     return trans
 
@@ -230,17 +324,22 @@ def expose(
     irradiance: NDArray[np.float64], exposure_s: float, settings: CaptureSettings,
     rng: np.random.Generator,
 ) -> NDArray[np.float64]:
-    """Sensor response: photon (Poisson) and read noise, clipping, quantisation, encoding.
+    """Sensor response: photon (Poisson) and read noise above the black level, clipping,
+    quantisation, encoding.
 
     ``irradiance`` is in code units per second (1 = full scale). Returns code values in
-    [0, 1] as stored in the file (sRGB-encoded for 8-bit).
+    [0, 1] as stored in the file (sRGB-encoded for 8-bit). With ``black_level`` 0 the
+    noise is clipped at zero (the legacy sensor), as it is in an 8-bit file (processed:
+    no offset).
     """
     electrons = np.clip(irradiance * exposure_s, 0.0, None) * settings.full_well_e
     signal = rng.poisson(np.minimum(electrons, 1e9)).astype(np.float64)
     signal += rng.normal(0.0, settings.read_noise_e, signal.shape)
-    linear = np.clip(signal / settings.full_well_e, 0.0, 1.0)
-    if settings.bits == 8:
-        linear = np.clip(convert_colorspace(linear, CAMERA_LINEAR, CAMERA_SRGB), 0.0, 1.0)
+    if settings.bits == 8:  # a processed file: the offset is gone, noise clipped at zero
+        linear = np.clip(signal / settings.full_well_e, 0.0, 1.0)
+        linear = np.clip(convert_colorspace(linear, TRUTH_LINEAR, CAMERA_SRGB), 0.0, 1.0)
+    else:
+        linear = np.clip(settings.black_level + signal / settings.full_well_e, 0.0, 1.0)
     top = (1 << settings.bits) - 1
     return np.rint(linear * top) / top
 
@@ -248,20 +347,25 @@ def expose(
 def simulate_region(
     truth: RegionTruth, settings: CaptureSettings, out_dir: Path, rng: np.random.Generator,
 ) -> tuple[SimulatedRegion, list[tuple[Path, NDArray[np.float64], float]]]:
-    """Render one region's brackets in memory; returns the file plan (path, code values, t)."""
+    """Render one region's brackets in memory; returns the file plan (path, code values, t).
+    ``truth`` gets the settings' footprint."""
+    truth = replace(truth, footprint_sigma_mm=settings.footprint_sigma_mm)
     n = settings.size_px
     centre = (n / 2 + rng.uniform(-0.5, 0.5) - 0.5, n / 2 + rng.uniform(-0.5, 0.5) - 0.5)
-    image = spot_image(truth, settings, centre, rng)
+    image = spot_image(truth, settings, centre)
     if settings.hair_strands:
-        image *= hair_transmission(n, centre, settings.hair_strands, rng)[..., None]
+        image *= hair_transmission(n, centre, settings.hair_strands,
+                                   settings.hair_clearance_px, rng)[..., None]
     # Scale so that the brightest pixel reaches peak_fraction of full scale in the
     # shortest exposure: the set then spans the whole profile.
     scale = settings.peak_fraction / (image.max() * min(settings.exposures_s))
+    space = settings.camera_colorspace if settings.bits == 16 else TRUTH_LINEAR
+    flux = (image.reshape(-1, 3).sum(axis=0) * scale) @ colorspace_matrix(space, ACESCG).T
     plan = []
     for i, t in enumerate(settings.exposures_s):
         code = expose(image * scale, t, settings, rng)
         plan.append((out_dir / truth.name / f"e{i}.{settings.image_format}", code, t))
-    return SimulatedRegion(truth, centre), plan
+    return SimulatedRegion(truth, centre, flux), plan
 
 
 def simulate_capture_set(
@@ -273,6 +377,8 @@ def simulate_capture_set(
 
     ``settings`` may map region names to their own :class:`CaptureSettings` (a
     ``"default"`` entry for the rest), so one subject can mix 16-bit TIFF and 8-bit PNG.
+    truth.json holds per region the truth (with its footprint), the entry point, the
+    settings and the frame's noise-free flux (ACEScg, code values per second).
     """
     out = Path(out_dir)
     per_region = settings if isinstance(settings, dict) else {"default": settings}
@@ -283,11 +389,11 @@ def simulate_capture_set(
     spaces = {s.colorspace for s in per_region.values()}
     if len(spaces) != 1:
         raise InputError("all regions of one capture set share the camera colour space "
-                         "(bits 8 = sRGB, 16 = linear)")
+                         "(and bits: 8 = sRGB)")
     rng = np.random.default_rng(seed)
     manifest: dict[str, Any] = {"subject": subject, "mm_per_pixel": default.mm_per_pixel,
                                 "camera_colorspace": default.colorspace, "regions": {}}
-    truth_doc: dict[str, Any] = {"subject": subject, "seed": seed, "camera_linear": CAMERA_LINEAR,
+    truth_doc: dict[str, Any] = {"subject": subject, "seed": seed, "truth_linear": TRUTH_LINEAR,
                                  "regions": {}}
     for truth in truths:
         st = per_region.get(truth.name, default)
@@ -301,8 +407,8 @@ def simulate_capture_set(
             images.append(entry)
         manifest["regions"][truth.name] = {"images": images}
         truth_doc["regions"][truth.name] = {
-            "truth": truth.to_json(), "entry_point_px": list(sim.entry_point_px),
-            "settings": asdict(st),
+            "truth": sim.truth.to_json(), "entry_point_px": list(sim.entry_point_px),
+            "flux_in_frame": sim.flux_in_frame.tolist(), "settings": asdict(st),
         }
         if progress is not None:
             progress(f"simulated {truth.name}: {len(plan)} brackets, entry point "

@@ -13,6 +13,7 @@ import pytest
 
 from pipeline.capture.ingest import IngestOptions, ingest_capture_set, read_capture_set
 from pipeline.capture.simulate import (
+    PRESETS,
     CaptureSettings,
     read_truth,
     sample_subject_truths,
@@ -32,6 +33,7 @@ def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: in
     simulate_capture_set([TRUTHS[r] for r in regions], caps, settings, seed=seed)
     report = ingest_capture_set(caps, tmp / f"out{seed}")
     truth_doc = json.loads((caps / "truth.json").read_text())
+    observed = read_truth(caps / "truth.json")  # with the projector's footprint
     results = {}
     for name in regions:
         prof = read_profile_csv(report["regions"][name]["csv"])
@@ -40,8 +42,8 @@ def run_chain(tmp: Path, regions: list[str], settings: CaptureSettings, seed: in
         entry = np.array(report["regions"][name]["entry_point_px"])
         true_entry = truth_doc["regions"][name]["entry_point_px"]
         results[name] = {
-            "fit_error": TRUTHS[name].profile_error(r, fit.evaluate(r)),
-            "raw_error": TRUTHS[name].profile_error(r, prof.values),
+            "fit_error": observed[name].profile_error(r, fit.evaluate(r)),
+            "raw_error": observed[name].profile_error(r, prof.values),
             "entry_error_px": float(np.hypot(*(entry - true_entry))),
         }
     return results
@@ -306,9 +308,12 @@ def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
 
 def _draw_strand(captures: Path, region: str, offset_px: float, angle: float) -> None:
     """A dark strand drawn into every bracket of ``region`` here (numpy, not skinpipe's
-    simulator): 2.5 px wide, passing 20% of the light, ``offset_px`` from the centre."""
+    simulator): 2.5 px wide, passing 20% of the light (not of the sensor's offset, the
+    black level in truth.json's settings), ``offset_px`` from the centre."""
     import OpenImageIO as oiio
 
+    black = json.loads((captures / "truth.json").read_text())["regions"][region][
+        "settings"]["black_level"]
     paths = sorted((captures / region).glob("*.tif"))
     first = np.asarray(oiio.ImageBuf(str(paths[0])).get_pixels(oiio.FLOAT)).sum(axis=2)
     cy, cx = np.unravel_index(int(np.argmax(first)), first.shape)  # the shortest: unclipped
@@ -320,7 +325,7 @@ def _draw_strand(captures: Path, region: str, offset_px: float, angle: float) ->
         yy, xx = np.mgrid[0:h, 0:w]
         d = np.abs((xx - cx) * -math.sin(angle) + (yy - cy) * math.cos(angle) - offset_px)
         cover = np.clip(1.0 - (d - 1.25), 0.0, 1.0)
-        px *= (1.0 - 0.8 * cover)[..., None]
+        px = black + (px - black) * (1.0 - 0.8 * cover)[..., None]
         out = oiio.ImageBuf(oiio.ImageSpec(w, h, px.shape[2], oiio.UINT16))
         out.set_pixels(oiio.ROI(), px.astype(np.float32))
         for attr in spec.extra_attribs:
@@ -341,7 +346,7 @@ def test_hair_beside_the_entry_point_is_masked_and_over_it_refused(tmp_path: Pat
 
     truths = [t for t in sample_subject_truths() if t.name == "cheek"]
     caps = tmp_path / "caps"
-    simulate_capture_set(truths, caps, CaptureSettings(), seed=5)
+    simulate_capture_set(truths, caps, PRESETS["legacy"], seed=5)  # the measured setup
     for offset, angle in ((-7.0, 1.2), (12.0, 2.0)):
         _draw_strand(caps, "cheek", offset, angle)
     report = ingest_capture_set(caps, tmp_path / "out")
