@@ -289,8 +289,9 @@ def _rings_and_hair(merged: MergedExposures, mm_per_pixel: float, options: Inges
                                                          profile.values), variance)
         covered, on_entry = hair_over_core(found, centre)
         if covered > HAIR_CORE_LIMIT or on_entry:
+            where = "over the entry point, " if on_entry else ""
             raise SkinpipeError(
-                f"region {region!r}: hair covers {covered:.0%} of the core (within "
+                f"region {region!r}: hair covers {covered:.0%} of the core ({where}within "
                 f"{HAIR_CORE_PX:g} px of the entry point): too little clean skin to measure "
                 "the narrow scattering; re-shoot this spot")
         if n > 0 and np.array_equal(found, hair):

@@ -187,10 +187,15 @@ def merge_exposures(
     (colour-hdri) times t, each bracket converted to ACEScg first, as every capture does
     with ``method="hat"``.
     """
-    if method == "optimal" and all(not img.is_float for img in images) and \
-            _is_scene_linear(colorspace):
+    linear = all(not img.is_float for img in images) and _is_scene_linear(colorspace)
+    if method == "optimal" and linear:
         return _merge_noise_optimal(images, exposures_s, colorspace, clip_level, noise)
-    hdr, unresolved = _merge_hat(images, exposures_s, colorspace, noise_floor, clip_level)
+    black = 0.0
+    if linear:  # the hat weights, on codes above the same black level
+        black = noise.black if noise is not None and noise.black_source == "manifest" else \
+            estimate_black_level([i.pixels for i in images], exposures_s, clip_level)
+    hdr, unresolved = _merge_hat(images, exposures_s, colorspace, noise_floor, clip_level,
+                                 black)
     return MergedExposures(hdr.astype(np.float64), ACESCG, unresolved)
 
 
@@ -239,12 +244,13 @@ def _inverse_variance_weights(mu: NDArray[np.float64], t: NDArray[np.float64],
 
 
 def _merge_hat(images: list[LoadedImage], exposures_s: list[float], colorspace: str,
-               noise_floor: float | None, clip_level: float
+               noise_floor: float | None, clip_level: float, black: float = 0.0
                ) -> tuple[FloatImage, NDArray[np.bool_]]:
     """Debevec & Malik 1997 weighting (colour-hdri's hat function, zero at the noise
-    floor and at clipping) times the exposure time (Robertson et al. 2003)."""
-    floor = noise_floor if noise_floor is not None else (2.0 / 255.0 if images[0].bits == 8
-                                                         else 2e-4)
+    floor and at clipping) times the exposure time (Robertson et al. 2003); radiance
+    from the codes less the black level ``black`` (linear captures)."""
+    floor = black + (noise_floor if noise_floor is not None else
+                     (2.0 / 255.0 if images[0].bits == 8 else 2e-4))
     num = np.zeros(images[0].pixels.shape, dtype=np.float64)
     den = np.zeros_like(num)
     radiance = []  # per bracket, ACEScg per second
@@ -256,7 +262,8 @@ def _merge_hat(images: list[LoadedImage], exposures_s: list[float], colorspace: 
             weight = weighting_function_Debevec1997(code, domain_l=floor, domain_h=clip_level)
             clipped = np.any(code >= clip_level, axis=2, keepdims=True)
             weight = np.where(clipped, 0.0, weight)
-        radiance.append(convert_colorspace(code, colorspace, ACESCG).astype(np.float64) / t)
+        radiance.append(convert_colorspace(code - np.float32(black), colorspace,
+                                           ACESCG).astype(np.float64) / t)
         num += weight * t * radiance[-1]
         den += weight * t
     resolved = den > 0

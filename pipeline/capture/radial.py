@@ -330,10 +330,11 @@ def radial_profile(
     median's efficiency); without ``variance``, no smaller than 1% of the value. Pixels
     in ``exclude`` (hair, :func:`hair_mask`) are left out of the rings. With a
     :class:`CoreModel` (its centre is then the entry point), the samples within
-    CORE_INNER_PX are the model's values at points every CORE_STEP_PX, and each ring
-    within the model's window is scaled by the model's value at the ring's radius over
-    the model's median over the ring's pixels (the pixel's area and the ring's width
-    undone).
+    CORE_INNER_PX are the model's values at points every CORE_STEP_PX (with the
+    standard deviation its fit gives them), and within the model's window each ring is
+    the median of its pixels over the model as they record it, times the model at the
+    ring's radius (the pixel's area and the profile's slope across the ring undone, in
+    the value and in the spread).
     ``cross_section``: Park & Oh's single horizontal line through the entry point,
     bilinearly sampled, left and right sides averaged; their half-difference as error.
     """
@@ -377,21 +378,24 @@ def radial_profile(
         if b <= a:
             continue
         seg = pix[a:b]
+        radii[i] = float(np.median(dist[a:b]))
+        # within the core model's window the pixels are taken relative to the model as
+        # each records it (the profile's slope across the ring and the pixel's area
+        # undone), and the ring's value is that median ratio at the model's point value
+        scale = np.ones(3)
+        if core is not None and radii[i] < core.window_px - 1.0:
+            model = core.pixel_means((flat[a:b] % w).astype(np.float64),
+                                     (flat[a:b] // w).astype(np.float64))
+            if np.all(model > 0):
+                seg = seg / model
+                scale = core.at_points(np.array([radii[i]]))[0]
         med = np.median(seg, axis=0)
         mad = np.median(np.abs(seg - med), axis=0)
-        radii[i] = float(np.median(dist[a:b]))
-        values[i] = med
-        stderr[i] = 1.2533 * 1.4826 * mad / math.sqrt(b - a)
+        values[i] = med * scale
+        stderr[i] = 1.2533 * 1.4826 * mad / math.sqrt(b - a) * scale
         if var is not None:
             stderr[i] = np.maximum(stderr[i], np.sqrt(0.5 * math.pi * var[a:b].sum(axis=0))
                                    / (b - a))
-        if core is not None and radii[i] < core.window_px - 1.0:
-            model = np.median(core.pixel_means((flat[a:b] % w).astype(np.float64),
-                                               (flat[a:b] // w).astype(np.float64)), axis=0)
-            point = core.at_points(np.array([radii[i]]))[0]
-            ratio = np.where(model > 0, point / np.where(model > 0, model, 1.0), 1.0)
-            values[i] *= ratio
-            stderr[i] *= ratio
     ok = np.isfinite(values).all(axis=1) & np.isfinite(radii)
     if var is not None:
         ok &= np.isfinite(stderr).all(axis=1)
@@ -413,29 +417,42 @@ the ratio: a strand is 1.5-3 px wide) is hair; the paper's strands pass 10-50% o
 light."""
 HAIR_CORE_PX = 3.0
 HAIR_CORE_LIMIT = 0.5
-"""A capture whose entry point is hair, or whose core (within HAIR_CORE_PX of it) is
-more than this share hair, is refused: the paper re-shot such spots. A strand passing
-2-4 px beside the entry point covers 15-40% of the core and is masked."""
+HAIR_ENTRY_PX = 1.0
+"""A capture with hair within HAIR_ENTRY_PX of its entry point (a strand over it), or
+whose core (within HAIR_CORE_PX of it) is more than HAIR_CORE_LIMIT hair, is refused:
+the paper re-shot such spots. A strand whose edge passes 3 px or more from the entry
+point leaves the mask (grown by a pixel) at least 1.5 px away, covers 15-40% of the
+core and is masked."""
+
+
+HAIR_RAW_SIGMAS = 25.0
+"""Where the radial model stands this many noise sigmas above zero, a pixel's own ratio
+to it decides (HAIR_RATIO is then 10 sigmas down): the 3 x 3 median that guards dimmer
+pixels against noise erases a strand one or two pixels wide, as it did over the entry
+point in 2 of 180 simulated spots."""
 
 
 def hair_mask(hdr: FloatImage, centre_px: tuple[float, float], profile_px: MeasuredProfile,
               variance: NDArray[np.float64] | None = None) -> NDArray[np.bool_]:
-    """Hair strands as dark outliers against the radial model: pixels whose luminance,
-    3 x 3 median filtered, is below HAIR_RATIO of the profile at their radius, where the
-    model stands 10 noise sigmas above zero (or, without a noise model, above 1% of its
-    peak), grown by one pixel for the strands' soft edges. ``profile_px``: radii in px."""
+    """Hair strands as dark outliers against the radial model: pixels whose luminance is
+    below HAIR_RATIO of the profile at their radius, where the model stands 10 noise
+    sigmas above zero (or, without a noise model, above 1% of its peak): the pixel's own
+    ratio where the model stands HAIR_RAW_SIGMAS above zero (no noise model: 5% of its
+    peak), the 3 x 3 median of the ratio elsewhere; grown by one pixel for the strands'
+    edges. ``profile_px``: radii in px."""
     h, w, _ = hdr.shape
     yy, xx = np.mgrid[0:h, 0:w]
     r = np.hypot(xx - centre_px[0], yy - centre_px[1])
     lum = hdr.astype(np.float64).sum(axis=2)
     model = np.interp(r, profile_px.radius_mm, profile_px.values.sum(axis=1), right=np.nan)
-    ratio = median_filter(lum / np.where(model > 0, model, np.nan), size=3, mode="nearest")
+    raw = lum / np.where(model > 0, model, np.nan)
+    smooth = median_filter(raw, size=3, mode="nearest")
     if variance is not None:
-        trusted = model > 10.0 * np.sqrt(np.where(np.isfinite(variance), variance, np.inf)
-                                         .sum(axis=2))
+        sigma = np.sqrt(np.where(np.isfinite(variance), variance, np.inf).sum(axis=2))
+        trusted, bright = model > 10.0 * sigma, model > HAIR_RAW_SIGMAS * sigma
     else:
-        trusted = model > 0.01 * np.nanmax(model)
-    dark = trusted & (ratio < HAIR_RATIO)
+        trusted, bright = model > 0.01 * np.nanmax(model), model > 0.05 * np.nanmax(model)
+    dark = trusted & (np.where(bright, raw, smooth) < HAIR_RATIO)
     grown = dark.copy()
     grown[1:] |= dark[:-1]
     grown[:-1] |= dark[1:]
@@ -447,10 +464,10 @@ def hair_mask(hdr: FloatImage, centre_px: tuple[float, float], profile_px: Measu
 def hair_over_core(hair: NDArray[np.bool_], centre_px: tuple[float, float]
                    ) -> tuple[float, bool]:
     """The share of the core (within HAIR_CORE_PX of the entry point) that ``hair``
-    covers, and whether it covers the entry point's own pixel."""
+    covers, and whether it covers a pixel within HAIR_ENTRY_PX of the entry point."""
     yy, xx = np.mgrid[0:hair.shape[0], 0:hair.shape[1]]
-    core = np.hypot(xx - centre_px[0], yy - centre_px[1]) <= HAIR_CORE_PX
-    return float(hair[core].mean()), bool(hair[round(centre_px[1]), round(centre_px[0])])
+    dist = np.hypot(xx - centre_px[0], yy - centre_px[1])
+    return float(hair[dist <= HAIR_CORE_PX].mean()), bool(hair[dist <= HAIR_ENTRY_PX].any())
 
 
 def _floor_std(stderr: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:

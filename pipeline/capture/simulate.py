@@ -196,7 +196,8 @@ class CaptureSettings:
       border (5-11% of the red flux of the dipole regions lies beyond it);
     - ``hair_clearance_px`` (3, 40): hard-edged strands (1.5-3 px wide, passing 15% of
       the light, anti-aliased only by the pixel's area) whose nearest edge passes this
-      far from the entry point (``hair_strands`` of them);
+      far from the entry point (``hair_strands`` of them; a clearance below zero puts
+      the entry point under the strand, e.g. (-1.2, -0.3));
     - ``camera_colorspace`` lin_p3d65_scene: the camera's linear space, named in the
       manifest (16-bit; 8-bit captures are sRGB-encoded Rec.709).
     """
@@ -225,7 +226,7 @@ class CaptureSettings:
                   "black_level": 0 <= self.black_level < 0.5,
                   "peak_fraction": 0 < self.peak_fraction <= 1,
                   "hair_strands": 0 <= self.hair_strands <= MAX_HAIR_STRANDS,
-                  "hair_clearance_px": 0 <= lo <= hi,
+                  "hair_clearance_px": -3 <= lo <= hi,
                   "exposures_s": bool(self.exposures_s) and all(
                       math.isfinite(t) and t > 0 for t in self.exposures_s)}
         bad = [k for k, ok in checks.items() if not ok]
@@ -233,7 +234,8 @@ class CaptureSettings:
             raise InputError("capture settings out of range: " + ", ".join(
                 f"{k} = {getattr(self, k)!r}" for k in bad) + f" (size_px 32-{MAX_SIZE_PX}, "
                 f"hair_strands 0-{MAX_HAIR_STRANDS}, mm_per_pixel in (0, 10), "
-                "footprint_sigma_mm in [0, 1), black_level in [0, 0.5))")
+                "footprint_sigma_mm in [0, 1), black_level in [0, 0.5), hair_clearance_px "
+                "low >= -3 and <= high)")
         check_colorspace(self.camera_colorspace)
 
     @property
@@ -305,8 +307,9 @@ def hair_transmission(
     clearance_px: tuple[float, float], rng: np.random.Generator,
 ) -> NDArray[np.float64]:
     """Transmission map of dark hair strands (1.5-3 px wide, passing 15% of the light)
-    whose nearest edge passes ``clearance_px`` (low, high) from the entry point. The
-    edges are sharp, anti-aliased by the pixel's area only (a one-pixel ramp)."""
+    whose nearest edge passes ``clearance_px`` (low, high) from the entry point (below
+    zero: over it). The edges are sharp, anti-aliased by the pixel's area only (a
+    one-pixel ramp)."""
     yy, xx = np.mgrid[0:size_px, 0:size_px].astype(np.float64)
     trans = np.ones((size_px, size_px))
     for _ in range(strands):

@@ -34,6 +34,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="median over each ring, or the paper's single cross-section")
     p.add_argument("--absolute", action="store_true",
                    help="keep radiance units (per second of exposure) instead of normalising")
+    p.add_argument("--merge", choices=["optimal", "hat"], default="optimal",
+                   help="noise-optimal merge of linear captures (Granados et al. 2010), or "
+                        "Debevec & Malik's hat weights (non-linear captures always use them)")
+    p.add_argument("--no-core-model", dest="core_model", action="store_false",
+                   help="ring medians from the entry point out, without modelling the core "
+                        "below the pixel's size")
+    p.add_argument("--no-tail", dest="extrapolate_tail", action="store_false",
+                   help="normalise over the measured disk, without the tail beyond the image")
     p.add_argument("--regions", type=lambda t: [x for x in t.split(",") if x], default=None,
                    metavar="A,B", help="only these regions")
     add_force_option(p)
@@ -47,7 +55,8 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     if not args.ring_width_px > 0:
         raise InputError(f"--ring-width-px must be > 0, got {args.ring_width_px}")
     options = IngestOptions(ring_width_px=args.ring_width_px, max_radius_mm=args.max_radius_mm,
-                            mode=args.mode, absolute=args.absolute)
+                            mode=args.mode, absolute=args.absolute, merge=args.merge,
+                            core_model=args.core_model, extrapolate_tail=args.extrapolate_tail)
     captures = read_capture_set(args.captures)
     names = args.regions or list(captures.regions)
     expect = [f"{n}{ext}" for n in names for ext in (".csv", ".exr")] + ["ingest.json"]

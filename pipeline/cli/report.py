@@ -18,8 +18,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "operating point. 'fit': k = 1..8 with GA+IPOPT (default), IPOPT from a naive "
             "start, and GA+SLSQP (the paper's SQP), on the given profiles or, without any, "
             "on reference profiles (d'Eon et al. 2007 skin, Jensen et al. 2001 dipoles). "
-            "'ingest': simulated captures with 1, 3, 5, 7 brackets and ring widths 0.5-4 px, "
-            "profile error against the simulator's truth beside ingest time. "
+            "'ingest': simulated captures of the six sample regions, ingested with each of "
+            "ingest's options (merge, core model, tail, ring width, brackets) and with each "
+            "capture effect turned off in turn (coarse pixels, footprint, black level, "
+            "field, camera space, hair), the profile's error against the simulator's "
+            "observed truth beside ingest time, and issue 20's must-hold over --seeds seeds "
+            "(about 25 s a seed on two cores). "
             "'render SCENE': texture sizes (--sizes) x variance grids (--grids), the "
             "diffused radiance against a brute-force convolution on the surface with the "
             "exact per-region profiles, beside texture-map + irradiance + diffusion time "
@@ -45,6 +49,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="render: diffusion blurs to compare (recursive, gather)")
     p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
                    help="range of k to try, inclusive")
+    p.add_argument("--seeds", type=int, default=30,
+                   help="ingest: seeds of the must-hold cases (the others use up to 5)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
     add_force_option(p)
     p.set_defaults(handler=cmd_report)
@@ -72,17 +78,23 @@ def _report_render(args: argparse.Namespace, scene: Path) -> None:
 
 
 def _report_ingest(args: argparse.Namespace) -> None:
-    import tempfile
-
     from ..workflow.report import ingest_tradeoff, write_ingest_report
 
-    with tempfile.TemporaryDirectory(prefix="skinpipe-report-") as work:
-        rows = ingest_tradeoff(Path(work), progress=_eprint)
-    write_ingest_report(rows, args.output)
-    print(f"{'region':<10} {'brackets':>8} {'ring px':>7} {'seconds':>8} {'error':>9}")
+    if not 1 <= args.seeds <= 1000:
+        raise InputError(f"--seeds must be 1-1000, got {args.seeds}")
+    rows = ingest_tradeoff(args.seeds, progress=_eprint)
+    doc = write_ingest_report(rows, args.output)
+    print(f"{'group':<9} {'case':<28} {'seeds':>5} {'seconds':>7} {'error max':>9} "
+          f"{'flux max':>8} {'refused':>7}")
     for r in rows:
-        print(f"{r['region']:<10} {r['brackets']:>8} {r['ring_width_px']:>7g} "
-              f"{r['seconds']:>8.3f} {r['error_max']:>9.2e}")
+        err = "-" if r["error_max"] is None else f"{r['error_max']:.2%}"
+        flux = "-" if r["flux_error_max"] is None else f"{r['flux_error_max']:.2%}"
+        print(f"{r['group']:<9} {r['case']:<28} {r['seeds']:>5} {r['seconds']:>7.2f} "
+              f"{err:>9} {flux:>8} {r['refused']:>3}/{r['regions']:<3}")
+    for name, check in doc["must_hold"].items():
+        value = f"{check['value']}/{check['of']}" if "of" in check else \
+            f"{check['value']:.2%} (limit {check['limit']:.2%})"
+        print(f"must hold: {name}: {value}, {'holds' if check['holds'] else 'DOES NOT HOLD'}")
 
 
 def _report_fit(args: argparse.Namespace, profile_paths: list[Path]) -> None:

@@ -360,3 +360,28 @@ def test_hair_beside_the_entry_point_is_masked_and_over_it_refused(tmp_path: Pat
     _draw_strand(caps, "cheek", 0.0, 0.7)
     with pytest.raises(SkinpipeError, match="'cheek': hair covers"):
         ingest_capture_set(caps, tmp_path / "out2")
+
+
+def test_the_manifest_sensor_and_its_black_level(tmp_path: Path) -> None:
+    """capture.json's sensor: a black level given there is used as it is (the brackets
+    still give the gain and read noise they are not told); bad values are refused with
+    the key named."""
+    caps = tmp_path / "caps"
+    simulate_capture_set([TRUTHS["nose"]], caps, CaptureSettings(size_px=96), seed=2)
+    doc = json.loads((caps / "capture.json").read_text())
+    doc["sensor"] = {"full_well_e": 20000, "read_noise_e": 4, "black_level": 2048 / 65535}
+    (caps / "capture.json").write_text(json.dumps(doc))
+    report = ingest_capture_set(caps, tmp_path / "out")
+    noise = report["regions"]["nose"]["sensor_noise"]
+    assert noise["black_level_source"] == "manifest" and noise["source"] == "manifest"
+    assert noise["black_level_code"] == pytest.approx(2048 / 65535)
+    for bad, key in (({"full_well_e": 20000, "read_noise_e": 4, "black_level": 0.7},
+                      "black_level"),
+                     ({"full_well_e": 20000, "read_noise_e": 4, "black_level": "low"},
+                      "black_level"),
+                     ({"read_noise_e": 4}, "'sensor' must be"),
+                     ({"full_well_e": -1, "read_noise_e": 4}, "full_well_e")):
+        doc["sensor"] = bad
+        (caps / "capture.json").write_text(json.dumps(doc))
+        with pytest.raises(InputError, match=key):
+            read_capture_set(caps)
