@@ -8,6 +8,7 @@ plane, 2 pi \\int R(r) r dr, is the total diffuse reflectance.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -204,6 +205,17 @@ its real source outward, and needs the bend where that source stops dominating."
 TAIL_MIN_SAMPLES = 5
 TAIL_MIN_UNCERTAINTY = 0.1
 """The extrapolated share is known to no better than this fraction of itself."""
+TAIL_MIN_SIGMA_TR = 0.02
+"""The dipole's effective transport coefficient s = sqrt(3 sigma_a sigma_t') is kept above
+this (per mm): skin lies at 0.1-1.6, Jensen et al. 2001's marble and whole milk at
+0.05-0.3; a fit that drifts below reads a tail that hardly decays."""
+TAIL_MAX_SHARE = 0.5
+"""A model that puts more than this share of the plane's flux beyond the image is no
+extrapolation anyone should trust: it is left out (and an image that small is warned
+of: see ingest's TAIL_WARN_FRACTION)."""
+TAIL_MAX_NFEV = 60
+"""Residual evaluations a dipole fit may spend from one start (a tail that is no dipole,
+such as a Gaussian's, otherwise takes hundreds for no better answer)."""
 TAIL_SUPPORT_AIC = 10.0
 """Models within this AIC of the best still have support (Burnham & Anderson 2002: beyond
 10, essentially none); their disagreement with the best is the tail's uncertainty."""
@@ -211,11 +223,12 @@ TAIL_SUPPORT_AIC = 10.0
 
 @dataclass(frozen=True)
 class TailExtrapolation:
-    """Per channel: the model the measured tail follows (a key of :data:`TAIL_MODELS`,
-    "dipole", or "none"), the flux beyond the measured disk (2 pi int_R^inf p r dr, in
-    the profile's units) and its share of the plane's flux."""
+    """Per channel: the model the measured tail follows, the flux beyond the measured
+    disk (2 pi int_R^inf p r dr, in the profile's units) and its share of the plane's
+    flux."""
 
     model: tuple[str, ...]
+    """Per channel: a key of :data:`TAIL_MODELS`, "dipole", "dipole+mix" or "none"."""
     flux_beyond: FloatArray
     fraction_beyond: FloatArray
     scale_uncertainty: FloatArray
@@ -263,56 +276,93 @@ def dipole_tail_flux(edge_mm: float, sigma_tr: float, z_r: float, z_v: float) ->
                           + z_v * math.exp(-sigma_tr * d_v) / d_v)
 
 
-def _fit_dipole_tail(r: FloatArray, p: FloatArray, sigma: FloatArray
-                     ) -> tuple[float, float, float, float] | None:
-    """(scale, s, z_r, z_v) of the dipole shape fitted to (r, p) by least squares in
-    units of sigma (log parameters, from a few starts; the scale solved exactly at each
-    step), or None when no start converges to a positive scale."""
-    from scipy.optimize import least_squares  # lazy: 0.50 s to import
+@dataclass(frozen=True)
+class _Dipoles:
+    """A tail as a non-negative sum of dipole shapes (:func:`dipole_tail_shape`): the
+    channel's own first, then any others' (fixed)."""
+
+    amplitudes: FloatArray
+    shapes: tuple[tuple[float, float, float], ...]
+    """(s, z_r, z_v) per shape."""
+
+    def values(self, radius_mm: FloatArray) -> FloatArray:
+        return sum(a * dipole_tail_shape(radius_mm, *sh)
+                   for a, sh in zip(self.amplitudes, self.shapes, strict=True))
+
+    def flux_beyond(self, edge_mm: float) -> float:
+        return float(sum(a * dipole_tail_flux(edge_mm, *sh)
+                         for a, sh in zip(self.amplitudes, self.shapes, strict=True)))
+
+
+def _fit_dipoles(r: FloatArray, p: FloatArray, sigma: FloatArray,
+                 others: Sequence[tuple[float, float, float]] = (),
+                 start: tuple[float, float, float] | None = None) -> _Dipoles | None:
+    """A dipole of the channel's own (s, z_r, z_v free: log parameters) plus non-negative
+    amounts of ``others`` (fixed shapes), fitted to (r, p) by least squares in units of
+    sigma: the amounts solved exactly (NNLS on unit columns) at each step; starts from
+    the four best of a coarse grid (s 0.1-3 per mm, z_r 0.1-3 mm, z_v - z_r 1-9 z_r), or
+    from ``start`` and the grid's best. None when no start converges to a positive own
+    amplitude."""
+    from scipy.optimize import least_squares, nnls  # lazy: 0.50 s to import
 
     w = 1.0 / sigma
+    fixed = [dipole_tail_shape(r, *o) * w for o in others]
+    lower = [math.log(TAIL_MIN_SIGMA_TR), -8.0, -8.0]
 
     def params(x: FloatArray) -> tuple[float, float, float]:
         z_r = math.exp(x[1])
         return math.exp(x[0]), z_r, z_r + math.exp(x[2])
 
-    def scaled(x: FloatArray) -> tuple[FloatArray, float]:
-        shape = dipole_tail_shape(r, *params(x))
-        den = float(np.sum((w * shape) ** 2))
-        return shape, (float(np.sum(w * w * shape * p)) / den if den > 0 else 0.0)
+    def amounts(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        cols = np.stack([dipole_tail_shape(r, *params(x)) * w, *fixed], axis=1)
+        norm = np.linalg.norm(cols, axis=0)
+        if not (np.all(np.isfinite(cols)) and np.all(norm > 0)):
+            return np.zeros(cols.shape[1]), np.full(r.size, np.inf)
+        a, _ = nnls(cols / norm, p * w)
+        return a / norm, cols @ (a / norm) - p * w
 
     def resid(x: FloatArray) -> FloatArray:
-        shape, amp = scaled(x)
-        return w * (amp * shape - p)
+        return amounts(x)[1]
 
     best = None
     with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-        # starts: the four best of a coarse grid (s 0.1-3 per mm, z_r 0.1-3 mm, z_v - z_r
-        # 1-9 z_r), each then refined
         grid = [np.log([s0, z0, f * z0]) for s0 in (0.1, 0.3, 1.0, 3.0)
                 for z0 in (0.1, 0.3, 1.0, 3.0) for f in (1.0, 3.0, 9.0)]
         costs = [float(np.sum(resid(x) ** 2)) for x in grid]
-        for i in np.argsort(np.nan_to_num(costs, nan=np.inf))[:4]:
+        # from a given start (the channel's dipole alone) one grid start is enough
+        best_grid = np.argsort(np.nan_to_num(costs, nan=np.inf))[:4 if start is None else 1]
+        starts = [grid[i] for i in best_grid]
+        if start is not None:
+            starts.insert(0, np.log([start[0], start[1], start[2] - start[1]]))
+        for x0 in starts:
             try:
-                res = least_squares(resid, grid[i], bounds=([-8.0] * 3, [5.0] * 3))
+                res = least_squares(resid, np.clip(x0, lower, 5.0), max_nfev=TAIL_MAX_NFEV,
+                                    bounds=(lower, [5.0] * 3))
             except ValueError:
                 continue
             if np.isfinite(res.cost) and (best is None or res.cost < best.cost):
                 best = res
     if best is None:
         return None
-    _, amp = scaled(best.x)
-    return (amp, *params(best.x)) if amp > 0 else None
+    amp, _ = amounts(best.x)
+    return _Dipoles(amp, (params(best.x), *others)) if amp[0] > 0 else None
 
 
-def _tail_candidates(r: FloatArray, p: FloatArray, sigma: FloatArray, edge_mm: float
-                     ) -> list[tuple[float, str, float]]:
+def _tail_candidates(r: FloatArray, p: FloatArray, sigma: FloatArray, edge_mm: float,
+                     own: _Dipoles | None = None,
+                     others: Sequence[tuple[float, float, float]] = (),
+                     disk: float | None = None) -> list[tuple[float, str, float]]:
     """(AIC, model, flux beyond ``edge_mm``) of every tail model that decays, for one
     channel's samples in the outer :data:`TAIL_DIPOLE_FRACTION`: :data:`TAIL_MODELS`
     fitted on the outer :data:`TAIL_OUTER_FRACTION` as ln(p r^k) against r^2 or r,
-    weighted by p / sigma (the error of ln p is sigma / p), and the dipole on all of
-    them; each compared on the outer TAIL_OUTER_FRACTION by AIC = chi^2 + 2 x
-    parameters (Akaike 1974)."""
+    weighted by p / sigma (the error of ln p is sigma / p); the dipole (``own``, or
+    fitted here) on all of them; and, given ``others`` (the other channels' dipole
+    shapes), "dipole+mix": the own dipole refitted with non-negative amounts of
+    theirs, for a camera channel whose band holds some of another's longer tail (P3's
+    green holds 3% of Rec.709's red, which dominates beyond the image). Each compared
+    on the outer TAIL_OUTER_FRACTION by AIC = chi^2 + 2 x parameters (Akaike 1974);
+    given the measured ``disk`` flux, those that would put more than
+    :data:`TAIL_MAX_SHARE` of the plane's flux beyond the image are left out."""
     far = r >= (1.0 - TAIL_OUTER_FRACTION) * edge_mm
     rf, pf, sf = r[far], p[far], sigma[far]
     fits: list[tuple[float, str, float]] = []
@@ -327,11 +377,16 @@ def _tail_candidates(r: FloatArray, p: FloatArray, sigma: FloatArray, edge_mm: f
             fitted = np.exp(c0 + c1 * x) / rf**k
             chi2 = float(np.sum(((fitted - pf) / sf) ** 2))
             fits.append((chi2 + 4.0, model, flux_of(math.exp(c0), c1, edge_mm)))
-    dipole = _fit_dipole_tail(r, p, sigma)
-    if dipole is not None and rf.size:
-        amp, *shape = dipole
-        chi2 = float(np.sum(((amp * dipole_tail_shape(rf, *shape) - pf) / sf) ** 2))
-        fits.append((chi2 + 6.0, "dipole", amp * dipole_tail_flux(edge_mm, *shape)))
+    own = own if own is not None else _fit_dipoles(r, p, sigma)
+    candidates = [("dipole", own)]
+    if own is not None and others:
+        candidates.append(("dipole+mix", _fit_dipoles(r, p, sigma, others, own.shapes[0])))
+    for name, dip in candidates:
+        if dip is not None and rf.size:
+            chi2 = float(np.sum(((dip.values(rf) - pf) / sf) ** 2))
+            fits.append((chi2 + 2.0 * (3 + len(dip.shapes)), name, dip.flux_beyond(edge_mm)))
+    if disk is not None:  # a tail holding most of the plane's light is not believed
+        fits = [f for f in fits if f[2] <= TAIL_MAX_SHARE / (1.0 - TAIL_MAX_SHARE) * disk]
     return sorted(fits)
 
 
@@ -340,10 +395,11 @@ def extrapolated_tail(radius_mm: ArrayLike, values: ArrayLike,
     """The flux of a radial profile beyond its measured disk (:func:`disk_radius_mm`),
     from the measured tail: the model of :func:`_tail_candidates` with the smallest AIC,
     on the samples at least 3 standard deviations above zero (1% of the value where
-    none is given),
-    integrated analytically to infinity. The uncertainty is the disagreement of the
-    models that still have support (:data:`TAIL_SUPPORT_AIC`). A channel with fewer
-    than :data:`TAIL_MIN_SAMPLES` such samples, or no decaying tail, gets none."""
+    none is given), integrated analytically to infinity; every channel's own dipole is
+    fitted first, so that each may hold some of the others' ("dipole+mix"). The
+    uncertainty is the disagreement of the models that still have support
+    (:data:`TAIL_SUPPORT_AIC`). A channel with fewer than :data:`TAIL_MIN_SAMPLES` such
+    samples, or no decaying tail, gets none."""
     r = np.asarray(radius_mm, dtype=np.float64)
     p = np.asarray(values, dtype=np.float64).reshape(r.size, -1)
     s = np.abs(p) * 0.01 if stddev is None else \
@@ -351,11 +407,16 @@ def extrapolated_tail(radius_mm: ArrayLike, values: ArrayLike,
     edge = disk_radius_mm(r)
     outer = r >= (1.0 - TAIL_DIPOLE_FRACTION) * edge
     disk = disk_flux(r, p)
+    uses = [outer & (p[:, c] > 3 * s[:, c]) & (s[:, c] > 0) for c in range(p.shape[1])]
+    enough = [int(u.sum()) >= TAIL_MIN_SAMPLES for u in uses]
+    # each channel's own dipole first: the shapes the others may hold some of
+    dipoles = [_fit_dipoles(r[u], p[u, c], s[u, c]) if ok else None
+               for c, (u, ok) in enumerate(zip(uses, enough, strict=True))]
     models, beyond, spread = [], [], []
-    for c in range(p.shape[1]):
-        use = outer & (p[:, c] > 3 * s[:, c]) & (s[:, c] > 0)
-        fits = [] if use.sum() < TAIL_MIN_SAMPLES else \
-            _tail_candidates(r[use], p[use, c], s[use, c], edge)
+    for c, (use, ok) in enumerate(zip(uses, enough, strict=True)):
+        others = [d.shapes[0] for k, d in enumerate(dipoles) if k != c and d is not None]
+        fits = _tail_candidates(r[use], p[use, c], s[use, c], edge, dipoles[c], others,
+                                float(disk[c])) if ok else []
         models.append(fits[0][1] if fits else "none")
         beyond.append(fits[0][2] if fits else 0.0)
         supported = [f for aic, _, f in fits if aic - fits[0][0] <= TAIL_SUPPORT_AIC]
