@@ -49,6 +49,7 @@ from .radial import (
     hair_mask,
     hair_over_core,
     radial_profile,
+    ring_pixel_noise,
 )
 
 FloatImage = NDArray[np.float32]
@@ -202,7 +203,7 @@ the field of view is too small for it."""
 
 
 def normalise_profile(profile: MeasuredProfile, to_acescg: NDArray[np.float64] | None = None,
-                      extrapolate: bool = True
+                      extrapolate: bool = True, usable: NDArray[np.bool_] | None = None
                       ) -> tuple[MeasuredProfile, NDArray[np.float64], TailExtrapolation]:
     """Scale each channel so that 2 pi int p r dr = 1 over the whole plane: the measured
     disk (ring areas) plus the tail beyond it, extrapolated from the measured tail
@@ -210,7 +211,8 @@ def normalise_profile(profile: MeasuredProfile, to_acescg: NDArray[np.float64] |
     disk alone). ``to_acescg``: the matrix from the profile's (camera) space to ACEScg;
     each camera channel's tail is extrapolated there (one band of the spectrum, where a
     diffusion model holds; ACEScg channels mix several bands' tails), and the profile,
-    its standard deviations and the tail's shares are converted. Returns the ACEScg
+    its standard deviations and the tail's shares are converted. ``usable``: the
+    samples the tail may be fitted on (:data:`TAIL_PIXEL_SNR`). Returns the ACEScg
     profile, each ACEScg channel's flux and the tail (its shares in ACEScg, its models
     per camera channel)."""
     m = np.eye(3) if to_acescg is None else np.asarray(to_acescg, dtype=np.float64)
@@ -218,7 +220,8 @@ def normalise_profile(profile: MeasuredProfile, to_acescg: NDArray[np.float64] |
     disk = disk_flux(r, profile.values)
     if not np.all(disk > 0):
         raise InputError(f"a channel has no light in the spot (flux {disk.tolist()})")
-    camera_tail = extrapolated_tail(r, profile.values, profile.stddev) if extrapolate else \
+    camera_tail = extrapolated_tail(r, profile.values, profile.stddev, usable) \
+        if extrapolate else \
         TailExtrapolation(("none",) * 3, np.zeros(3), np.zeros(3), np.zeros(3))
     camera_flux = disk + camera_tail.flux_beyond
     flux = m @ camera_flux
@@ -302,6 +305,25 @@ def _rings_and_hair(merged: MergedExposures, mm_per_pixel: float, options: Inges
     return profile, centre
 
 
+TAIL_PIXEL_SNR = 3.0
+"""The tail beyond the image is extrapolated from samples whose single pixels stand this
+many of their own noise sigmas above zero: below, a ring's median can sit on noise that
+the sensor clipped at zero (no black level), a floor 0.4 read-noise sigma high that a
+tail model would carry to infinity (the forehead's blue read 13.9% beyond the image)."""
+
+
+def _resolved_by_pixels(merged: MergedExposures, profile: MeasuredProfile,
+                        centre: tuple[float, float], mm_per_pixel: float,
+                        ring_width_px: float) -> NDArray[np.bool_] | None:
+    """Per sample and channel, whether one pixel resolves it (:data:`TAIL_PIXEL_SNR`);
+    None without a noise model."""
+    if merged.variance is None:
+        return None
+    noise = ring_pixel_noise(merged.variance, centre, profile.radius_mm / mm_per_pixel,
+                             ring_width_px)
+    return profile.values >= TAIL_PIXEL_SNR * noise
+
+
 def ingest_region(
     captures: CaptureSet, region: str, options: IngestOptions | None = None,
     warn: Callable[[str], None] | None = None,
@@ -332,8 +354,11 @@ def ingest_region(
         note("one bracket only: the profile's dynamic range is that of one exposure")
     merged = merge_exposures(images, exposures, captures.camera_colorspace,
                              options.noise_floor, clip, captures.sensor, options.merge)
+    usable = None
     if options.mode == "rings":
         profile, centre = _rings_and_hair(merged, captures.mm_per_pixel, options, region, note)
+        usable = _resolved_by_pixels(merged, profile, centre, captures.mm_per_pixel,
+                                     options.ring_width_px)
     else:
         centre = find_entry_point(merged.radiance)
         profile = radial_profile(merged.radiance, centre, captures.mm_per_pixel,
@@ -348,7 +373,8 @@ def ingest_region(
                                   np.sqrt(profile.stddev**2 @ (to_acescg**2).T),
                                   profile.name, profile.source)
     else:
-        profile, _, tail = normalise_profile(profile, to_acescg, options.extrapolate_tail)
+        profile, _, tail = normalise_profile(profile, to_acescg, options.extrapolate_tail,
+                                             usable)
         wide = [f"{c} {f:.0%}" for c, f in zip("RGB", tail.fraction_beyond, strict=True)
                 if f > TAIL_WARN_FRACTION]
         if wide:

@@ -411,6 +411,27 @@ def radial_profile(
     return MeasuredProfile(radii * mm_per_pixel, values, _floor_std(stderr, values))
 
 
+def ring_pixel_noise(variance: NDArray[np.float64], centre_px: tuple[float, float],
+                     radius_px: NDArray[np.float64], ring_width_px: float = 1.0
+                     ) -> NDArray[np.float64]:
+    """One pixel's noise (standard deviation, per channel) on each ring of radius
+    ``radius_px`` around ``centre_px``: the square root of the median of the merge's
+    per-pixel variance over the ring's pixels (inf where a ring has none)."""
+    h, w, c = variance.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    ring = np.floor(np.hypot(xx - centre_px[0], yy - centre_px[1]).ravel() / ring_width_px
+                    + 0.5).astype(np.int64)
+    flat = variance.reshape(-1, c)
+    order = np.argsort(ring, kind="stable")
+    bounds = np.searchsorted(ring[order], np.arange(ring.max() + 2))
+    out = np.full((radius_px.size, c), np.inf)
+    for i, r in enumerate(radius_px):
+        k = math.floor(r / ring_width_px + 0.5)
+        if k + 1 < bounds.size and bounds[k + 1] > bounds[k]:
+            out[i] = np.sqrt(np.median(flat[order[bounds[k]:bounds[k + 1]]], axis=0))
+    return out
+
+
 HAIR_RATIO = 0.6
 """A pixel darker than this share of the radial model at its radius (3 x 3 median of
 the ratio: a strand is 1.5-3 px wide) is hair; the paper's strands pass 10-50% of the

@@ -391,12 +391,14 @@ def _tail_candidates(r: FloatArray, p: FloatArray, sigma: FloatArray, edge_mm: f
 
 
 def extrapolated_tail(radius_mm: ArrayLike, values: ArrayLike,
-                      stddev: ArrayLike | None = None) -> TailExtrapolation:
+                      stddev: ArrayLike | None = None,
+                      usable: ArrayLike | None = None) -> TailExtrapolation:
     """The flux of a radial profile beyond its measured disk (:func:`disk_radius_mm`),
     from the measured tail: the model of :func:`_tail_candidates` with the smallest AIC,
     on the samples at least 3 standard deviations above zero (1% of the value where
-    none is given), integrated analytically to infinity; every channel's own dipole is
-    fitted first, so that each may hold some of the others' ("dipole+mix"). The
+    none is given) and ``usable`` (where given: samples a caller trusts, e.g. those its
+    single pixels resolve), integrated analytically to infinity; every channel's own
+    dipole is fitted first, so that each may hold some of the others' ("dipole+mix"). The
     uncertainty is the disagreement of the models that still have support
     (:data:`TAIL_SUPPORT_AIC`). A channel with fewer than :data:`TAIL_MIN_SAMPLES` such
     samples, or no decaying tail, gets none."""
@@ -407,7 +409,10 @@ def extrapolated_tail(radius_mm: ArrayLike, values: ArrayLike,
     edge = disk_radius_mm(r)
     outer = r >= (1.0 - TAIL_DIPOLE_FRACTION) * edge
     disk = disk_flux(r, p)
-    uses = [outer & (p[:, c] > 3 * s[:, c]) & (s[:, c] > 0) for c in range(p.shape[1])]
+    ok = np.ones(p.shape, bool) if usable is None else \
+        np.asarray(usable, dtype=bool).reshape(p.shape)
+    uses = [outer & ok[:, c] & (p[:, c] > 3 * s[:, c]) & (s[:, c] > 0)
+            for c in range(p.shape[1])]
     enough = [int(u.sum()) >= TAIL_MIN_SAMPLES for u in uses]
     # each channel's own dipole first: the shapes the others may hold some of
     dipoles = [_fit_dipoles(r[u], p[u, c], s[u, c]) if ok else None
