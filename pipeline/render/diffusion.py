@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from .blur_switch import prefers_direct
+from .chart_tiles import SeamGeometry, TileLevel, tile_level
 from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter
 from .opencl import (
     DeviceTexture,
@@ -135,6 +136,8 @@ class BlurStats:
     """Pyramid level each blurred term ran on (0: full resolution)."""
     full_blurs: float = 0.0
     """Texels blurred, in full-resolution 2D blurs."""
+    tile_texels: dict[int, int] = field(default_factory=dict)
+    """Per pyramid level used, the texels of its chart-tile atlas (tiles and margins)."""
 
 
 class OpenCLBlur(DeviceTexture):
@@ -296,93 +299,82 @@ def diffuse_gather(
     return out, stats
 
 
-# ----------------------------------------------------------- recursive, on a pyramid
+# ------------------------------------------- recursive, on per-chart tile pyramids
 
-LEVEL_MIN_SIGMA_TEXELS = 4.0
+LEVEL_MIN_SIGMA_TEXELS = 2.0
 """A term is blurred on the coarsest pyramid level where its narrowest blur is still
-this many of that level's texels: bilinear reads of a Gaussian that wide are within
-about h^2 |G''| / 8 = 1 / (8 * 16) of its peak, and each level down quarters the work."""
+this many of that level's texels: read back through a cubic B-spline (a Gaussian that
+wide has no spectrum left at the level's Nyquist frequency, e^(-2 pi^2 sigma^2 / 4) <
+1e-8), and each level down quarters the work; a chart tile's margin grows with the
+widest blur its level keeps (4 texels: margins of 25 finest texels on the demo face,
+3.0 M texels at level 0; 2: 13, 1.2 M)."""
 MAX_LEVELS = 6
+MARGIN_SIGMAS = 3.0
+"""A chart tile's margin reaches this many of its level's widest blur's sigma (at the
+1% smallest texels), plus a texel: the mass a Gaussian has beyond it is 1.1% in 2D,
+which the normalised convolution spreads over what it does reach."""
+MARGIN_TEXEL_QUANTILE = 0.01
 
 _PYRAMID_KERNEL = r"""
-// Coarser level: weights (1, 3, 3, 1) / 8 over finer texels 2x-1 .. 2x+2 on each axis,
-// so a texel's mass lands around its own position (a 2x2 box would move it by up to
-// half a texel). Texels outside the finer image count as zero (no coverage); the 1/8
-// an edge texel would give to a coarse texel outside goes to the edge one instead,
-// so every finer texel hands on exactly its mass.
-__kernel void downsample_tent(__global const float4 *src, __global float4 *dst,
-                              const int sw, const int sh, const int dw, const int dh)
-{
-    const int x = get_global_id(0), y = get_global_id(1);
-    if (x >= dw || y >= dh) return;
-    if (x > 0 && y > 0 && x < dw - 1 && y < dh - 1 && 2 * x + 2 < sw && 2 * y + 2 < sh) {
-        // interior: every tap inside and no edge weights to adjust (no branches)
-        float4 rows[4];
-        for (int j = 0; j < 4; ++j) {
-            __global const float4 *r = src + (size_t)(2 * y + j - 1) * sw + 2 * x - 1;
-            rows[j] = 0.125f * (r[0] + r[3]) + 0.375f * (r[1] + r[2]);
-        }
-        dst[y * dw + x] = 0.125f * (rows[0] + rows[3]) + 0.375f * (rows[1] + rows[2]);
-        return;
-    }
-    float wx[4] = {0.125f, 0.375f, 0.375f, 0.125f};
-    float wy[4] = {0.125f, 0.375f, 0.375f, 0.125f};
-    if (x == 0) wx[1] += 0.125f;
-    if (x == dw - 1 && sw == 2 * dw) wx[2] += 0.125f;
-    if (y == 0) wy[1] += 0.125f;
-    if (y == dh - 1 && sh == 2 * dh) wy[2] += 0.125f;
-    float4 acc = 0.0f;
-    for (int j = 0; j < 4; ++j) {
-        const int sy = 2 * y + j - 1;
-        if (sy < 0 || sy >= sh) continue;
-        for (int i = 0; i < 4; ++i) {
-            const int sx = 2 * x + i - 1;
-            if (sx >= 0 && sx < sw) acc += (wx[i] * wy[j]) * src[sy * sw + sx];
-        }
-    }
-    dst[y * dw + x] = acc;
-}
-
 // One batch of blurred terms added up at each texel, each (sum_r rw[r] tw[job, r]) times
 // rgb / alpha of its blurred (E cov, cov) texture (normalised convolution: texels off
-// the charts give nothing and take nothing), read at this texel or bilinearly from a
-// pyramid level 2^-level as large. Job n of the batch: jobs[5n .. 5n+4] = (offset of its
-// texture in `terms` in float4; job index into tw; level width; level height; its
-// level, -1 for the unblurred irradiance `base`). The region weights are read once for
-// the whole batch (a pass per term read them, 24 bytes a texel with six regions, once
-// per term). The sum goes to `rgb` (the result's own memory on a CPU device); acc_in:
-// added to what the previous batches left there.
+// the charts give nothing and take nothing), read in the texel's own chart's tile of a
+// pyramid level 2^-level as large: at ((x + 0.5) 2^-level - 0.5, likewise y) plus the
+// chart's shift in that level's atlas, through a cubic B-spline (level 0: the texel).
+// Job n of the batch: jobs[6n .. 6n+5] = (offset of its texture in `terms` in float4;
+// job index into tw; level width; level height; its level, -1 for the unblurred
+// irradiance `base`; the level's first entry in `shift`). The region weights are read
+// once for the whole batch (a pass per term read them, 24 bytes a texel with six
+// regions, once per term). The sum goes to `rgb` (the result's own memory on a CPU
+// device); acc_in: added to what the previous batches left there.
 #define INL __attribute__((always_inline)) inline
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
 // from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
 // them).
-INL float4 bilinear(__global const float4 *level, int x, int y, int lw, int lh, float scale)
+// the cubic B-spline's four weights at phase t in [0, 1) (cells -1 .. 2): their spread
+// about the read position is 1/3 cell^2 at every phase
+INL float4 bspline3(float t)
 {
-    float fx = ((float)x + 0.5f) * scale - 0.5f, fy = ((float)y + 0.5f) * scale - 0.5f;
-    fx = fx < 0.0f ? 0.0f : fx;
-    fy = fy < 0.0f ? 0.0f : fy;
-    int x0 = (int)fx, y0 = (int)fy;
-    x0 = x0 > lw - 2 ? lw - 2 : x0;
-    y0 = y0 > lh - 2 ? lh - 2 : y0;
-    x0 = x0 < 0 ? 0 : x0;
-    y0 = y0 < 0 ? 0 : y0;
-    const int x1 = x0 + 1 < lw ? x0 + 1 : lw - 1, y1 = y0 + 1 < lh ? y0 + 1 : lh - 1;
-    float ax = fx - (float)x0, ay = fy - (float)y0;
-    ax = ax > 1.0f ? 1.0f : ax;
-    ay = ay > 1.0f ? 1.0f : ay;
-    __global const float4 *r0 = level + y0 * lw, *r1 = level + y1 * lw;
-    return (1.0f - ay) * ((1.0f - ax) * r0[x0] + ax * r0[x1])
-        + ay * ((1.0f - ax) * r1[x0] + ax * r1[x1]);
+    const float t2 = t * t, t3 = t2 * t, s = 1.0f - t;
+    return (float4)(s * s * s, 3.0f * t3 - 6.0f * t2 + 4.0f,
+                    -3.0f * t3 + 3.0f * t2 + 3.0f * t + 1.0f, t3) * (1.0f / 6.0f);
+}
+INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw, int lh)
+{
+    const float ffx = floor(fx), ffy = floor(fy);
+    const int x0 = (int)ffx - 1, y0 = (int)ffy - 1;
+    const float4 wx = bspline3(fx - ffx), wy = bspline3(fy - ffy);
+    const float ax[4] = {wx.x, wx.y, wx.z, wx.w}, ay[4] = {wy.x, wy.y, wy.z, wy.w};
+    float4 acc = (float4)(0.0f);
+    for (int j = 0; j < 4; ++j) {
+        int yy = y0 + j;
+        yy = yy < 0 ? 0 : (yy > lh - 1 ? lh - 1 : yy);
+        __global const float4 *row = level + (size_t)yy * lw;
+        float4 racc = (float4)(0.0f);
+        for (int i = 0; i < 4; ++i) {
+            int xx = x0 + i;
+            xx = xx < 0 ? 0 : (xx > lw - 1 ? lw - 1 : xx);
+            racc += ax[i] * row[xx];
+        }
+        acc += ay[j] * racc;
+    }
+    return acc;
 }
 __kernel void accumulate_terms(__global const float4 *terms, __global const float4 *base,
                                __constant int *jobs, __global float *rgb,
                                __global const float *cover, __global const float *rw,
-                               __constant float4 *tw, const int w, const int h,
+                               __constant float4 *tw, __global const int *chart,
+                               __global const float2 *shift, const int w, const int h,
                                const int n_jobs, const int acc_in)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const int i = y * w + x;
+    const int c = chart[i];
+    if (c < 0 || !(cover[i] > 0.0f)) {  // off the charts: no tile to read
+        rgb[3 * i] = 0.0f; rgb[3 * i + 1] = 0.0f; rgb[3 * i + 2] = 0.0f;
+        return;
+    }
     // every work item takes the same branches (the jobs are uniform): no divergence
     float4 sum = acc_in ? (float4)(rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2], 0.0f)
                         : (float4)(0.0f);
@@ -392,12 +384,20 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
     for (int k = 0; k < REGIONS; ++k) r[k] = rw[(size_t)i * REGIONS + k];
 #endif
     for (int n = 0; n < n_jobs; ++n) {
-        const int off = jobs[5 * n], job = jobs[5 * n + 1], level = jobs[5 * n + 4];
+        const int off = jobs[6 * n], job = jobs[6 * n + 1], level = jobs[6 * n + 4];
         float4 t;
-        if (level < 0) t = base[i];
-        else if (level == 0) t = terms[(size_t)off + i];
-        else t = bilinear(terms + off, x, y, jobs[5 * n + 2], jobs[5 * n + 3],
-                          1.0f / (float)(1 << level));
+        if (level < 0) {
+            t = base[i];
+        } else if (level == 0) {
+            const float2 s = shift[jobs[6 * n + 5] + c];
+            t = terms[(size_t)off + (y + (int)s.y) * jobs[6 * n + 2] + x + (int)s.x];
+        } else {
+            const float2 s = shift[jobs[6 * n + 5] + c];
+            const float scale = 1.0f / (float)(1 << level);
+            t = bspline_read(terms + off, ((float)x + 0.5f) * scale - 0.5f + s.x,
+                             ((float)y + 0.5f) * scale - 0.5f + s.y, jobs[6 * n + 2],
+                             jobs[6 * n + 3]);
+        }
 #if REGIONS > 0
         float4 wgt = 0.0f;
 #pragma unroll
@@ -407,7 +407,6 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 #endif
         sum += (t.w > 1e-7f ? 1.0f / t.w : 0.0f) * wgt * t;
     }
-    sum = cover[i] > 0.0f ? sum : (float4)(0.0f);
     rgb[3 * i] = sum.x; rgb[3 * i + 1] = sum.y; rgb[3 * i + 2] = sum.z;
 }
 """
@@ -415,62 +414,42 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 
 @device_cache(maxsize=8)
 def pyramid_kernels(regions: int) -> dict[str, Any]:
-    """The pack, downsample and accumulation kernels for ``regions`` region weights a
-    texel (0: one region), in one program. The accumulation's jobs (their pyramid
-    levels, whether to add to the output) are arguments, not compiled in: a program a
-    batch cost a cold render a PoCL build (0.3 s) and a compilation of each kernel per
-    batch, for no measurable gain in the accumulation itself."""
+    """The accumulation kernel for ``regions`` region weights a texel (0: one region).
+    The jobs (their pyramid levels, whether to add to the output) are arguments, not
+    compiled in: a program a batch cost a cold render a PoCL build (0.3 s) and a
+    compilation per batch, for no measurable gain in the accumulation itself."""
 
-    program = build(_PACK_KERNEL + _PYRAMID_KERNEL, [f"-DREGIONS={regions}"])
-    return {name: Kernel(program, name, dims)
-            for name, dims in (("pack_coverage", 1), ("downsample_tent", 2),
-                               ("accumulate_terms", 2))}
+    program = build(_PYRAMID_KERNEL, [f"-DREGIONS={regions}"])
+    return {"accumulate_terms": Kernel(program, "accumulate_terms", 2)}
 
 
 def _added_variance_texels2(level: int) -> float:
     """Variance (finest texels^2, per axis) that reaching pyramid ``level`` and reading
-    it back adds: each (1, 3, 3, 1) / 8 step down 3/4 of its finer texel^2, the bilinear
-    read at the finest texels' centres t (1 - t) 4^level averaged over their phases t."""
+    it back adds: each finest texel is splatted bilinearly to the level's cells around
+    its centre, adding t (1 - t) level texels^2 at its phase t, over the 2^k phases
+    (j + 1/2) / 2^k on average 1/6 + 1/(12 4^k), so 4^k / 6 + 1/12 finest texels^2;
+    the cubic B-spline read back adds 1/3 level texel^2 at every phase, 4^k / 3."""
     if level == 0:
         return 0.0
-    n = 4.0**level
-    return (n - 1.0) / 4.0 + n / 6.0 + 1.0 / 12.0
+    return 4.0**level / 2.0 + 1.0 / 12.0
 
 
-def _box_down(a: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Mean over 2x2 blocks (an odd last row/column averages with itself)."""
-    h, w = a.shape
-    p = np.pad(a, ((0, h % 2), (0, w % 2)), mode="edge")
-    return 0.25 * (p[0::2, 0::2] + p[1::2, 0::2] + p[0::2, 1::2] + p[1::2, 1::2])
-
-
-def _level_shapes(h: int, w: int) -> list[tuple[int, int]]:
-    """(height, width) of each pyramid level, halving (rounded up) while 8 texels remain."""
-    shapes = [(h, w)]
-    while len(shapes) < MAX_LEVELS and min(h, w) >> len(shapes) >= 8:
-        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
-    return shapes
-
-
-_PACK_KERNEL = r"""
-// (E cov, cov): the normalised convolution's input, from RGB irradiance and coverage
-__kernel void pack_coverage(__global const float *rgb, __global const float *cover,
-                            __global float4 *dst, const int texels)
-{
-    const int i = get_global_id(0);
-    if (i >= texels) return;
-    const float c = cover[i];
-    dst[i] = (float4)(c * rgb[3 * i], c * rgb[3 * i + 1], c * rgb[3 * i + 2], c);
-}
-"""
+def _max_level(h: int, w: int) -> int:
+    """The coarsest pyramid level: halving while 8 texels remain, at most MAX_LEVELS."""
+    k = 0
+    while k + 1 < MAX_LEVELS and min(h, w) >> (k + 1) >= 8:
+        k += 1
+    return k
 
 
 DIRECT_TEXEL_QUANTILE = 1e-4
-"""The per-texel direct blur's radius is set by the texel sizes from this quantile up:
-one in 10^4 texels can be far smaller than the rest (degenerate UV, on the demo face
-ten at 0.011 mm against 0.082 mm at this quantile and 0.105 mm median), and they
-would set a radius far wider than every other texel needs; they are blurred as if
-they were the quantile's size (narrower than their own sigma), and counted."""
+DIRECT_TEXEL_MIN_COUNT = 8
+"""The per-texel direct blur's radius is set by the chart texels' sizes from this
+quantile up, and never by the DIRECT_TEXEL_MIN_COUNT smallest: one in 10^4 texels can
+be far smaller than the rest (degenerate UV, on the demo face ten at 0.011 mm against
+0.082 mm at this quantile and 0.105 mm median), and they would set a radius far wider
+than every other texel needs; they are blurred as if they were the quantile's size
+(narrower than their own sigma), and counted."""
 TERM_BUFFER_TEXTURES = 4
 """Blurred terms kept at once before they are added up, in full-resolution textures
 (64 MiB each at 2048^2): each further batch reads and writes the result once more."""
@@ -494,17 +473,94 @@ class TexelSteps(NamedTuple):
     """How many texel sizes (u and v) lie below the first step."""
 
 
+@dataclass(frozen=True)
+class ChartLayout:
+    """The UV layout's charts, for diffusion across seams: the chart of each texel (H, W;
+    -1 off the charts), how many, and the surface the charts' margins are read from
+    (None: none, each chart blurred alone)."""
+
+    chart: NDArray[np.int32]
+    n_charts: int
+    geometry: SeamGeometry | None = None
+    coverage: NDArray[np.float32] | None = None
+    """(H, W, 3): the share of each texel's square its chart covers and that part's
+    centre (:func:`~.chart_tiles.texel_coverage`); None: all of it, at the texel's
+    centre."""
+
+
+class LevelGrid:
+    """One pyramid level as an atlas of chart tiles (:class:`~.chart_tiles.TileLevel`)
+    with what its blurs need: texel sizes on the log2 grid as device indices (recursive
+    and direct blur), whether the size is one everywhere, the typical size."""
+
+    def __init__(self, tiles: TileLevel, ctx: Any) -> None:
+        self.tiles = tiles
+        self.level = tiles.level
+        self.shape = tiles.shape
+        self.ctx = ctx
+        inner = tiles.count.reshape(tiles.shape) > 0
+        mm = [tiles.mm_u, tiles.mm_v]
+        on = [m[inner] for m in mm] if inner.any() else [m.ravel() for m in mm]
+        self.typical = [float(np.median(m)) for m in on]
+        self.uniform = all(float(m.max() - m.min()) <= 1e-6 * float(m.max()) for m in on)
+        self._q = tuple(quantized_log2(m) for m in mm)
+        self._inner = inner
+        self._index: tuple[int, int, int, int, Any, Any] | None = None
+        self._texel: TexelSteps | bool | None = False
+
+    def index(self) -> tuple[int, int, int, int, Any, Any]:
+        """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
+        (int32, row layout), v index buffer (transposed)) of the texel sizes on the log2
+        grid, for the recursive blur; made on first use."""
+        if self._index is None:
+            qu, qv = self._q
+            flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+            lo_u, lo_v = int(qu.min()), int(qv.min())
+            self._index = (
+                lo_u, int(qu.max()), lo_v, int(qv.max()),
+                cl.Buffer(self.ctx, flags, hostbuf=(qu - lo_u).astype(np.int32)),
+                cl.Buffer(self.ctx, flags, hostbuf=np.ascontiguousarray((qv - lo_v).T,
+                                                                         np.int32)))
+        return self._index
+
+    def texel_steps(self) -> TexelSteps | None:
+        """:class:`TexelSteps` for the per-texel direct blur, made on first use; None
+        when the steps span more than a uint16 holds."""
+        if self._texel is False:
+            steps, indices, smaller = [], [], 0
+            for q in self._q:
+                # the chart's own texels set the steps (a margin texel copies its nearest
+                # one, a degenerate texel's size as often as it is nearest)
+                on = (q[self._inner] if self._inner.any() else q).ravel()
+                rank = min(max(int(DIRECT_TEXEL_QUANTILE * on.size), DIRECT_TEXEL_MIN_COUNT),
+                           on.size - 1)
+                lo = int(np.partition(on, rank)[rank])
+                steps.append(np.arange(lo, int(q.max()) + 1, dtype=np.int32))
+                smaller += int((on < lo).sum())
+                indices.append(np.maximum(q - lo, 0))
+            if max(st.size for st in steps) > 65535:
+                self._texel = None
+            else:
+                flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+                self._texel = TexelSteps(
+                    *steps, *(cl.Buffer(self.ctx, flags, hostbuf=i.astype(np.uint16))
+                              for i in indices), smaller)
+        return self._texel  # type: ignore[return-value]
+
+
 class DiffusionLayout:
-    """What the diffusion of one texture layout needs besides the irradiance, on the
-    device: coverage, region weights, the pyramid's shapes, each level's per-texel
-    coefficient indices (texel size on a log2 grid, :func:`~.recursive_blur.quantized_log2`).
-    It depends on the UV layout and the texture size only, so a renderer makes it once
-    and reuses it for every frame and light (:func:`diffuse_prepared`), and it keeps the
-    work buffers: first touching fresh device memory costs PoCL about as much as a blur.
+    """What the diffusion of one texture layout needs besides the irradiance: coverage,
+    region weights, the charts (:class:`ChartLayout`; without: every covered texel one
+    chart) and, per pyramid level and margin, the charts' tile atlas
+    (:class:`LevelGrid`, :mod:`.chart_tiles`). It depends on the UV layout and the
+    texture size only, so a renderer makes it once and reuses it for every frame and
+    light (:func:`diffuse_prepared`), and it keeps the work buffers: first touching
+    fresh device memory costs PoCL about as much as a blur.
     """
 
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
-                 coverage: NDArray[Any], region_weights: NDArray[Any] | None = None) -> None:
+                 coverage: NDArray[Any], region_weights: NDArray[Any] | None = None,
+                 charts: ChartLayout | None = None) -> None:
         cov = np.asarray(coverage, dtype=np.float32)
         if cov.ndim != 2:
             raise InputError(f"coverage must be (H, W), got {cov.shape}")
@@ -522,11 +578,15 @@ class DiffusionLayout:
         self.present = _region_presence(self.region_weights)
         covered = cov > 0
         self.any_covered = bool(covered.any())
-        self.shapes = _level_shapes(h, w)
-        self._index: dict[int, tuple[int, int, int, int, Any, Any]] = {}
-        self._texel_index: dict[int, TexelSteps | None] = {}
-        self._steps: dict[int, tuple[NDArray[np.int32], ...]] = {}
+        if charts is None:
+            charts = ChartLayout(np.where(covered, 0, -1).astype(np.int32), 1)
+        elif charts.chart.shape != (h, w) or not np.array_equal(charts.chart >= 0, covered):
+            raise InputError("the chart map must have a chart exactly where coverage is")
+        self.charts = charts
+        self.levels = _max_level(h, w) + 1
+        self._grids: dict[tuple[int, int], LevelGrid] = {}
         self._buffers: dict[str, Any] = {}
+        self._mm = mm
         if not self.any_covered:
             return
         on_chart = [m[covered] for m in mm]
@@ -536,73 +596,69 @@ class DiffusionLayout:
                 raise InputError(f"mm per texel ({name}) must be finite and > 0 on covered "
                                  f"texels; texel ({x}, {y}) has {m[y, x]}")
         self.typical = [float(np.median(mc)) for mc in on_chart]
-        self.uniform = all(float(mc.max() - mc.min()) <= 1e-6 * float(mc.max())
-                           for mc in on_chart)
         # the level is chosen for the narrowest blur but for the 1% smallest texels
         self.coarse_mm = max(float(np.percentile(mc, 99.0)) for mc in on_chart)
         self.finest_mm = min(float(mc.min()) for mc in on_chart)
+        # a tile's margin must reach the widest blur at its level's small texels
+        self.small_mm = min(float(np.quantile(mc, MARGIN_TEXEL_QUANTILE)) for mc in on_chart)
         del on_chart
-        # texels off the charts carry nothing, but the recursion runs through them: give
-        # them a typical size so their coefficients stay in range
-        self._mm = [np.where(covered, m, np.float32(t))
-                    for m, t in zip(mm, self.typical, strict=True)]
         self.iir = iir_kernels()
         self.cover_buf = host_buffer(cov)
+        self.chart_buf = host_buffer(charts.chart.astype(np.int32))
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
         self.rw_buf = host_buffer(self.region_weights if self.region_weights is not None
                                   else np.zeros(1, np.float32))
 
-    def _level_steps(self, k: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-        """Level ``k``'s texel sizes (u, v) on the log2 grid, in finest texels (a
-        level-k texel's size is the mean of the finer texels it covers)."""
-        if k not in self._steps:  # kept until both kinds of index are made from them
-            mm_k = self._mm
-            for _ in range(k):
-                mm_k = [_box_down(m) for m in mm_k]
-            self._steps[k] = tuple(quantized_log2(m * np.float32(2.0**k)) for m in mm_k)
-        return self._steps[k]
+    def margin(self, level: int, sigma_mm: float) -> int:
+        """Texels of margin a tile at ``level`` needs for a blur of ``sigma_mm`` (the
+        largest of the level's jobs): :data:`MARGIN_SIGMAS` of it at the level's
+        :data:`MARGIN_TEXEL_QUANTILE` smallest texels, plus one."""
+        return math.ceil(MARGIN_SIGMAS * sigma_mm / (self.small_mm * 2.0**level)) + 1
 
-    def level_index(self, k: int) -> tuple[int, int, int, int, Any, Any]:
-        """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
-        (int32, row layout), v index buffer (transposed)) of level ``k``'s texel sizes
-        on the log2 grid, for the recursive blur; made on first use."""
-        if k not in self._index:
-            qu, qv = self._level_steps(k)
-            flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-            lo_u, lo_v = int(qu.min()), int(qv.min())
-            self._index[k] = (
-                lo_u, int(qu.max()), lo_v, int(qv.max()),
-                cl.Buffer(self.iir.ctx, flags, hostbuf=(qu - lo_u).astype(np.int32)),
-                cl.Buffer(self.iir.ctx, flags,
-                          hostbuf=np.ascontiguousarray((qv - lo_v).T, np.int32)))
-            self._release_steps(k)
-        return self._index[k]
+    def term_level(self, variance: float) -> int:
+        """The pyramid level a term of ``variance`` mm^2 is blurred on: the coarsest where
+        its blur is still LEVEL_MIN_SIGMA_TEXELS of that level's texels, at the 1%
+        largest texels."""
+        sigma = math.sqrt(variance) / self.coarse_mm  # narrowest blur, finest texels
+        k = 0
+        while k + 1 < self.levels and sigma / 2 ** (k + 1) >= LEVEL_MIN_SIGMA_TEXELS:
+            k += 1
+        return k
 
-    def _release_steps(self, k: int) -> None:
-        """Drop level ``k``'s texel-size steps once both kinds of index are made."""
-        if k in self._index and k in self._texel_index:
-            self._steps.pop(k, None)
+    def level_margins(self, variances_mm2: NDArray[Any]) -> dict[int, int]:
+        """Per pyramid level the tile margin the terms of ``variances_mm2`` blurred there
+        need (:meth:`margin` of the widest; terms narrower than a quarter texel are not
+        blurred)."""
+        widest: dict[int, float] = {}
+        for var in np.asarray(variances_mm2, dtype=np.float64).ravel():
+            if math.sqrt(var) / self.finest_mm < TABLE_MIN_SIGMA:
+                continue
+            k = self.term_level(float(var))
+            widest[k] = max(widest.get(k, 0.0), max(_job_sigma_mm(self, float(var), k)))
+        return {k: self.margin(k, sg) for k, sg in widest.items()}
 
-    def texel_steps(self, k: int) -> TexelSteps | None:
-        """Level ``k``'s :class:`TexelSteps` for the per-texel direct blur, made on first
-        use; None when the steps span more than a uint16 holds."""
-        if k not in self._texel_index:
-            qu, qv = self._level_steps(k)
-            steps, indices, smaller = [], [], 0
-            for q in (qu, qv):
-                lo = int(np.floor(np.quantile(q, DIRECT_TEXEL_QUANTILE)))
-                steps.append(np.arange(lo, int(q.max()) + 1, dtype=np.int32))
-                smaller += int((q < lo).sum())
-                indices.append(np.maximum(q - lo, 0))
-            if max(st.size for st in steps) > 65535:
-                self._texel_index[k] = None
-            else:
-                flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-                self._texel_index[k] = TexelSteps(
-                    *steps, *(cl.Buffer(self.iir.ctx, flags, hostbuf=i.astype(np.uint16))
-                              for i in indices), smaller)
-            self._release_steps(k)
-        return self._texel_index[k]
+    def prepare(self, variances_mm2: NDArray[Any]) -> None:
+        """Make the chart tiles the terms of ``variances_mm2`` need ahead of a diffusion
+        (a renderer's layout task does, so that the frames' diffusion finds them)."""
+        if self.any_covered:
+            for k, margin in self.level_margins(variances_mm2).items():
+                self.grid(k, margin)
+
+    def grid(self, level: int, margin: int) -> LevelGrid:
+        """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
+        on first use (:func:`~.chart_tiles.tile_level`)."""
+        key = (level, margin)
+        # a wider margin holds what a narrower one would (more texels blurred, the same
+        # light): a second set of terms (one profile for all regions) reuses the tiles
+        wider = [m for (k, m) in self._grids if k == level and m >= margin]
+        if wider:
+            key = (level, min(wider))
+        if key not in self._grids:
+            c = self.charts
+            self._grids[key] = LevelGrid(tile_level(c.chart, c.n_charts, self._mm[0],
+                                                    self._mm[1], level, margin, c.geometry,
+                                                    c.coverage), self.iir.ctx)
+        return self._grids[key]
 
     def buffer(self, name: str, nbytes: int) -> Any:
         """A device work buffer of at least ``nbytes``, kept for the next diffusion of
@@ -629,25 +685,31 @@ def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, in
     return batches
 
 
-def _blur_job(layout: DiffusionLayout, src: Any, tmp: Any, dst: Any, variance: float,
-              k: int, stats: BlurStats) -> None:
-    """Enqueue the blur of one term (``variance`` mm^2) of pyramid level ``k`` (``src``)
-    into ``dst``: sigma per axis less what the pyramid and its bilinear read add; the
-    direct kernel for narrow uniform blurs, else the recursive one (per texel where
-    the layout's texel sizes vary)."""
+def _job_sigma_mm(layout: DiffusionLayout, variance: float, k: int) -> list[float]:
+    """Per axis the blur's sigma in mm for a term of ``variance`` mm^2 at pyramid level
+    ``k``: less what reaching the level and reading it back add."""
+    return [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2 if k else 0.0),
+                          1e-30)) for t in layout.typical]
+
+
+def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst: Any,
+              variance: float, stats: BlurStats) -> None:
+    """Enqueue the blur of one term (``variance`` mm^2) of one level's tile atlas
+    (``src``) into ``dst``: sigma per axis less what the tile level and its B-spline read
+    add; the direct kernel for narrow uniform blurs, else the recursive one (per texel
+    where the layout's texel sizes vary)."""
     iir = layout.iir
-    lh, lw = layout.shapes[k]
-    sigma_mm = [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2 if k else 0.0),
-                              1e-30)) for t in layout.typical]
-    if layout.uniform:
-        su, sv = (sg / (t * 2.0**k) for sg, t in zip(sigma_mm, layout.typical, strict=True))
+    lh, lw = grid.shape
+    sigma_mm = _job_sigma_mm(layout, variance, grid.level)
+    if grid.uniform:
+        su, sv = (sg / t for sg, t in zip(sigma_mm, grid.typical, strict=True))
         if prefers_direct(su, sv):  # narrow: one pass of the direct kernel is cheaper
             direct_kernels().blur(src, dst, lh, lw, su, sv)
             stats.passes += 1
             return
         iir.blur(src, tmp, dst, lh, lw, iir.coefficients(su), iir.coefficients(sv))
     else:
-        steps = layout.texel_steps(k)
+        steps = grid.texel_steps()
         if steps is not None:
             # per-texel sigma (level texels) on each axis's log2 grid; the widest at its
             # smallest texel sets the radius
@@ -658,12 +720,12 @@ def _blur_job(layout: DiffusionLayout, src: Any, tmp: Any, dst: Any, variance: f
                                                 fir_weight_table(sigmas[1]), steps.index_u,
                                                 steps.index_v)
                 stats.passes += 1
-                note = (f"level {k}: {steps.smaller} texel sizes below the "
+                note = (f"level {grid.level}: {steps.smaller} texel sizes below the "
                         f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
                 if steps.smaller and note not in stats.skipped:
                     stats.skipped.append(note)
                 return
-        lo_u, hi_u, lo_v, hi_v, index_u, index_v = layout.level_index(k)
+        lo_u, hi_u, lo_v, hi_v, index_u, index_v = grid.index()
         coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
                  for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
         iir.blur(src, tmp, dst, lh, lw, coefs[0], coefs[1], index_u, index_v)
@@ -678,16 +740,20 @@ def diffuse(
     variances_mm2: NDArray[Any],
     term_weights: NDArray[Any],
     region_weights: NDArray[Any] | None = None,
+    charts: ChartLayout | None = None,
 ) -> tuple[NDArray[np.float32], BlurStats]:
     """Diffused irradiance sum_i w_i(texel) (G(v_i) * E) for RGB irradiance (H, W, 3).
 
     ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
     each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
     each region a texel is (None: one region everywhere). A texel's weights are the
-    region-blended ones, so borders between regions blend smoothly. The layout is made
-    for this call; :class:`DiffusionLayout` and :func:`diffuse_prepared` keep it.
+    region-blended ones, so borders between regions blend smoothly. ``charts``: the UV
+    layout's charts and the surface across their seams (:class:`ChartLayout`). The
+    layout is made for this call; :class:`DiffusionLayout` and :func:`diffuse_prepared`
+    keep it.
     """
-    layout = DiffusionLayout(mm_per_texel_u, mm_per_texel_v, coverage, region_weights)
+    layout = DiffusionLayout(mm_per_texel_u, mm_per_texel_v, coverage, region_weights,
+                             charts)
     return diffuse_prepared(layout, irradiance, variances_mm2, term_weights)
 
 
@@ -702,13 +768,15 @@ def diffuse_prepared(
     Each term is blurred from the irradiance (:func:`_blur_job`: the direct kernel when
     narrow, else the recursive one), with per-texel sigma from the stretch maps, as a
     normalised convolution of (E cov, cov) (chart borders neither darken nor leak), on
-    the coarsest level of a (1, 3, 3, 1) pyramid where it is still
-    LEVEL_MIN_SIGMA_TEXELS wide (the variance the pyramid and bilinear read add is
-    taken off the blur). The blurred terms are kept TERM_BUFFER_TEXTURES at a time and
-    added up in one pass per batch. On a CPU device the irradiance is read and the
-    result written where they are, in host memory. Terms with zero weight on every
-    texel are skipped; one narrower than a quarter texel everywhere is the unblurred
-    irradiance.
+    the coarsest pyramid level where it is still LEVEL_MIN_SIGMA_TEXELS wide (the
+    variance the pyramid and bilinear read add is taken off the blur). Every level is an
+    atlas of chart tiles whose margins hold the surface across the charts' seams, as
+    wide as the level's widest blur reaches (:mod:`.chart_tiles`), so light crosses
+    seams. The blurred terms are kept TERM_BUFFER_TEXTURES at a time and added up in
+    one pass per batch, each texel reading its own chart's tiles. On a CPU device the
+    irradiance is read and the result written where they are, in host memory. Terms
+    with zero weight on every texel are skipped; one narrower than a quarter texel
+    everywhere is the unblurred irradiance.
     """
     h, w = layout.height, layout.width
     e = _check_irradiance(irradiance)
@@ -722,15 +790,6 @@ def diffuse_prepared(
         return np.zeros((h, w, 3), np.float32), stats
     iir = layout.iir
     queue = iir.queue
-    shapes = layout.shapes
-    n_levels = len(shapes)
-
-    def term_level(variance: float) -> int:
-        sigma = math.sqrt(variance) / layout.coarse_mm  # narrowest blur, finest texels
-        k = 0
-        while k + 1 < n_levels and sigma / 2 ** (k + 1) >= LEVEL_MIN_SIGMA_TEXELS:
-            k += 1
-        return k
 
     # one job per distinct (variance, level): equal variances share a blur, and their
     # weights add (accumulation is linear in them); sub-texel terms share the unblurred
@@ -741,7 +800,7 @@ def diffuse_prepared(
         if not used[i]:
             stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): zero weight everywhere")
             continue
-        job = (float(v[i]), term_level(float(v[i])))
+        job = (float(v[i]), layout.term_level(float(v[i])))
         if math.sqrt(v[i]) / layout.finest_mm < TABLE_MIN_SIGMA:
             stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): narrower than a quarter "
                                  "texel, the unblurred irradiance")
@@ -753,47 +812,55 @@ def diffuse_prepared(
         else:
             jobs.append(job)
             job_weights.append(tw[:, i].copy())
-    need = max(k for _, k in jobs)
-    nbytes = h * w * 16
-    mf = cl.mem_flags
+    # each level's tile atlas, its margin as wide as its widest blur reaches, filled
+    # with this irradiance (host memory, read in place on a CPU device)
+    grids: dict[int, LevelGrid] = {}
+    sources: dict[int, Any] = {}
+    covered = e[layout.charts.chart >= 0]
+    for k, margin in sorted(layout.level_margins(v[used]).items()):
+        grids[k] = layout.grid(k, margin)
+        sources[k] = host_buffer(grids[k].tiles.fill(covered))
+    stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
+    nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
     tmp = layout.buffer("tmp", nbytes)
-    pyramid = [layout.buffer("level0", nbytes)]
-    batches = _term_batches([0 if var == 0.0 else shapes[k][0] * shapes[k][1] * 16
-                             for var, k in jobs], TERM_BUFFER_TEXTURES * nbytes)
+    sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
+             for var, k in jobs]
+    batches = _term_batches(sizes, TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16))
     kernels = pyramid_kernels(layout.n_regions)
-    source = host_buffer(e)  # RGB: 12 of its 16 bytes a texel, read where it is
-    kernels["pack_coverage"](queue, (h * w,), None, source, layout.cover_buf,
-                                 pyramid[0], np.int32(h * w))
-    for k in range(1, need + 1):
-        (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
-        pyramid.append(layout.buffer(f"level{k}", dh * dw * 16))
-        kernels["downsample_tent"](queue, (dw, dh), None, pyramid[k - 1], pyramid[k],
-                                       np.int32(sw), np.int32(sh), np.int32(dw), np.int32(dh))
+    base = host_buffer(np.concatenate([e, np.ones((h, w, 1), np.float32)], axis=2))
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
+    mf = cl.mem_flags
     tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
+    levels = sorted(grids)
+    shift = np.concatenate([grids[k].tiles.shift for k in levels] or
+                           [np.zeros((1, 2), np.float32)]).astype(np.float32)
+    shift_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shift)
+    shift_at = {k: n * layout.charts.n_charts for n, k in enumerate(levels)}
     terms = layout.buffer("terms", max(end for batch in batches for _, end in batch.values()))
     out = np.empty((h, w, 3), np.float32)
     out_buf = host_output(out)  # every batch adds its terms there
 
     blurred_texels = 0.0
     for b, batch in enumerate(batches):
-        table = np.zeros((len(batch), 5), np.int32)
+        table = np.zeros((len(batch), 6), np.int32)
         for n, (j, (start, end)) in enumerate(batch.items()):
             variance, k = jobs[j]
-            lh, lw = shapes[k]
-            table[n] = (start // 16, j, lw, lh, k if variance > 0 else -1)
             if variance == 0.0:
+                table[n] = (start // 16, j, 1, 1, -1, 0)
                 continue
+            grid = grids[k]
+            lh, lw = grid.shape
+            table[n] = (start // 16, j, lw, lh, k, shift_at[k])
             work = terms.get_sub_region(start, end - start)
-            _blur_job(layout, pyramid[k], tmp, work, variance, k, stats)
+            _blur_job(layout, grid, sources[k], tmp, work, variance, stats)
             stats.levels.append(k)
             blurred_texels += lh * lw
         kernels["accumulate_terms"](
-            queue, (w, h), None, terms, pyramid[0],
+            queue, (w, h), None, terms, base,
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
-            out_buf, layout.cover_buf, layout.rw_buf, tw_buf, np.int32(w), np.int32(h),
-            np.int32(len(batch)), np.int32(b > 0))
+            out_buf, layout.cover_buf, layout.rw_buf, tw_buf, layout.chart_buf, shift_buf,
+            np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))
     read_output(queue, out_buf, out)
     stats.full_blurs = blurred_texels / (h * w)
     return out, stats

@@ -38,7 +38,8 @@ from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
 from .blur_switch import TUNE_STREAM, direct_limits
-from .diffusion import DiffusionLayout, diffuse_gather, diffuse_prepared
+from .chart_tiles import SeamGeometry, texel_coverage, uv_charts
+from .diffusion import ChartLayout, DiffusionLayout, diffuse_gather, diffuse_prepared
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -62,7 +63,7 @@ from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import TextureMaps, rasterize, vertex_normals
+from .texture_maps import TextureMaps, rasterize, triangle_jacobians, vertex_normals
 from .unwrap import triangulate, unwrap
 
 EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
@@ -362,6 +363,22 @@ class SkinTextures:
     instead of hashing the maps themselves."""
 
 
+def seam_charts(tex: SkinTextures, rays: RayScene, mesh_index: int) -> ChartLayout:
+    """The UV layout's charts of one skin mesh and the surface across their seams
+    (:class:`~.diffusion.ChartLayout`): the chart of each texel, and for the margins the
+    ray scene, each triangle's chart, UV corners (texels) and Jacobian, and each texel's
+    triangle, position and normal."""
+    maps = tex.maps
+    tri_chart, n_charts = uv_charts(tex.uv_tris, tex.uv.shape[0])
+    chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)], -1)
+    corners, _, jacobian = triangle_jacobians(tex.mesh.mesh.points, tex.tris, tex.uv,
+                                              tex.uv_tris.reshape(-1, 3), maps.size)
+    chart = chart.astype(np.int32)
+    return ChartLayout(chart, n_charts, SeamGeometry(
+        rays, mesh_index, tri_chart, corners, jacobian, maps.triangle, maps.position,
+        maps.normal), texel_coverage(chart, maps.triangle, tri_chart, corners))
+
+
 class Renderer:
     """Renders frames of a stage; texture-space work is cached across frames and edits."""
 
@@ -503,7 +520,8 @@ class Renderer:
         log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
                                       "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6}
 
-    def _diffusion(self, log: TaskLog, tex: SkinTextures) -> None:
+    def _diffusion(self, log: TaskLog, tex: SkinTextures, rays: RayScene,
+                   mesh_index: int, geometry_key: str) -> None:
         opts = self.options
         maps = tex.maps
         assert tex.irradiance is not None
@@ -518,15 +536,26 @@ class Renderer:
         recursive = opts.scattering and opts.blur == "recursive"
 
         def layout() -> tuple[DiffusionLayout | None, NDArray[np.float32]]:
-            # depends on the UV layout only: made once for every frame and light
-            return (DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                                    maps.region_weights) if recursive else None,
-                    (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel())
+            # depends on the UV layout and the geometry only: made once for every frame,
+            # light and set of terms; the charts' tiles cross the UV seams (chart_tiles),
+            # each set of terms adds the tiles and margins it reaches (prepare)
+            prepared = None
+            if recursive:
+                prepared = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v,
+                                           maps.coverage, maps.region_weights,
+                                           seam_charts(tex, rays, mesh_index))
+            return prepared, (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel()
 
         if f"diffusion:{key}" not in self._cache:
             # its own task (not timed inside the diffusion's): a frame's diffusion reuses it
-            prepared, area = self._cached(log, "diffusion_layout",
-                                          content_hash(tex.keys["maps"], recursive), layout)
+            prepared, area = self._cached(log, "diffusion_layout", content_hash(
+                tex.keys["maps"], recursive, geometry_key), layout)
+            if prepared is not None:
+                # other terms (one profile for every region) add the tiles they lack
+                start = time.perf_counter()
+                prepared.prepare(terms.variances_mm2)
+                log.seconds["diffusion_layout"] = (log.seconds.get("diffusion_layout", 0.0)
+                                                   + time.perf_counter() - start)
 
         def compute() -> Any:
             a = opts.albedo_split
@@ -606,7 +635,8 @@ class Renderer:
         for mesh in scene.skin:
             tex = self._textures(log, scene, mesh)
             self._irradiance(log, scene, tex, rays, domes)
-            self._diffusion(log, tex)
+            self._diffusion(log, tex, rays, scene.meshes.index(mesh),
+                            scene_geometry_key(scene))
             skins.append(tex)
         self.textures = skins  # the last frame's texture-space results, for outputs
         seen = [i for i, m in enumerate(scene.meshes) if m.camera_visible]

@@ -54,6 +54,26 @@ def vertex_normals(points: NDArray[np.float64], tris: NDArray[np.int32]) -> NDAr
     return np.where(length > 0, n / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
 
 
+def triangle_jacobians(points: NDArray[np.float64], tris: NDArray[np.int32],
+                       uv: NDArray[np.float64], uv_tris: NDArray[np.int32], size: int
+                       ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per triangle its UV corners in texel coordinates (T, 3, 2; texel centres at
+    integers: x = u size - 0.5, y = v size - 0.5), the determinant of its UV edges, and
+    J = dP / d texel (T, 3, 2; scene units per texel step along x and y; zero where the
+    UV triangle is degenerate)."""
+    q = uv * size - 0.5  # texel centres at integer coordinates
+    tq = q[uv_tris]  # (T, 3, 2)
+    tp = points[tris]  # (T, 3, 3)
+    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.abs(det) > 1e-12
+    inv = np.zeros((tris.shape[0], 2, 2))
+    inv[ok, 0, 0], inv[ok, 0, 1] = e2[ok, 1] / det[ok], -e2[ok, 0] / det[ok]
+    inv[ok, 1, 0], inv[ok, 1, 1] = -e1[ok, 1] / det[ok], e1[ok, 0] / det[ok]
+    edges = np.stack([tp[:, 1] - tp[:, 0], tp[:, 2] - tp[:, 0]], axis=2)  # (T, 3, 2)
+    return tq, det, edges @ inv
+
+
 def _triangles(points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
                uv_tris: NDArray[np.int32], size: int, meters_per_unit: float
                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
@@ -65,18 +85,7 @@ def _triangles(points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray
         raise InputError(f"texture size must be 8-16384 texels, got {size}")
     if not np.all(np.isfinite(uv)):
         raise InputError("non-finite texture coordinates")
-    q = uv * size - 0.5  # texel centres at integer coordinates
-    tq = q[uv_tris]  # (T, 3, 2)
-    tp = points[tris]  # (T, 3, 3)
-    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    ok = np.abs(det) > 1e-12
-    # stretch: world distance per texel step along u and v (J = dP/d(texel))
-    inv = np.zeros((tris.shape[0], 2, 2))
-    inv[ok, 0, 0], inv[ok, 0, 1] = e2[ok, 1] / det[ok], -e2[ok, 0] / det[ok]
-    inv[ok, 1, 0], inv[ok, 1, 1] = -e1[ok, 1] / det[ok], e1[ok, 0] / det[ok]
-    edges = np.stack([tp[:, 1] - tp[:, 0], tp[:, 2] - tp[:, 0]], axis=2)  # (T, 3, 2)
-    jac = edges @ inv  # (T, 3, 2): columns d P / d u_texel, d P / d v_texel
+    tq, det, jac = triangle_jacobians(points, tris, uv, uv_tris, size)
     mm = meters_per_unit * 1000.0
     tri_mm_u = np.linalg.norm(jac[:, :, 0], axis=1) * mm
     tri_mm_v = np.linalg.norm(jac[:, :, 1], axis=1) * mm

@@ -17,7 +17,7 @@ from ..fileio import atomic_path, atomic_write_json
 from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.types import MeasuredProfile
 from ..render.raytrace import RayScene
-from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear
+from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear, scene_geometry_key
 from ..render.unwrap import triangulate
 from ..usd.io import open_stage_guarded
 
@@ -221,7 +221,8 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                 tex = renderer._textures(log, sc, mesh)
                 renderer._irradiance(log, sc, tex, rays, {})
                 t0 = time.perf_counter()
-                renderer._diffusion(log, tex)
+                renderer._diffusion(log, tex, rays, sc.meshes.index(mesh),
+                                    scene_geometry_key(sc))
                 seconds = (log.seconds.get("texture_maps", 0) + log.seconds.get("irradiance", 0)
                            + time.perf_counter() - t0)
             finally:

@@ -71,13 +71,17 @@ def test_pencil_light_reproduces_the_profile_in_mm(mm_u: float, mm_v: float) -> 
 
 
 def test_energy_is_conserved_away_from_borders() -> None:
+    import pipeline.render.diffusion as d
+
     v = np.array([0.05, 0.5])
     w = np.array([[0.4, 0.5, 0.6], [0.6, 0.5, 0.4]])
     _, got, stats = _pencil(401, 0.05, 0.05, v, w)
     total = got.sum(axis=0) * 0.05 * 0.05
     np.testing.assert_allclose(total, 1.0, rtol=2e-4)
-    assert stats.passes == 4
-    assert stats.levels == [0, 1]  # the wide term (sigma 14 texels) runs at half size
+    # each term on the coarsest level where it is still LEVEL_MIN_SIGMA_TEXELS wide: the
+    # wide one (sigma 14 texels) on a coarser level than the narrow one (4.5 texels)
+    expect = [int(math.log2(sg / d.LEVEL_MIN_SIGMA_TEXELS)) for sg in (4.47, 14.1)]
+    assert stats.levels == expect and expect[1] > expect[0]
 
 
 def test_zero_weight_terms_are_skipped() -> None:
@@ -96,7 +100,8 @@ def _normalised_convolution(e: np.ndarray, cov: np.ndarray, sigma_texels: float)
         return gaussian_filter(x, sigma_texels, mode="constant", truncate=12.0)
 
     a = g(cov.astype(np.float64))
-    return np.stack([g(e[..., c] * cov) for c in range(3)], axis=-1) / a[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):  # 0/0 far off the chart: NaN
+        return np.stack([g(e[..., c] * cov) for c in range(3)], axis=-1) / a[..., None]
 
 
 @pytest.mark.parametrize("sigma_texels", [0.8, 3.0, 12.0, 40.0])
@@ -118,8 +123,9 @@ def test_one_term_matches_the_exact_normalised_convolution(sigma_texels: float) 
     err = np.abs(got[sel] - ref[sel]).max() / np.abs(ref[sel]).max()
     assert err < 5e-3, (stats.levels, err)
     assert not np.any(got[~sel])  # texels off the chart take nothing
-    # narrow terms run the one-pass direct blur, wide ones the recursive one (two passes)
-    assert stats.passes == (1 if sigma_texels < 4 else 2)
+    # narrow blurs (at their level) run the one-pass direct blur, wide ones the
+    # recursive one (two passes)
+    assert stats.passes == (1 if sigma_texels / 2 ** stats.levels[0] < 4 else 2)
 
 
 @pytest.mark.parametrize("level", [1, 2, 3])
@@ -145,7 +151,8 @@ def test_a_term_on_a_pyramid_level_keeps_its_centre_and_variance(
         row = got[..., 0].sum(axis=0)
         x = np.arange(n)
         mean = (row * x).sum() / row.sum()
-        assert mean == pytest.approx(c, abs=1e-3)
+        # (float32 rounding: 1.5e-3 at level 3, a term of 0.6 level texels)
+        assert mean == pytest.approx(c, abs=2e-3)
         spread.append(((x - mean) ** 2 * row).sum() / row.sum())
     assert np.mean(spread) == pytest.approx(v, rel=0.01)
 
@@ -275,12 +282,15 @@ def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> No
     assert stats.passes == 2 and stats.levels == [0, 0]
     expect = np.zeros((n, n, 3))
     rgba = np.concatenate([e * cov[..., None], cov[..., None]], -1)
+    from scipy.ndimage import distance_transform_edt
+
+    _, (ny, nx) = distance_transform_edt(cov == 0, return_indices=True)
     for i, var in enumerate(v):
         tables, rows = [], []
         for m in (mm_u, mm_v):
-            # the kernel's sizes: median off the charts, on the log2 grid, from the
-            # 1e-4 quantile up
-            m = np.where(cov > 0, m, np.median(m[cov > 0])).astype(np.float32)
+            # the kernel's sizes: off the charts the nearest chart texel's (a tile's
+            # margin extrapolates its chart), on the log2 grid, from the 1e-4 quantile up
+            m = np.where(cov > 0, m, m[ny, nx]).astype(np.float32)
             q = quantized_log2(m)
             lo = int(np.floor(np.quantile(q, 1e-4)))
             sigma = math.sqrt(var) / 2.0 ** (np.arange(lo, q.max() + 1) / QUANT_STEPS_PER_OCTAVE)

@@ -28,7 +28,7 @@ from pipeline.render.options import DEVICE_ENV
 from pipeline.render.scene import Light
 
 KERNEL_SOURCES = {
-    "diffusion": diffusion._KERNEL + diffusion._PACK_KERNEL + diffusion._PYRAMID_KERNEL,
+    "diffusion": diffusion._KERNEL + diffusion._PYRAMID_KERNEL,
     "direct_blur": direct_blur._KERNEL,
     "lighting": lighting._SAMPLE_KERNEL + lighting._INTERLEAVE_KERNEL,
     "push_pull": push_pull._KERNEL,
