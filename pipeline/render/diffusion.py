@@ -9,10 +9,11 @@ v), so the blur is right in mm whatever the UV layout.
 convolution of (E coverage, coverage) so chart borders neither darken nor leak: narrow
 terms with the one-pass direct kernel of :mod:`.direct_blur` (per-texel weights where
 the texel size varies), the others with the recursive Gaussian of
-:mod:`.recursive_blur` (cost independent of the width), wide ones on a coarser level of
-a pyramid; the blurred terms are then added up a batch at a time, in one pass that
-reads the region weights once. :func:`diffuse_gather` is
-the first implementation, a per-tap gather whose cost grows with the width, kept for
+:mod:`.recursive_blur` (cost independent of the width), each on the coarsest pyramid
+level its width allows, in per-chart tiles whose margins hold the surface across the
+UV seams (:mod:`.chart_tiles`); the blurred terms are then added up a batch at a time,
+in one pass that reads the region weights once. :func:`diffuse_gather` is the first
+implementation, a per-tap gather whose cost grows with the width, kept for
 comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
 """
 
