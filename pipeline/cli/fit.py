@@ -57,8 +57,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="local refinement after the seed (slsqp = the paper's SQP, for comparison)")
     p.add_argument("--init", choices=["ga", "naive", "random"], default="ga",
                    help="starting point: genetic algorithm, log-spaced grid, or random grid")
-    p.add_argument("--generations", type=int, default=40, help="GA generations")
-    p.add_argument("--population", type=int, default=32, help="GA population size")
+    # None: FitOptions' defaults (20, 32), read when the verb runs (importing the fit
+    # module here would load casadi for every verb's --help)
+    p.add_argument("--generations", type=int, default=None,
+                   help="GA generations (the seed; IPOPT and one-term hops refine it; "
+                        "default 20)")
+    p.add_argument("--population", type=int, default=None,
+                   help="GA population size (default 32)")
     p.add_argument("--seed", type=int, default=0, help="random seed (GA); same seed, same fit")
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="FIT.json for one profile; a directory (one <name>.json each) for several")
@@ -72,11 +77,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from ..profile.io import read_profile_csv
 
     fixed = args.fixed_variances or None
+    ga = {name: value for name in ("generations", "population")
+          if (value := getattr(args, name)) is not None}
     options = FitOptions(
         k=args.k, share=args.share, fixed_variances_mm2=fixed, min_radius_mm=args.min_radius_mm,
-        max_radius_mm=args.max_radius_mm, seed=args.seed, generations=args.generations,
-        population=args.population, solver=args.solver, init=args.init,
-        free_scale=args.free_scale, use_stddev=args.use_stddev,
+        max_radius_mm=args.max_radius_mm, seed=args.seed, solver=args.solver, init=args.init,
+        free_scale=args.free_scale, use_stddev=args.use_stddev, **ga,
     )
     profiles = [read_profile_csv(p) for p in args.profiles]
     for path, prof in zip(args.profiles, profiles, strict=True):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -15,7 +17,12 @@ from pipeline.profile.fit import (
     fit_profiles,
     fit_sum_of_gaussians,
 )
-from pipeline.profile.models import burley_profile, fit_error_eq2c, sum_of_gaussians
+from pipeline.profile.models import (
+    burley_profile,
+    fit_error_eq2c,
+    ring_widths_mm,
+    sum_of_gaussians,
+)
 from pipeline.profile.reference_data import (
     DEON_2007_SKIN,
     PARK_OH_2009_FOREHEAD,
@@ -271,3 +278,27 @@ def test_profile_not_normalised_is_a_clear_error(deon: MeasuredProfile) -> None:
 def test_bad_k() -> None:
     with pytest.raises(InputError, match="k must be between 1 and 8"):
         fit_sum_of_gaussians(deon_profile(), k=9)
+
+
+SAMPLE_CAPTURES = Path(__file__).parents[2] / "sample_assets" / "captures"
+FOREHEAD_MULTISTART_OBJECTIVE = 3.7242e-6
+"""The sample forehead's best objective (mean over R, G, B of sum r dr (p - f)^2 / sum r
+dr p^2, k = 6) found by a 20-start scipy SLSQP on the log-variances with NNLS weights
+(benchmarks/bench_fit.py, ``multistart_baseline``: no code of the fit's own)."""
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sample_forehead_reaches_the_multistart_optimum(seed: int) -> None:
+    """The GA + IPOPT fit of the sample forehead is no worse than an independent 20-start
+    optimiser (issue 23). Before the one-term hops (``_hop_refined``) every seed settled
+    28-32% above it (a term on the tail where the optimum puts one in the core)."""
+    from pipeline.capture.ingest import IngestOptions, ingest_region, read_capture_set
+
+    prof = ingest_region(read_capture_set(SAMPLE_CAPTURES), "forehead", IngestOptions()).profile
+    fit = fit_sum_of_gaussians(prof, k=6, seed=seed)
+    _assert_valid(fit)
+    r, p = prof.radius_mm, prof.values
+    a = (r * ring_widths_mm(r))[:, None]
+    objective = float(np.mean(np.sum(a * (p - fit.evaluate(r)) ** 2, axis=0)
+                              / np.sum(a * p**2, axis=0)))
+    assert objective <= FOREHEAD_MULTISTART_OBJECTIVE, objective
