@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+from pathlib import Path
 
 import pytest
 
@@ -44,3 +47,18 @@ def cl_device(request: pytest.FixtureRequest) -> opencl.Candidate:
 @pytest.fixture
 def deon() -> MeasuredProfile:
     return deon_profile()
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str]:
+    """`skinpipe demo` at its defaults (the README's first command), run once per test
+    session: its output folder, stdout and stderr. Tests read what it wrote; none
+    writes into it."""
+    from pipeline.cli import main
+
+    out = tmp_path_factory.mktemp("demo") / "demo_out"
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = main(["demo", "-o", str(out)])
+    assert code == 0, stderr.getvalue()[-3000:]
+    return out, stdout.getvalue(), stderr.getvalue()

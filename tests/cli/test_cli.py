@@ -78,10 +78,10 @@ def test_console_script_runs() -> None:
     assert proc.returncode == 0 and "skinpipe" in proc.stdout
 
 
-def test_demo_on_sample_assets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    out = tmp_path / "demo"
-    assert main(["demo", "-o", str(out), "--resolution", "256x256", "--texture-size", "512",
-                 "--light-samples", "4"]) == 0
+def test_demo_on_sample_assets(demo_run: tuple[Path, str, str]) -> None:
+    """The README's first command, at its defaults (shared with the other tests that
+    read the demo's outputs)."""
+    out, stdout, stderr = demo_run
     report = json.loads((out / "report.json").read_text())
     render = json.loads((out / "render" / "render.json").read_text())["frames"][0]
     assert len(render["measures"]["diffusion"]["grid_error_eq2c"]) == 6  # six profiles
@@ -96,9 +96,8 @@ def test_demo_on_sample_assets(tmp_path: Path, capsys: pytest.CaptureFixture[str
         assert max(entry["error_vs_truth"]) < 0.03, name
         assert (out / "fits" / f"{name}.json").is_file()
         assert (out / "profiles" / f"{name}.exr").is_file()
-    captured = capsys.readouterr()
-    assert "[6/6]" in captured.err  # progress on stderr
-    assert "forehead" in captured.out
+    assert "[6/6]" in stderr  # progress on stderr
+    assert "forehead" in stdout
 
 
 def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:

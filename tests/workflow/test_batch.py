@@ -51,6 +51,7 @@ def _statuses(out: Path) -> dict[tuple[str, str, str], str]:
     return got
 
 
+@pytest.mark.slow  # 42 s; the default run kills real workers in the test after next
 def test_batch_survives_a_killed_worker_and_a_corrupt_subject_and_is_idempotent(
         cluster, tmp_path: Path) -> None:
     for name in ("a", "b", "c"):
