@@ -154,7 +154,11 @@ def order_candidates(found: Sequence[tuple[Candidate, Any]], spec: str
     elif s == "cpu":
         pool = [f for f in found if f[0].kind == "cpu"]
     else:
-        pool = [f for f in found if s in f[0].label.lower() or s in f[0].runtime]
+        # a runtime's id or vendor ("intel-cpu", "intel") names that runtime only: on an
+        # Intel CPU PoCL's device is "pthread-Intel(R) Xeon ..." too
+        pool = [f for f in found if s in (f[0].runtime, f[0].runtime.split("-")[0])]
+        if not pool:
+            pool = [f for f in found if s in f[0].label.lower() or s in f[0].runtime]
     return sorted(pool, key=rank)
 
 

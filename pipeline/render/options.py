@@ -31,8 +31,9 @@ at texture sizes 1024-4096), for the progress bar's share done and time left."""
 DEVICE_ENV = "SKINPIPE_OPENCL_DEVICE"
 """Environment variable naming the OpenCL device (same values as ``--device``)."""
 DEVICE_HELP = ("OpenCL device: auto (CPU runtimes first: PoCL, then Intel's, then GPUs), "
-               "cpu, gpu (a GPU first), or part of 'platform: device' (e.g. pocl, intel, "
-               f"nvidia); default ${DEVICE_ENV} or auto")
+               "cpu, gpu (a GPU first), a runtime (pocl, intel, nvidia, or its id such as "
+               "intel-cpu), or else part of 'platform: device' (e.g. H200); default "
+               f"${DEVICE_ENV} or auto")
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,20 @@ def test_candidate_order_for_each_spec() -> None:
     assert _order("nothing-like-it") == []
 
 
+def test_a_runtime_name_picks_that_runtime_on_its_vendors_cpu() -> None:
+    """On an Intel CPU PoCL's device name contains "Intel" too: `intel` and `intel-cpu`
+    name Intel's runtime, not PoCL (`intel` picked PoCL before); other text still
+    matches names."""
+    pocl = Candidate("Portable Computing Language", "pthread-Intel(R) Xeon(R) Processor",
+                     "cpu", 0, 0)
+    intel = Candidate("Intel(R) OpenCL", "Intel(R) Xeon(R) Processor", "cpu", 1, 0)
+    found = [(pocl, "pocl"), (intel, "intel")]
+    for spec in ("intel", "intel-cpu", "INTEL"):
+        assert [c.runtime for c, _ in order_candidates(found, spec)] == ["intel-cpu"], spec
+    assert [c.runtime for c, _ in order_candidates(found, "xeon")] == ["pocl-cpu",
+                                                                       "intel-cpu"]
+
+
 def test_a_runtime_that_cannot_build_falls_back_to_the_next() -> None:
     # PoCL 3.0 on Zen 5: every build fails; Intel's runtime is used instead
     def probe(device: Any, nt_store: bool) -> str | None:
