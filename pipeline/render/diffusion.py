@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from .blur_switch import prefers_direct
-from .chart_tiles import SeamGeometry, TileLevel, tile_level
+from .chart_tiles import SeamGeometry, TileLevel, texel_coverage, tile_level, uv_charts
 from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter
 from .opencl import (
     DeviceTexture,
@@ -43,6 +43,7 @@ from .opencl import (
     read_output,
 )
 from .recursive_blur import QUANT_STEPS_PER_OCTAVE, TABLE_MIN_SIGMA, iir_kernels, quantized_log2
+from .texture_maps import triangle_jacobians
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -489,6 +490,26 @@ class ChartLayout:
     centre."""
 
 
+def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
+                 uv: NDArray[Any], uv_tris: NDArray[np.int32], rays: Any,
+                 mesh_index: int) -> ChartLayout:
+    """The charts of a UV layout rasterised into ``maps`` (a
+    :class:`~.texture_maps.TextureMaps`) and the surface across their seams: the chart
+    of each texel, each texel's covered share, and for the margins the ray scene
+    ``rays`` (a :class:`~.raytrace.RayScene` holding the mesh as ``mesh_index``), each
+    triangle's chart, UV corners (texels) and Jacobian, and each texel's triangle,
+    position and normal."""
+    tri_chart, n_charts = uv_charts(uv_tris, uv.shape[0])
+    chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)],
+                     -1).astype(np.int32)
+    corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
+                                              maps.size)
+    geometry = SeamGeometry(rays, mesh_index, tri_chart, corners, jacobian, maps.triangle,
+                            maps.position, maps.normal)
+    return ChartLayout(chart, n_charts, geometry,
+                       texel_coverage(chart, maps.triangle, tri_chart, corners))
+
+
 class LevelGrid:
     """One pyramid level as an atlas of chart tiles (:class:`~.chart_tiles.TileLevel`)
     with what its blurs need: texel sizes on the log2 grid as device indices (recursive
@@ -689,8 +710,8 @@ def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, in
 def _job_sigma_mm(layout: DiffusionLayout, variance: float, k: int) -> list[float]:
     """Per axis the blur's sigma in mm for a term of ``variance`` mm^2 at pyramid level
     ``k``: less what reaching the level and reading it back add."""
-    return [math.sqrt(max(variance - (_added_variance_texels2(k) * t**2 if k else 0.0),
-                          1e-30)) for t in layout.typical]
+    return [math.sqrt(max(variance - _added_variance_texels2(k) * t**2, 1e-30))
+            for t in layout.typical]
 
 
 def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst: Any,
@@ -770,7 +791,7 @@ def diffuse_prepared(
     narrow, else the recursive one), with per-texel sigma from the stretch maps, as a
     normalised convolution of (E cov, cov) (chart borders neither darken nor leak), on
     the coarsest pyramid level where it is still LEVEL_MIN_SIGMA_TEXELS wide (the
-    variance the pyramid and bilinear read add is taken off the blur). Every level is an
+    variance the tent splat and the B-spline read add is taken off the blur). Every level is an
     atlas of chart tiles whose margins hold the surface across the charts' seams, as
     wide as the level's widest blur reaches (:mod:`.chart_tiles`), so light crosses
     seams. The blurred terms are kept TERM_BUFFER_TEXTURES at a time and added up in

@@ -38,8 +38,7 @@ from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
 from .blur_switch import TUNE_STREAM, direct_limits
-from .chart_tiles import SeamGeometry, texel_coverage, uv_charts
-from .diffusion import ChartLayout, DiffusionLayout, diffuse_gather, diffuse_prepared
+from .diffusion import DiffusionLayout, chart_layout, diffuse_gather, diffuse_prepared
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -63,7 +62,7 @@ from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import TextureMaps, rasterize, triangle_jacobians, vertex_normals
+from .texture_maps import TextureMaps, rasterize, vertex_normals
 from .unwrap import triangulate, unwrap
 
 EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
@@ -363,22 +362,6 @@ class SkinTextures:
     instead of hashing the maps themselves."""
 
 
-def seam_charts(tex: SkinTextures, rays: RayScene, mesh_index: int) -> ChartLayout:
-    """The UV layout's charts of one skin mesh and the surface across their seams
-    (:class:`~.diffusion.ChartLayout`): the chart of each texel, and for the margins the
-    ray scene, each triangle's chart, UV corners (texels) and Jacobian, and each texel's
-    triangle, position and normal."""
-    maps = tex.maps
-    tri_chart, n_charts = uv_charts(tex.uv_tris, tex.uv.shape[0])
-    chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)], -1)
-    corners, _, jacobian = triangle_jacobians(tex.mesh.mesh.points, tex.tris, tex.uv,
-                                              tex.uv_tris.reshape(-1, 3), maps.size)
-    chart = chart.astype(np.int32)
-    return ChartLayout(chart, n_charts, SeamGeometry(
-        rays, mesh_index, tri_chart, corners, jacobian, maps.triangle, maps.position,
-        maps.normal), texel_coverage(chart, maps.triangle, tri_chart, corners))
-
-
 class Renderer:
     """Renders frames of a stage; texture-space work is cached across frames and edits."""
 
@@ -543,7 +526,9 @@ class Renderer:
             if recursive:
                 prepared = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v,
                                            maps.coverage, maps.region_weights,
-                                           seam_charts(tex, rays, mesh_index))
+                                           chart_layout(maps, tex.mesh.mesh.points,
+                                                        tex.tris, tex.uv, tex.uv_tris, rays,
+                                                        mesh_index))
             return prepared, (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel()
 
         if f"diffusion:{key}" not in self._cache:

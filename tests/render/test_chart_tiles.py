@@ -20,10 +20,9 @@ from scipy.special import ndtr
 from pipeline.cli import main
 from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
 from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render.chart_tiles import SeamGeometry, texel_coverage, uv_charts
-from pipeline.render.diffusion import ChartLayout, diffuse
+from pipeline.render.diffusion import ChartLayout, chart_layout, diffuse
 from pipeline.render.raytrace import RayScene
-from pipeline.render.texture_maps import rasterize, triangle_jacobians
+from pipeline.render.texture_maps import rasterize
 from pipeline.usd.author import RegionAssignment, author_asset
 from pipeline.usd.mesh import MeshData
 from pipeline.usd.schema import CAMERA_VISIBILITY_PRIMVAR
@@ -81,17 +80,9 @@ def texel_mm(size: int) -> tuple[np.ndarray, np.ndarray]:
 def _layout(size: int = 1024, geometry: bool = True):
     pts, tris, uv = seam_patch()
     maps = rasterize(pts, tris, uv, tris, size, 0.001)
-    tri_chart, n = uv_charts(tris, uv.shape[0])
-    assert n == 2
-    chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)], -1)
-    corners, _, jac = triangle_jacobians(pts, tris, uv, tris, size)
-    chart = chart.astype(np.int32)
-    if not geometry:
-        return maps, ChartLayout(chart, n)
-    geo = SeamGeometry(RayScene([(pts, tris)]), 0, tri_chart, corners, jac, maps.triangle,
-                       maps.position, maps.normal)
-    return maps, ChartLayout(chart, n, geo, texel_coverage(chart, maps.triangle, tri_chart,
-                                                            corners))
+    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    assert charts.n_charts == 2
+    return maps, charts if geometry else ChartLayout(charts.chart, charts.n_charts)
 
 
 @pytest.mark.parametrize("side", [-1, 1], ids=["lit-left", "lit-right"])
