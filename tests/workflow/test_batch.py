@@ -104,6 +104,8 @@ def test_batch_survives_a_killed_worker_and_a_corrupt_subject_and_is_idempotent(
     assert {v for k, v in third.items() if k[0] == "b"} == {"done"}
 
 
+@pytest.mark.slow  # 27-32 s (xatlas unwrap, author, render on workers); the default run
+# keeps the real-scheduler test, and the demo runs the same author and render stages
 def test_batch_runs_author_and_render_for_a_subject(cluster, tmp_path: Path) -> None:
     _copy_captures(tmp_path, "face")
     batch = _write_batch(
