@@ -6,6 +6,7 @@ definitions (and fails where it does not)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import MaterialX as mx
 import numpy as np
@@ -14,7 +15,13 @@ from pxr import Sdf, Usd, UsdShade
 
 from pipeline.profile.io import read_fit_json
 from pipeline.usd.author import MTLX_NAME, RegionAssignment, author_asset, subsurface_radius_mm
-from pipeline.usd.materialx import network_problems, read_openpbr_inputs
+from pipeline.usd.materialx import (
+    document_problems,
+    mtlx_document,
+    network_problems,
+    read_openpbr_inputs,
+    write_mtlx_document,
+)
 
 from .test_author import _patch, fit_files  # noqa: F401  (fixture)
 
@@ -26,13 +33,17 @@ def asset(fit_files: Path, tmp_path: Path) -> tuple[Path, list]:  # noqa: F811
     return author_asset(fits, _patch(), regions, tmp_path / "a").asset, fits
 
 
-def test_mtlx_document_passes_materialx_validate(asset: tuple[Path, list]) -> None:
-    path = asset[0].parent / MTLX_NAME
+def _document_with_library(path: Path) -> Any:
     doc = mx.createDocument()
     mx.readFromXmlFile(doc, str(path))
     lib = mx.createDocument()
     mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
     doc.importLibrary(lib)
+    return doc
+
+
+def test_mtlx_document_passes_materialx_validate(asset: tuple[Path, list]) -> None:
+    doc = _document_with_library(asset[0].parent / MTLX_NAME)
     ok, message = doc.validate()
     assert ok, message
     assert doc.getColorSpace() == "acescg"
@@ -69,3 +80,19 @@ def test_usd_network_matches_materialx_definitions(asset: tuple[Path, list]) -> 
     problems = [m for m, _ in network_problems(prim)]
     assert any("color3" in m and "base_color" in m for m in problems)
     assert any("no_such_port" in m for m in problems)
+
+
+def test_textured_document_and_its_element_check_agree_with_validate(
+        asset: tuple[Path, list], tmp_path: Path) -> None:
+    """mtlx_document checks each of its own elements, not the library again: what it
+    writes passes the whole document's validate(), and a wrong connection it refuses."""
+    values = read_openpbr_inputs(asset[0].parent / MTLX_NAME)
+    path = write_mtlx_document(tmp_path / "textured.mtlx", mtlx_document(values, "albedo.exr"))
+    ok, message = _document_with_library(path).validate()
+    assert ok, message
+    doc = mtlx_document(values, "albedo.exr")
+    doc.getNode("MtlxAlbedo").setType("float")  # color3 inputs now read a float
+    broken = write_mtlx_document(tmp_path / "broken.mtlx", doc)
+    ok, message = _document_with_library(broken).validate()
+    assert not ok and "Mismatched types" in message
+    assert any("Mismatched types" in p for p in document_problems(doc))
