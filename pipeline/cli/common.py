@@ -126,9 +126,10 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
                         "see --shadow-sampling for how many are traced)")
     p.add_argument("--shadow-sampling", choices=SHADOW_SAMPLING, default="interleaved",
                    help="interleaved: each texel traces a quarter of the light samples and "
-                        "borrows the rest from its 3x3 neighbours (Keller & Heidrich 2001; "
-                        "4x fewer rays, same error measured on the demo face); full: every "
-                        "texel traces all of them")
+                        "borrows the rest from its 3x3 neighbours (Keller & Heidrich 2001); "
+                        "adaptive: the same, then the texels whose neighbourhood's rays "
+                        "disagree (penumbrae) trace the other three quarters themselves; "
+                        "full: every texel traces all of them (default interleaved)")
     p.add_argument("--variance-grid", type=int, default=12, metavar="N",
                    help="re-express all regions' profiles on N shared variances (fewer "
                         "blurs; the error is in render.json); 0 = each region's own")

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
+from ..render.options import SHADOW_SAMPLING
 from .common import _eprint, _int_pair, add_force_option
 
 
@@ -27,7 +28,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "'render SCENE': texture sizes (--sizes) x variance grids (--grids), the "
             "diffused radiance against a brute-force convolution on the surface with the "
             "exact per-region profiles, beside texture-map + irradiance + diffusion time "
-            "(--blurs recursive,gather compares the diffusion blurs). 'all SCENE': the three. "
+            "(--blurs recursive,gather compares the diffusion blurs), and the irradiance's error "
+            "against 256 light samples per texel beside its time, per light samples and "
+            "shadow sampling (adaptive, interleaved, full). 'all SCENE': the three. "
             "Every run also (re)writes OUTPUT/report.md, one page with each stage found in "
             "OUTPUT: plot, table, Pareto front, and whether the default sits on it."
         ),
@@ -47,6 +50,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--blurs", type=lambda t: [b.strip() for b in t.split(",")],
                    default=["recursive"], metavar="B,B",
                    help="render: diffusion blurs to compare (recursive, gather)")
+    p.add_argument("--light-samples", type=lambda t: [int(x) for x in t.split(",")],
+                   default=[4, 8, 16, 32], metavar="N,N",
+                   help="render: light samples per texel and light, each against 256 "
+                        "samples traced by every texel")
+    p.add_argument("--shadow-sampling", type=_shadow_modes,
+                   default=list(SHADOW_SAMPLING), metavar="M,M",
+                   help="render: shadow sampling modes to compare (adaptive, interleaved, "
+                        "full)")
+    p.add_argument("--lighting-size", type=int, default=1024, metavar="N",
+                   help="render: texture size of the light-sample comparison")
     p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
                    help="range of k to try, inclusive")
     p.add_argument("--seeds", type=int, default=30,
@@ -54,6 +67,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
     add_force_option(p)
     p.set_defaults(handler=cmd_report)
+
+
+def _shadow_modes(text: str) -> list[str]:
+    modes = [m.strip() for m in text.split(",")]
+    bad = [m for m in modes if m not in SHADOW_SAMPLING]
+    if bad:
+        raise argparse.ArgumentTypeError(f"unknown shadow sampling {bad}; choose from "
+                                         f"{', '.join(SHADOW_SAMPLING)}")
+    return modes
 
 
 def _int_range(text: str) -> tuple[int, int]:
@@ -64,9 +86,22 @@ def _int_range(text: str) -> tuple[int, int]:
 
 
 def _report_render(args: argparse.Namespace, scene: Path) -> None:
-    from ..workflow.report import render_tradeoff, write_render_report
+    from ..workflow.report import (
+        lighting_tradeoff,
+        render_tradeoff,
+        write_lighting_report,
+        write_render_report,
+    )
 
     rows = render_tradeoff(scene, args.sizes, args.grids, progress=_eprint, blurs=args.blurs)
+    lighting = write_lighting_report(lighting_tradeoff(
+        scene, args.lighting_size, args.light_samples, args.shadow_sampling,
+        progress=_eprint), args.output)
+    print(f"{'samples':>7} {'shadow sampling':>15} {'rays/texel':>10} {'seconds':>8} "
+          f"{'error':>9}  pareto")
+    for r in lighting["rows"]:
+        print(f"{r['light_samples']:>7} {r['shadow_sampling']:>15} {r['rays_per_texel']:>10.1f} "
+              f"{r['seconds']:>8.2f} {r['error_max']:>9.2e}  {'*' if r['pareto'] else ''}")
     doc = write_render_report(rows, args.output)
     print(f"{'texture':>7} {'grid':>4} {'blur':>9} {'mm/texel':>8} {'passes':>6} {'seconds':>8} "
           f"{'diffuse s':>9} {'error':>9}  pareto")

@@ -13,9 +13,10 @@ from __future__ import annotations
 import math
 import threading
 import time
+import zlib
 from collections.abc import Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import Any
 
@@ -549,19 +550,23 @@ def sample_plan(light: Light, samples: int, interleaved: bool) -> tuple[int, boo
 
 
 def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
-                       textured_domes: Collection[str] = ()) -> list[Any]:
-    """The device kernels :func:`irradiance` and :func:`filter_interleaved` will launch
-    for these lights (for :class:`~.opencl.Prewarm`)."""
-    kernels, filtered = [], 0
+                       textured_domes: Collection[str] = (), filtered: bool = True
+                       ) -> list[Any]:
+    """The device kernels :func:`irradiance_texture` and (if ``filtered``)
+    :func:`filter_interleaved` will launch for these lights (for
+    :class:`~.opencl.Prewarm`)."""
+    kernels, interleaved_lights = [], 0
     for light in lights:
         if not np.any(light.radiance > 0):
             continue
         count, inter = sample_plan(light, samples, interleaved)
-        filtered += inter
+        interleaved_lights += inter
         if light.kind in DEVICE_SAMPLED_KINDS and light.path not in textured_domes:
             kernels.append(_sample_kernel(light.kind, count, inter))
-    for start in range(0, filtered, MAX_FILTER_LIGHTS):
-        kernels.append(_interleave_kernel(min(MAX_FILTER_LIGHTS, filtered - start)))
+    if filtered:
+        for start in range(0, interleaved_lights, MAX_FILTER_LIGHTS):
+            kernels.append(_interleave_kernel(min(MAX_FILTER_LIGHTS,
+                                                  interleaved_lights - start)))
     return kernels
 
 
@@ -623,6 +628,12 @@ class IrradianceResult:
         return out
 
 
+def light_rng(seed: int, light: Light) -> np.random.Generator:
+    """The random numbers of one light's samples: the same for the light in every call
+    (its samples' grid), whatever other lights are sampled with it."""
+    return np.random.default_rng([seed, zlib.crc32(light.path.encode())])
+
+
 def is_delta_light(light: Light) -> bool:
     """A light of zero extent: a distant light of angle 0 or a sphere of radius 0."""
     return (light.kind == "distant" and light.angle_deg <= 0.0) or \
@@ -658,13 +669,12 @@ def irradiance_texture(
     skipped: list[str] = []
     interleaved: set[str] = set()
     n_rays = 0
-    rng = np.random.default_rng(seed)
     point_buffers: dict[str, Any] = {}  # origins and normals on the device, for every light
     for light in lights:
         if not np.any(light.radiance > 0):
             skipped.append(f"light {light.path}: zero radiance")
             continue
-        sampler = LightSampler(light, origins, nrm, samples, rng,
+        sampler = LightSampler(light, origins, nrm, samples, light_rng(seed, light),
                                (dome_textures or {}).get(light.path), classes, roughness, rho_s,
                                point_buffers=point_buffers)
 
@@ -714,3 +724,76 @@ def irradiance_texture(
     result[order] = entering
     return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
                             time.perf_counter() - start, frozenset(interleaved))
+
+
+def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any]) -> NDArray[np.bool_]:
+    """Texels (H, W) whose interleaved shadow rays do not all agree: the texel's own rays
+    (visibility strictly between 0 and 1) or those of a traced texel in its 3 x 3
+    neighbourhood (a different visibility). Elsewhere the neighbourhood's rays, all four
+    interleaved sets of strata, saw the light all visible or all blocked."""
+    from scipy.ndimage import maximum_filter, minimum_filter  # lazy, as the fit's solvers
+
+    vis = np.asarray(visibility, np.float32)
+    hi = maximum_filter(np.where(traced, vis, 0.0), size=3, mode="constant", cval=0.0)
+    lo = minimum_filter(np.where(traced, vis, 1.0), size=3, mode="constant", cval=1.0)
+    return traced & ((hi > lo) | ((vis > 0) & (vis < 1)))
+
+
+def refine_penumbrae(
+    result: IrradianceResult, covered: NDArray[np.bool_], positions: NDArray[Any],
+    normals: NDArray[Any], interleave: NDArray[Any], lights: list[Light], rays: RayScene,
+    samples: int, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
+    seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
+) -> tuple[IrradianceResult, dict[str, NDArray[np.int64]]]:
+    """Adaptive shadow rays: after an interleaved pass (``result``: every covered texel of
+    ``covered``, row-major, traced the quarter of the strata its ``interleave`` class
+    names), the texels of :func:`penumbra_texels` trace the other three quarters (the
+    same strata: :func:`light_rng`), so that their visibility is their own estimate from
+    all ``samples``. Every other texel's neighbourhood agreed, so the interleaved
+    reconstruction there is its own value: nothing is filtered. The error target is
+    full sampling's (each texel's visibility from all ``samples`` strata) at a fraction
+    of its rays. Returns the result (visibility final, ``interleaved`` empty) and the
+    refined points (indices into ``positions``) per light."""
+    start = time.perf_counter()
+    visibility = dict(result.visibility)
+    unshadowed = dict(result.unshadowed)
+    refined: dict[str, NDArray[np.int64]] = {}
+    n_rays = result.rays
+    classes = np.asarray(interleave)
+    for light in lights:
+        path = light.path
+        if path not in result.interleaved:
+            continue
+        vis1 = np.zeros(covered.shape, np.float32)
+        vis1[covered] = result.visibility[path]
+        un1 = result.unshadowed[path]
+        traced = np.zeros(covered.shape, bool)
+        traced[covered] = un1.sum(axis=1) > 0
+        where = np.flatnonzero(penumbra_texels(vis1, traced)[covered])
+        refined[path] = where
+        if not where.size:
+            continue
+        # each penumbra texel three times, once per interleaved class it has not traced
+        others = (classes[where][:, None] + np.arange(1, 4)) % 4
+        more = irradiance_texture(np.repeat(positions[where], 3, axis=0),
+                                  np.repeat(normals[where], 3, axis=0), [light], rays, samples,
+                                  roughness, rho_s, seed, dome_textures, others.ravel())
+        n_rays += more.rays
+        un2 = more.unshadowed.get(path, np.zeros((3 * where.size, 3), np.float32))
+        vis2 = more.visibility.get(path, np.zeros(3 * where.size, np.float32))
+        # each class is the same number of strata: the texel's estimate from all of them
+        # sums lit and unshadowed light over its four classes
+        un_all = un1[where] + un2.reshape(-1, 3, 3).sum(axis=1)
+        lit_all = result.visibility[path][where] * un1[where].sum(axis=1) + \
+            (vis2 * un2.sum(axis=1)).reshape(-1, 3).sum(axis=1)
+        un_sum = un_all.sum(axis=1)
+        vis = visibility[path] = visibility[path].copy()
+        vis[where] = np.where(un_sum > 0, lit_all / np.maximum(un_sum, 1e-30), 0.0)
+        un = unshadowed[path] = un1.copy()
+        un[where] = un_all / 4
+    out = replace(result, visibility=visibility, unshadowed=unshadowed, rays=n_rays,
+                  seconds=result.seconds + time.perf_counter() - start,
+                  interleaved=frozenset())
+    out.entering = out.entering_with(visibility)
+    return out, refined
+

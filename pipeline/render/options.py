@@ -18,7 +18,7 @@ irradiance (RGB, before scattering), radiosity (RGB, pi x the diffused exitant
 radiance), stretch (mm per texel along u and v), region (index of the largest region
 weight, -1 outside the charts), each with the charts' coverage."""
 BLURS = ("recursive", "gather")
-SHADOW_SAMPLING = ("interleaved", "full")
+SHADOW_SAMPLING = ("adaptive", "interleaved", "full")
 DEFAULT_ROUGHNESS = 0.35
 """Beckmann roughness of the skin's specular lobe (Torrance-Sparrow)."""
 DEFAULT_RHO_S = 0.25
@@ -46,7 +46,9 @@ class RenderOptions:
     light_samples: int = 16
     shadow_sampling: str = "interleaved"
     """'interleaved': each texel traces a quarter of the light samples and borrows the
-    rest from its 3 x 3 neighbours; 'full': every texel traces all of them."""
+    rest from its 3 x 3 neighbours; 'adaptive': the same, then texels whose 3 x 3
+    neighbourhood's rays disagree (penumbrae) trace the rest themselves; 'full': every
+    texel traces all of them."""
     roughness: float = DEFAULT_ROUGHNESS
     rho_s: float = DEFAULT_RHO_S
     albedo_split: float = 0.5

@@ -45,6 +45,7 @@ from .lighting import (
     irradiance_kernels,
     irradiance_texture,
     light_direction,
+    refine_penumbrae,
     specular_albedo,
     torrance_sparrow,
 )
@@ -423,7 +424,8 @@ class Renderer:
         steps: list[Callable[[], Any]] = [
             PlannedStep(render + "texture_maps", "texture_kernels"),
             lambda: irradiance_kernels(scene.lights, opts.light_samples,
-                                       opts.shadow_sampling == "interleaved", domes),
+                                       opts.shadow_sampling != "full", domes,
+                                       filtered=opts.shadow_sampling == "interleaved"),
             PlannedStep(render + "push_pull", "push_pull_kernels")]
         if opts.scattering and opts.blur == "recursive":
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
@@ -472,14 +474,21 @@ class Renderer:
         def compute() -> Any:
             texel_y, texel_x = np.nonzero(covered)
             interleave = (texel_y % 2) * 2 + texel_x % 2 \
-                if opts.shadow_sampling == "interleaved" else None
+                if opts.shadow_sampling != "full" else None
             res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
                                      rays, opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave)
+            refined: dict[str, Any] = {}
+            if opts.shadow_sampling == "adaptive" and res.interleaved:
+                res, refined = refine_penumbrae(
+                    res, covered, maps.position[covered], maps.normal[covered], interleave,
+                    scene.lights, rays, opts.light_samples, opts.roughness, opts.rho_s,
+                    opts.seed, dome_textures)
             visibility, entering = res.visibility, res.entering
-            if interleave is not None and visibility:
+            if interleave is not None and res.interleaved and visibility:
                 visibility = interleaved_visibility(res, maps)
                 entering = res.entering_with(visibility)
+            refined = {path: int(np.size(where)) for path, where in refined.items()}
             e = np.zeros((*covered.shape, 3), np.float32)
             e[covered] = entering
             # one push-pull fills the irradiance and the visibility the specular lobe
@@ -493,15 +502,17 @@ class Renderer:
             filled = dilate_charts(push_pull(planes, maps.coverage), maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
-            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds)
+            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds, refined)
 
-        e, filled, vis, (skipped, rays_cast, seconds) = self._cached(log, "irradiance", key,
-                                                                      compute)
+        e, filled, vis, (skipped, rays_cast, seconds, refined) = self._cached(
+            log, "irradiance", key, compute)
         tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
         tex.keys["irradiance"] = key
         log.skipped += [s for s in skipped if s not in log.skipped]
         log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
-                                      "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6}
+                                      "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
+                                      "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
+                                      "penumbra_texels": refined}
 
     def _diffusion(self, log: TaskLog, tex: SkinTextures, rays: RayScene,
                    mesh_index: int, geometry_key: str) -> None:

@@ -11,11 +11,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import InputError
 from ..fileio import atomic_path, atomic_write_json
 from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.types import MeasuredProfile
+from ..render.options import SHADOW_SAMPLING
 from ..render.raytrace import RayScene
 from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear, scene_geometry_key
 from ..render.unwrap import triangulate
@@ -319,6 +321,83 @@ def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
     return doc
 
 
+def lighting_tradeoff(scene: Path, texture_size: int = 1024,
+                      light_samples: Sequence[int] = (4, 8, 16, 32),
+                      sampling: Sequence[str] = SHADOW_SAMPLING, reference_samples: int = 256,
+                      progress: Any = None) -> list[dict[str, Any]]:
+    """Irradiance error against its time, per light samples and shadow sampling
+    (adaptive, interleaved, full), on the skin's texels at ``texture_size``.
+
+    The reference is the same texels lit with ``reference_samples`` samples per light,
+    every texel tracing all of them. Error: RMS over covered texels (weighted by their
+    area in mm^2) of the difference in entering irradiance, over its mean, max over
+    R, G, B. Seconds: the irradiance task (shadow rays, sampling, reconstruction).
+    """
+    stage = open_stage_guarded(scene)
+
+    def irradiance(samples: int, mode: str) -> tuple[NDArray[Any], NDArray[Any], dict[str, Any]]:
+        opts = RenderOptions(texture_size=texture_size, light_samples=samples,
+                             shadow_sampling=mode, resolution=(8, 8))
+        renderer = Renderer(stage, opts)
+        try:
+            sc = renderer.delegate.sync()
+            if not sc.skin or not sc.lights:
+                raise InputError("the scene needs a skin mesh and lights", scene)
+            log = TaskLog()
+            rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
+            tex = renderer._textures(log, sc, sc.skin[0])
+            renderer._irradiance(log, sc, tex, rays, {})
+        finally:
+            renderer.close()
+        covered = tex.maps.triangle >= 0
+        area = (tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered]
+        return tex.irradiance[covered].astype(np.float64), area, log.measures["irradiance"]
+
+    reference, area, _ = irradiance(reference_samples, "full")
+    weights = area / area.sum()
+    mean = (reference * weights[:, None]).sum(axis=0)
+    rows = []
+    for samples in light_samples:
+        for mode in sampling:
+            got, _, measures = irradiance(samples, mode)
+            rms = np.sqrt(((got - reference) ** 2 * weights[:, None]).sum(axis=0))
+            error = float((rms / np.maximum(mean, 1e-30)).max())
+            rows.append({"texture_size": texture_size, "light_samples": samples,
+                         "shadow_sampling": mode, "seconds": measures["seconds"],
+                         "rays_per_texel": measures["rays_per_texel"],
+                         "penumbra_texels": measures["penumbra_texels"],
+                         "error_max": error})
+            if progress:
+                progress(f"light samples {samples} {mode}: error {error:.2e}, "
+                         f"{measures['seconds']:.1f} s, {measures['rays_per_texel']:.1f} "
+                         "rays a texel")
+    return rows
+
+
+def write_lighting_report(rows: Sequence[dict[str, Any]], out_dir: Path,
+                          default: tuple[int, str] = (16, "interleaved")) -> dict[str, Any]:
+    """lighting_tradeoff.json and lighting_tradeoff.png in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
+    doc = {
+        "stage": "lighting",
+        "error_measure": "area-weighted RMS of the entering irradiance's difference to "
+                         "full sampling at many samples, over its mean, max over R, G, B",
+        "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
+        "default": {"light_samples": default[0], "shadow_sampling": default[1],
+                    "on_pareto_front": [i in front for i, r in enumerate(rows)
+                                        if (r["light_samples"], r["shadow_sampling"])
+                                        == default]},
+    }
+    atomic_write_json(out_dir / "lighting_tradeoff.json", doc)
+    _plot_tradeoff([(r["shadow_sampling"], r["seconds"], r["error_max"],
+                     str(r["light_samples"])) for r in rows],
+                   out_dir / "lighting_tradeoff.png", "irradiance (s)",
+                   "Irradiance: error against run time (labels: light samples)",
+                   "RMS relative error vs many samples")
+    return doc
+
+
 # --------------------------------------------------------------------- one page
 
 
@@ -345,8 +424,8 @@ def _percent(value: float | None) -> str:
 
 def write_report_page(out_dir: Path) -> Path:
     """report.md in ``out_dir``: every stage's trade-off found there (fit_tradeoff.json,
-    ingest_tradeoff.json, render_tradeoff.json) with its plot, its table, the Pareto
-    front marked (*) and whether the default sits on it."""
+    ingest_tradeoff.json, render_tradeoff.json, lighting_tradeoff.json) with its plot, its
+    table, the Pareto front marked (*) and whether the default sits on it."""
     lines = ["# skinpipe: error against run time", "",
              "Each stage measured in one run; pick an operating point from the plots. "
              "Rows marked * are on the Pareto front (no other row is both faster and more "
@@ -404,6 +483,23 @@ def write_report_page(out_dir: Path) -> Path:
                           f"{r['seconds']:.2f}", f"{r['diffusion_seconds']:.2f}",
                           f"{r['error_max']:.2e}", f"{r['error_median_point']:.2e}",
                           "*" if r["pareto"] else "") for r in doc["rows"]])
+        lines.append("")
+    lighting_path = out_dir / "lighting_tradeoff.json"
+    if lighting_path.is_file():
+        found = True
+        doc = json.loads(lighting_path.read_text())
+        d = doc["default"]
+        lines += ["## Irradiance (light samples, shadow sampling)", "",
+                  f"Error: {doc['error_measure']}. Seconds: the irradiance task.", "",
+                  "![lighting](lighting_tradeoff.png)", "",
+                  _default_sentence(doc, f"{d['light_samples']} samples, "
+                                    f"{d['shadow_sampling']}"), ""]
+        lines += _table(["texture", "samples", "shadow sampling", "rays/texel", "seconds",
+                         "RMS error", ""],
+                        [(r["texture_size"], r["light_samples"], r["shadow_sampling"],
+                          f"{r['rays_per_texel']:.1f}", f"{r['seconds']:.2f}",
+                          f"{r['error_max']:.2e}", "*" if r["pareto"] else "")
+                         for r in doc["rows"]])
         lines.append("")
     if not found:
         raise InputError("no *_tradeoff.json to gather: run 'skinpipe report fit|ingest|"

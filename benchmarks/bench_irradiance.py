@@ -1,0 +1,159 @@
+"""Benchmark: skinpipe's shadow rays against embreex's own rate on the same rays.
+
+    python benchmarks/bench_irradiance.py [--scene DEMO/scene.usda] [--size 1024]
+                                          [-o benchmarks/results/irradiance.json]
+
+On the skin's texels of the scene at ``--size``: the texels' ray origins (offset as the
+renderer offsets them) sorted along a Morton curve, toward (a) the centre of each
+sphere light and (b) cosine-weighted dome directions. Measured in one run, best of
+three each:
+
+- embreex: ``EmbreeScene.run(query="OCCLUDED")`` in 65536-ray chunks on as many
+  threads as the renderer uses, nothing else (the peer);
+- RayScene.occluded: the renderer's own call on the same rays;
+- irradiance, full / interleaved / adaptive: the renderer's whole irradiance task at
+  16 light samples (sampling, rays, reconstruction), rays cast over its seconds.
+
+Prints each rate and its ratio to embreex's and writes JSON. Without --scene the demo
+is run first to make one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.render.lighting import cosine_direction
+from pipeline.render.raytrace import CHUNK_RAYS, RayScene, morton_order, offset_ray_origin
+from pipeline.render.renderer import Renderer, RenderOptions, TaskLog, triangulate
+from pipeline.usd.io import open_stage_guarded
+
+
+def best_of(fn: Any, repeats: int = 3) -> float:
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def embreex_rate(rays: RayScene, origins: np.ndarray, directions: np.ndarray,
+                 far: np.ndarray) -> float:
+    """Mrays/s of embreex alone on these rays, chunked over the renderer's threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    chunks = [slice(s, min(s + CHUNK_RAYS, len(origins)))
+              for s in range(0, len(origins), CHUNK_RAYS)]
+
+    def run(s: slice) -> None:
+        rays.scene.run(origins[s], directions[s], query="OCCLUDED", dists=far[s])
+
+    def all_chunks() -> None:
+        with ThreadPoolExecutor(rays.threads) as pool:
+            list(pool.map(run, chunks))
+
+    return len(origins) / best_of(all_chunks) / 1e6
+
+
+def measure(scene: Path, size: int) -> dict[str, Any]:
+    stage = open_stage_guarded(scene)
+    out: dict[str, Any] = {"texture_size": size, "light_samples": 16}
+    renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8)))
+    try:
+        sc = renderer.delegate.sync()
+        rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
+        tex = renderer._textures(TaskLog(), sc, sc.skin[0])
+    finally:
+        renderer.close()
+    covered = tex.maps.triangle >= 0
+    pos = tex.maps.position[covered].astype(np.float32)
+    nrm = tex.maps.normal[covered].astype(np.float32)
+    order = morton_order(pos)
+    pos, nrm = pos[order], nrm[order]
+    origins = np.ascontiguousarray(offset_ray_origin(pos, nrm), np.float32)
+    out["rays"] = len(origins)
+    peers: dict[str, dict[str, float]] = {}
+    for light in sc.lights:
+        if light.kind == "sphere":
+            to_c = np.asarray(light.position, np.float32) - origins
+            dist = np.linalg.norm(to_c, axis=1)
+            d = np.ascontiguousarray(to_c / dist[:, None], np.float32)
+            far = np.ascontiguousarray(np.maximum(dist - light.radius, 0), np.float32)
+            kind = "toward the sphere light"
+        elif light.kind == "dome":
+            rng = np.random.default_rng(0)
+            d = np.ascontiguousarray(cosine_direction(nrm, rng.random(len(nrm)),
+                                                      rng.random(len(nrm))), np.float32)
+            far = np.full(len(d), 1e30, np.float32)
+            kind = "dome (cosine-weighted)"
+        else:
+            continue
+        own = embreex_rate(rays, origins, d, far)
+        wrapped = len(origins) / best_of(lambda d=d, far=far: rays.occluded(origins, d, far)) \
+            / 1e6
+        peers[kind] = {"embreex_mrays_per_s": own, "rayscene_mrays_per_s": wrapped,
+                       "ratio": wrapped / own}
+        print(f"{kind:>26}: embreex {own:6.2f} Mrays/s, RayScene.occluded {wrapped:6.2f} "
+              f"({wrapped / own:.2f}x)")
+    out["occlusion"] = peers
+    best_peer = max(p["embreex_mrays_per_s"] for p in peers.values())
+    tasks: dict[str, Any] = {}
+    for mode in ("full", "interleaved", "adaptive"):
+        best: dict[str, Any] | None = None
+        for _ in range(3):
+            r = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8),
+                                              shadow_sampling=mode))
+            try:
+                s2 = r.delegate.sync()
+                log = TaskLog()
+                t2 = r._textures(log, s2, s2.skin[0])
+                r._irradiance(log, s2, t2, rays, {})
+            finally:
+                r.close()
+            m = log.measures["irradiance"]
+            if best is None or m["seconds"] < best["seconds"]:
+                best = {k: m[k] for k in ("rays", "seconds", "mrays_per_s", "rays_per_texel")}
+        assert best is not None
+        best["ratio_to_embreex"] = best["mrays_per_s"] / best_peer
+        tasks[mode] = best
+        print(f"irradiance {mode:>11}: {best['rays'] / 1e6:6.2f} M rays in "
+              f"{best['seconds']:.2f} s, {best['mrays_per_s']:6.2f} Mrays/s "
+              f"({best['ratio_to_embreex']:.2f}x embreex's best)")
+    out["irradiance"] = tasks
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", type=Path, default=None, help="demo scene (default: run demo)")
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("-o", "--output", type=Path,
+                    default=Path("benchmarks/results/irradiance.json"))
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = args.scene
+        if scene is None:
+            subprocess.run([sys.executable, "-m", "pipeline", "demo", "-o",
+                            str(Path(tmp) / "demo")], check=True, capture_output=True)
+            scene = Path(tmp) / "demo" / "scene.usda"
+        doc = {"machine": {"platform": platform.platform(), "cores": os.cpu_count()},
+               **measure(scene, args.size)}
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
