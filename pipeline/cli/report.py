@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from ..render.options import SHADOW_SAMPLING
+from ..render.options import LIGHT_SEQUENCES, SHADOW_SAMPLING
 from .common import _eprint, _int_pair, add_force_option
 
 
@@ -29,8 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "diffused radiance against a brute-force convolution on the surface with the "
             "exact per-region profiles, beside texture-map + irradiance + diffusion time "
             "(--blurs recursive,gather compares the diffusion blurs), and the irradiance's error "
-            "against 256 light samples per texel beside its time, per light samples and "
-            "shadow sampling (adaptive, interleaved, full). 'all SCENE': the three. "
+            "against 256 light samples per texel beside its time, per light samples, shadow "
+            "sampling (adaptive, interleaved, full) and light sequence (stratified, sobol). "
+            "'all SCENE': the three. "
             "Every run also (re)writes OUTPUT/report.md, one page with each stage found in "
             "OUTPUT: plot, table, Pareto front, and whether the default sits on it."
         ),
@@ -54,10 +56,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    default=[4, 8, 16, 32], metavar="N,N",
                    help="render: light samples per texel and light, each against 256 "
                         "samples traced by every texel")
-    p.add_argument("--shadow-sampling", type=_shadow_modes,
+    p.add_argument("--shadow-sampling", type=_choices(SHADOW_SAMPLING, "shadow sampling"),
                    default=list(SHADOW_SAMPLING), metavar="M,M",
                    help="render: shadow sampling modes to compare (adaptive, interleaved, "
                         "full)")
+    p.add_argument("--light-sequences", type=_choices(LIGHT_SEQUENCES, "light sequence"),
+                   default=list(LIGHT_SEQUENCES), metavar="S,S",
+                   help="render: light sample sequences to compare (stratified, sobol)")
     p.add_argument("--lighting-size", type=int, default=1024, metavar="N",
                    help="render: texture size of the light-sample comparison")
     p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
@@ -69,13 +74,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=cmd_report)
 
 
-def _shadow_modes(text: str) -> list[str]:
-    modes = [m.strip() for m in text.split(",")]
-    bad = [m for m in modes if m not in SHADOW_SAMPLING]
-    if bad:
-        raise argparse.ArgumentTypeError(f"unknown shadow sampling {bad}; choose from "
-                                         f"{', '.join(SHADOW_SAMPLING)}")
-    return modes
+def _choices(allowed: tuple[str, ...], what: str) -> Callable[[str], list[str]]:
+    """An argparse type: a comma-separated list of ``allowed`` values."""
+    def parse(text: str) -> list[str]:
+        values = [v.strip() for v in text.split(",")]
+        bad = [v for v in values if v not in allowed]
+        if bad:
+            raise argparse.ArgumentTypeError(f"unknown {what} {bad}; choose from "
+                                             f"{', '.join(allowed)}")
+        return values
+    return parse
 
 
 def _int_range(text: str) -> tuple[int, int]:
@@ -96,12 +104,13 @@ def _report_render(args: argparse.Namespace, scene: Path) -> None:
     rows = render_tradeoff(scene, args.sizes, args.grids, progress=_eprint, blurs=args.blurs)
     lighting = write_lighting_report(lighting_tradeoff(
         scene, args.lighting_size, args.light_samples, args.shadow_sampling,
-        progress=_eprint), args.output)
-    print(f"{'samples':>7} {'shadow sampling':>15} {'rays/texel':>10} {'seconds':>8} "
-          f"{'error':>9}  pareto")
+        progress=_eprint, sequences=args.light_sequences), args.output)
+    print(f"{'samples':>7} {'shadow sampling':>15} {'sequence':>10} {'rays/texel':>10} "
+          f"{'seconds':>8} {'error':>9}  pareto")
     for r in lighting["rows"]:
-        print(f"{r['light_samples']:>7} {r['shadow_sampling']:>15} {r['rays_per_texel']:>10.1f} "
-              f"{r['seconds']:>8.2f} {r['error_max']:>9.2e}  {'*' if r['pareto'] else ''}")
+        print(f"{r['light_samples']:>7} {r['shadow_sampling']:>15} {r['light_sequence']:>10} "
+              f"{r['rays_per_texel']:>10.1f} {r['seconds']:>8.2f} {r['error_max']:>9.2e}  "
+              f"{'*' if r['pareto'] else ''}")
     doc = write_render_report(rows, args.output)
     print(f"{'texture':>7} {'grid':>4} {'blur':>9} {'mm/texel':>8} {'passes':>6} {'seconds':>8} "
           f"{'diffuse s':>9} {'error':>9}  pareto")
@@ -163,7 +172,9 @@ def cmd_report(args: argparse.Namespace) -> int:
             raise InputError("scene not found", scene)
         reads += usd_inputs(scene)
     stages = ("fit", "ingest", "render") if args.stage == "all" else (args.stage,)
-    written = [f"{s}_tradeoff.{ext}" for s in stages for ext in ("json", "png")] + \
+    # render also writes the irradiance's trade-off, lighting_tradeoff.json|png
+    names = [s for s in stages] + (["lighting"] if "render" in stages else [])
+    written = [f"{s}_tradeoff.{ext}" for s in names for ext in ("json", "png")] + \
         ["report.md"]
     for name in written:  # before minutes of measuring, not after
         check_output_file(args.output / name, reads, args.force)

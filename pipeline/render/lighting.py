@@ -143,6 +143,37 @@ def interleaved_strata(n: int) -> NDArray[np.int64]:
     return np.stack([g[qy::2, qx::2].ravel() for qy in (0, 1) for qx in (0, 1)])
 
 
+def sobol_points(n: int) -> int:
+    """The scrambled Sobol points :func:`light_sample_set` uses for ``n`` samples: n
+    rounded up to a power of two (a Sobol set's balance holds for those)."""
+    return 1 << max(0, math.ceil(math.log2(max(n, 1))))
+
+
+def light_sample_set(samples: int, rng: np.random.Generator, interleaved: bool,
+                     sequence: str = "stratified"
+                     ) -> tuple[NDArray[np.float64], NDArray[np.int64] | None]:
+    """A light's sample points in [0, 1)^2 and, if ``interleaved``, the four sets of them
+    the interleaving classes trace (rows, as :func:`interleaved_strata`).
+
+    'stratified': a jittered near-square grid, each set the strata of one parity of
+    column and row. 'sobol': the first 2^m points of a scrambled Sobol sequence (Sobol
+    1967; scipy's linear matrix scrambling with a digital shift, Matousek 1998), each set
+    a quarter of them in order: consecutive aligned blocks of a (0, m, 2)-net are nets
+    themselves, so each set is stratified on its own as well."""
+    if sequence == "sobol":
+        from scipy.stats import qmc  # lazy: 0.3 s to import, for this option only
+
+        m = sobol_points(samples)
+        grid = qmc.Sobol(2, scramble=True, seed=rng).random(m)
+        sets = np.arange(m).reshape(4, m // 4) if interleaved and m >= 4 else None
+        return grid, sets
+    if sequence != "stratified":
+        raise InputError(f"unknown light sample sequence {sequence!r}")
+    if interleaved and samples >= 4:
+        return stratified_unit_square(samples, rng, even=True), interleaved_strata(samples)
+    return stratified_unit_square(samples, rng), None
+
+
 def _frame(axis: NDArray[Any], dtype: Any = np.float64) -> NDArray[Any]:
     """An orthonormal basis (rows t, b, axis) around unit vectors ``axis`` (..., 3),
     branch-free and without cross products (Duff et al. 2017, "Building an Orthonormal
@@ -348,14 +379,16 @@ class LightSampler:
     traces only the strata ``interleaved_strata(samples)[interleave[i]]``: a quarter of
     the rays, the rest borrowed from its neighbours by ``filter_interleaved``.
     ``point_buffers`` (a dict, empty at first) lets the samplers of several lights over
-    the same points share one device copy of the origins and normals."""
+    the same points share one device copy of the origins and normals. ``sequence``:
+    the sample points, :func:`light_sample_set`."""
 
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
                  dome_texture: NDArray[np.float32] | None = None,
                  interleave: NDArray[Any] | None = None, roughness: float = DEFAULT_ROUGHNESS,
                  rho_s: float = DEFAULT_RHO_S, device: bool = True,
-                 point_buffers: dict[str, Any] | None = None) -> None:
+                 point_buffers: dict[str, Any] | None = None,
+                 sequence: str = "stratified") -> None:
         self.light = light
         self.roughness, self.rho_s = float(roughness), float(rho_s)
         self.origins = origins
@@ -365,13 +398,11 @@ class LightSampler:
         # it (then filtering) would only blur its hard shadow
         if is_delta_light(light):
             samples = 1
-        if interleave is not None and samples >= 4:
-            self.grid = stratified_unit_square(samples, rng, even=True)
-            self.strata = interleaved_strata(samples).astype(np.int32)[
-                np.asarray(interleave) % 4]
+        self.grid, sets = light_sample_set(samples, rng, interleave is not None, sequence)
+        if sets is not None:
+            self.strata = sets.astype(np.int32)[np.asarray(interleave) % 4]
             self.count = self.strata.shape[1]
         else:
-            self.grid = stratified_unit_square(samples, rng)
             self.count = self.grid.shape[0]
         self.texture = dome_texture
         # a textured dome's colour varies per direction and is carried by the weights
@@ -538,11 +569,15 @@ def _interleave_kernel(lights: int) -> Any:
     return Kernel(program, "filter_interleaved")
 
 
-def sample_plan(light: Light, samples: int, interleaved: bool) -> tuple[int, bool]:
+def sample_plan(light: Light, samples: int, interleaved: bool,
+                sequence: str = "stratified") -> tuple[int, bool]:
     """(samples each point traces, whether they are interleaved) for ``light`` at
     ``samples`` per point, as :class:`LightSampler` takes them."""
     if is_delta_light(light):
         samples = 1
+    if sequence == "sobol":
+        m = sobol_points(samples)
+        return (m // 4, True) if interleaved and m >= 4 else (m, False)
     if interleaved and samples >= 4:
         return int(interleaved_strata(samples).shape[1]), True
     nx, ny = grid_shape(samples)
@@ -550,8 +585,8 @@ def sample_plan(light: Light, samples: int, interleaved: bool) -> tuple[int, boo
 
 
 def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
-                       textured_domes: Collection[str] = (), filtered: bool = True
-                       ) -> list[Any]:
+                       textured_domes: Collection[str] = (), filtered: bool = True,
+                       sequence: str = "stratified") -> list[Any]:
     """The device kernels :func:`irradiance_texture` and (if ``filtered``)
     :func:`filter_interleaved` will launch for these lights (for
     :class:`~.opencl.Prewarm`)."""
@@ -559,7 +594,7 @@ def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
     for light in lights:
         if not np.any(light.radiance > 0):
             continue
-        count, inter = sample_plan(light, samples, interleaved)
+        count, inter = sample_plan(light, samples, interleaved, sequence)
         interleaved_lights += inter
         if light.kind in DEVICE_SAMPLED_KINDS and light.path not in textured_domes:
             kernels.append(_sample_kernel(light.kind, count, inter))
@@ -644,10 +679,11 @@ def irradiance_texture(
     positions: NDArray[Any], normals: NDArray[Any], lights: list[Light], rays: RayScene,
     samples: int = 16, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
-    interleave: NDArray[Any] | None = None,
+    interleave: NDArray[Any] | None = None, sequence: str = "stratified",
 ) -> IrradianceResult:
     """Irradiance entering the skin at surface points (N, 3) with unit normals, summed
-    over ``lights`` with ``samples`` stratified shadow rays per light and point (with
+    over ``lights`` with ``samples`` shadow rays per light and point (the points of
+    :func:`light_sample_set` for ``sequence``; with
     ``interleave``, a class 0-3 per point: a quarter of them, see ``LightSampler``; the
     per-point visibility is then noisy until ``filter_interleaved`` has run).
 
@@ -676,7 +712,7 @@ def irradiance_texture(
             continue
         sampler = LightSampler(light, origins, nrm, samples, light_rng(seed, light),
                                (dome_textures or {}).get(light.path), classes, roughness, rho_s,
-                               point_buffers=point_buffers)
+                               point_buffers=point_buffers, sequence=sequence)
 
         def one(k: int, sampler: LightSampler = sampler) -> tuple[Any, Any, int]:
             # light the specular lobe reflects does not enter the skin
@@ -744,6 +780,7 @@ def refine_penumbrae(
     normals: NDArray[Any], interleave: NDArray[Any], lights: list[Light], rays: RayScene,
     samples: int, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
+    sequence: str = "stratified",
 ) -> tuple[IrradianceResult, dict[str, NDArray[np.int64]]]:
     """Adaptive shadow rays: after an interleaved pass (``result``: every covered texel of
     ``covered``, row-major, traced the quarter of the strata its ``interleave`` class
@@ -777,7 +814,8 @@ def refine_penumbrae(
         others = (classes[where][:, None] + np.arange(1, 4)) % 4
         more = irradiance_texture(np.repeat(positions[where], 3, axis=0),
                                   np.repeat(normals[where], 3, axis=0), [light], rays, samples,
-                                  roughness, rho_s, seed, dome_textures, others.ravel())
+                                  roughness, rho_s, seed, dome_textures, others.ravel(),
+                                  sequence)
         n_rays += more.rays
         un2 = more.unshadowed.get(path, np.zeros((3 * where.size, 3), np.float32))
         vis2 = more.visibility.get(path, np.zeros(3 * where.size, np.float32))

@@ -19,6 +19,7 @@ radiance), stretch (mm per texel along u and v), region (index of the largest re
 weight, -1 outside the charts), each with the charts' coverage."""
 BLURS = ("recursive", "gather")
 SHADOW_SAMPLING = ("adaptive", "interleaved", "full")
+LIGHT_SEQUENCES = ("stratified", "sobol")
 DEFAULT_ROUGHNESS = 0.35
 """Beckmann roughness of the skin's specular lobe (Torrance-Sparrow)."""
 DEFAULT_RHO_S = 0.25
@@ -49,6 +50,9 @@ class RenderOptions:
     rest from its 3 x 3 neighbours; 'adaptive': the same, then texels whose 3 x 3
     neighbourhood's rays disagree (penumbrae) trace the rest themselves; 'full': every
     texel traces all of them."""
+    light_sequence: str = "sobol"
+    """Light sample points: 'sobol' (scrambled Sobol, light_samples rounded up to a power
+    of two) or 'stratified' (a jittered grid)."""
     roughness: float = DEFAULT_ROUGHNESS
     rho_s: float = DEFAULT_RHO_S
     albedo_split: float = 0.5
@@ -92,6 +96,9 @@ class RenderOptions:
         if self.shadow_sampling not in SHADOW_SAMPLING:
             raise InputError(f"unknown shadow sampling {self.shadow_sampling!r}; choose from "
                              f"{', '.join(SHADOW_SAMPLING)}")
+        if self.light_sequence not in LIGHT_SEQUENCES:
+            raise InputError(f"unknown light sample sequence {self.light_sequence!r}; choose "
+                             f"from {', '.join(LIGHT_SEQUENCES)}")
         if self.blur not in BLURS:
             raise InputError(f"unknown blur {self.blur!r}; choose from {', '.join(BLURS)}")
         if not 0 <= self.variance_grid <= 64:

@@ -425,7 +425,8 @@ class Renderer:
             PlannedStep(render + "texture_maps", "texture_kernels"),
             lambda: irradiance_kernels(scene.lights, opts.light_samples,
                                        opts.shadow_sampling != "full", domes,
-                                       filtered=opts.shadow_sampling == "interleaved"),
+                                       filtered=opts.shadow_sampling == "interleaved",
+                                       sequence=opts.light_sequence),
             PlannedStep(render + "push_pull", "push_pull_kernels")]
         if opts.scattering and opts.blur == "recursive":
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
@@ -469,7 +470,7 @@ class Renderer:
         covered = maps.triangle >= 0
         key = content_hash(tex.mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
                            [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness,
-                           opts.rho_s, opts.seed, opts.shadow_sampling)
+                           opts.rho_s, opts.seed, opts.shadow_sampling, opts.light_sequence)
 
         def compute() -> Any:
             texel_y, texel_x = np.nonzero(covered)
@@ -477,13 +478,13 @@ class Renderer:
                 if opts.shadow_sampling != "full" else None
             res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
                                      rays, opts.light_samples, opts.roughness, opts.rho_s,
-                                     opts.seed, dome_textures, interleave)
+                                     opts.seed, dome_textures, interleave, opts.light_sequence)
             refined: dict[str, Any] = {}
             if opts.shadow_sampling == "adaptive" and res.interleaved:
                 res, refined = refine_penumbrae(
                     res, covered, maps.position[covered], maps.normal[covered], interleave,
                     scene.lights, rays, opts.light_samples, opts.roughness, opts.rho_s,
-                    opts.seed, dome_textures)
+                    opts.seed, dome_textures, opts.light_sequence)
             visibility, entering = res.visibility, res.entering
             if interleave is not None and res.interleaved and visibility:
                 visibility = interleaved_visibility(res, maps)

@@ -324,9 +324,11 @@ def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
 def lighting_tradeoff(scene: Path, texture_size: int = 1024,
                       light_samples: Sequence[int] = (4, 8, 16, 32),
                       sampling: Sequence[str] = SHADOW_SAMPLING, reference_samples: int = 256,
-                      progress: Any = None) -> list[dict[str, Any]]:
-    """Irradiance error against its time, per light samples and shadow sampling
-    (adaptive, interleaved, full), on the skin's texels at ``texture_size``.
+                      progress: Any = None, sequences: Sequence[str] = ("stratified",)
+                      ) -> list[dict[str, Any]]:
+    """Irradiance error against its time, per light samples, shadow sampling (adaptive,
+    interleaved, full) and light sample sequence (stratified, sobol), on the skin's
+    texels at ``texture_size``.
 
     The reference is the same texels lit with ``reference_samples`` samples per light,
     every texel tracing all of them. Error: RMS over covered texels (weighted by their
@@ -335,9 +337,10 @@ def lighting_tradeoff(scene: Path, texture_size: int = 1024,
     """
     stage = open_stage_guarded(scene)
 
-    def irradiance(samples: int, mode: str) -> tuple[NDArray[Any], NDArray[Any], dict[str, Any]]:
+    def irradiance(samples: int, mode: str, sequence: str = "stratified"
+                   ) -> tuple[NDArray[Any], NDArray[Any], dict[str, Any]]:
         opts = RenderOptions(texture_size=texture_size, light_samples=samples,
-                             shadow_sampling=mode, resolution=(8, 8))
+                             shadow_sampling=mode, light_sequence=sequence, resolution=(8, 8))
         renderer = Renderer(stage, opts)
         try:
             sc = renderer.delegate.sync()
@@ -357,25 +360,27 @@ def lighting_tradeoff(scene: Path, texture_size: int = 1024,
     weights = area / area.sum()
     mean = (reference * weights[:, None]).sum(axis=0)
     rows = []
-    for samples in light_samples:
-        for mode in sampling:
-            got, _, measures = irradiance(samples, mode)
+    for samples, mode, sequence in [(n, m, q) for n in light_samples for m in sampling
+                                    for q in sequences]:
+            got, _, measures = irradiance(samples, mode, sequence)
             rms = np.sqrt(((got - reference) ** 2 * weights[:, None]).sum(axis=0))
             error = float((rms / np.maximum(mean, 1e-30)).max())
             rows.append({"texture_size": texture_size, "light_samples": samples,
-                         "shadow_sampling": mode, "seconds": measures["seconds"],
+                         "shadow_sampling": mode, "light_sequence": sequence,
+                         "seconds": measures["seconds"],
                          "rays_per_texel": measures["rays_per_texel"],
                          "penumbra_texels": measures["penumbra_texels"],
                          "error_max": error})
             if progress:
-                progress(f"light samples {samples} {mode}: error {error:.2e}, "
+                progress(f"light samples {samples} {mode} {sequence}: error {error:.2e}, "
                          f"{measures['seconds']:.1f} s, {measures['rays_per_texel']:.1f} "
                          "rays a texel")
     return rows
 
 
 def write_lighting_report(rows: Sequence[dict[str, Any]], out_dir: Path,
-                          default: tuple[int, str] = (16, "interleaved")) -> dict[str, Any]:
+                          default: tuple[int, str, str] = (16, "interleaved", "sobol")
+                          ) -> dict[str, Any]:
     """lighting_tradeoff.json and lighting_tradeoff.png in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
@@ -385,12 +390,15 @@ def write_lighting_report(rows: Sequence[dict[str, Any]], out_dir: Path,
                          "full sampling at many samples, over its mean, max over R, G, B",
         "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
         "default": {"light_samples": default[0], "shadow_sampling": default[1],
+                    "light_sequence": default[2],
                     "on_pareto_front": [i in front for i, r in enumerate(rows)
-                                        if (r["light_samples"], r["shadow_sampling"])
+                                        if (r["light_samples"], r["shadow_sampling"],
+                                            r.get("light_sequence", "stratified"))
                                         == default]},
     }
     atomic_write_json(out_dir / "lighting_tradeoff.json", doc)
-    _plot_tradeoff([(r["shadow_sampling"], r["seconds"], r["error_max"],
+    _plot_tradeoff([(f"{r['shadow_sampling']}, {r.get('light_sequence', 'stratified')}",
+                     r["seconds"], r["error_max"],
                      str(r["light_samples"])) for r in rows],
                    out_dir / "lighting_tradeoff.png", "irradiance (s)",
                    "Irradiance: error against run time (labels: light samples)",
@@ -493,10 +501,12 @@ def write_report_page(out_dir: Path) -> Path:
                   f"Error: {doc['error_measure']}. Seconds: the irradiance task.", "",
                   "![lighting](lighting_tradeoff.png)", "",
                   _default_sentence(doc, f"{d['light_samples']} samples, "
-                                    f"{d['shadow_sampling']}"), ""]
-        lines += _table(["texture", "samples", "shadow sampling", "rays/texel", "seconds",
-                         "RMS error", ""],
+                                    f"{d['shadow_sampling']}, "
+                                    f"{d.get('light_sequence', 'stratified')}"), ""]
+        lines += _table(["texture", "samples", "shadow sampling", "sequence", "rays/texel",
+                         "seconds", "RMS error", ""],
                         [(r["texture_size"], r["light_samples"], r["shadow_sampling"],
+                          r.get("light_sequence", "stratified"),
                           f"{r['rays_per_texel']:.1f}", f"{r['seconds']:.2f}",
                           f"{r['error_max']:.2e}", "*" if r["pareto"] else "")
                          for r in doc["rows"]])

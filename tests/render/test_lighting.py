@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from pipeline.errors import InputError
 from pipeline.render.lighting import (
     LightSampler,
     beckmann_ndf,
@@ -16,8 +17,10 @@ from pipeline.render.lighting import (
     grid_shape,
     interleaved_strata,
     irradiance_texture,
+    light_sample_set,
     penumbra_texels,
     refine_penumbrae,
+    sobol_points,
     specular_albedo,
 )
 from pipeline.render.raytrace import RayScene, morton_order
@@ -54,14 +57,16 @@ def _floor() -> RayScene:
     return RayScene([(pts, np.array([[0, 1, 2]]))])
 
 
-def test_sphere_light_irradiance_matches_the_closed_form() -> None:
+@pytest.mark.parametrize("sequence", ["stratified", "sobol"])
+def test_sphere_light_irradiance_matches_the_closed_form(sequence: str) -> None:
     # a sphere of radius R at distance D straight above: E = L pi (R / D)^2
     matrix = np.eye(4)
     matrix[3, :3] = [0.0, 0.0, 10.0]
     light = Light("/S", "sphere", np.ones(3), matrix, radius=2.0)
     pos = np.zeros((1, 3))
     nrm = np.array([[0.0, 0.0, 1.0]])
-    res = irradiance_texture(pos, nrm, [light], _floor(), samples=256, rho_s=0.0)
+    res = irradiance_texture(pos, nrm, [light], _floor(), samples=256, rho_s=0.0,
+                             sequence=sequence)
     np.testing.assert_allclose(res.entering[0], math.pi * 0.04, rtol=1e-2)
 
 
@@ -131,6 +136,29 @@ def _filter_by_definition(vis: np.ndarray, traced: np.ndarray, nrm: np.ndarray,
     return out
 
 
+def test_sobol_sets_are_nets_and_each_interleaved_quarter_is_one() -> None:
+    """Scrambled Sobol points (scipy) as light samples: 16 of them are a (0, 4, 2)-net
+    in base 2 (one point in every 4 x 4, 16 x 1 and 1 x 16 cell), each interleaved
+    quarter a (0, 2, 2)-net (one point per quadrant and per strip of a quarter); 10
+    samples become 16."""
+    rng = np.random.default_rng(3)
+    grid, sets = light_sample_set(16, rng, True, "sobol")
+    assert sets is not None and sets.shape == (4, 4) and sobol_points(10) == 16
+
+    def one_per_cell(p: np.ndarray, nx: int, ny: int) -> bool:
+        cells = (p[:, 0] * nx).astype(int) * ny + (p[:, 1] * ny).astype(int)
+        return sorted(cells.tolist()) == list(range(nx * ny))
+
+    assert all(one_per_cell(grid, nx, 16 // nx) for nx in (1, 2, 4, 8, 16))
+    for row in sets:
+        assert all(one_per_cell(grid[row], nx, 4 // nx) for nx in (1, 2, 4))
+    # a seed's points are the same in every call: the adaptive pass relies on it
+    again, _ = light_sample_set(16, np.random.default_rng(3), True, "sobol")
+    np.testing.assert_array_equal(grid, again)
+    with pytest.raises(InputError, match="unknown light sample sequence"):
+        light_sample_set(16, rng, False, "halton")
+
+
 def test_filter_interleaved_matches_its_definition() -> None:
     rng = np.random.default_rng(3)
     vis = rng.random((6, 15, 11)).astype(np.float32)  # six lights: two launches
@@ -184,7 +212,8 @@ def test_interleaved_shadow_rays_match_full_sampling_in_a_penumbra() -> None:
     np.testing.assert_array_equal(vf, vf.round())
 
 
-def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays() -> None:
+@pytest.mark.parametrize("sequence", ["stratified", "sobol"])
+def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays(sequence: str) -> None:
     """The same penumbra: after the interleaved pass, the texels whose neighbourhood
     disagrees trace the other three quarters of the strata, and then every texel's
     visibility is full sampling's (the same strata: each light's own random numbers),
@@ -205,12 +234,13 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays() -> None:
     pos = pos.reshape(-1, 3)
     nrm = np.tile([0.0, 0.0, 1.0], (n * n, 1))
     classes = ((ys % 2) * 2 + xs % 2).ravel()
-    full = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0)
+    full = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0,
+                                 sequence=sequence)
     inter = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0,
-                               interleave=classes)
+                               interleave=classes, sequence=sequence)
     covered = np.ones((n, n), bool)
     got, refined = refine_penumbrae(inter, covered, pos, nrm, classes, lights, rays, 16,
-                                    rho_s=0.0)
+                                    rho_s=0.0, sequence=sequence)
     assert got.interleaved == frozenset()
     for path in ("/Key", "/Fill"):
         np.testing.assert_allclose(got.visibility[path], full.visibility[path], atol=2e-6)
@@ -220,11 +250,12 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays() -> None:
     # every floor texel sees the plate somewhere in the dome: all of them are refined;
     # the key's penumbra is a band
     assert refined["/Fill"].size == n * n and 0 < refined["/Key"].size < 0.3 * n * n
-    key_only = irradiance_texture(pos, nrm, lights[:1], rays, samples=16, rho_s=0.0)
+    key_only = irradiance_texture(pos, nrm, lights[:1], rays, samples=16, rho_s=0.0,
+                                 sequence=sequence)
     key_inter = irradiance_texture(pos, nrm, lights[:1], rays, samples=16, rho_s=0.0,
-                                   interleave=classes)
+                                   interleave=classes, sequence=sequence)
     key_got, _ = refine_penumbrae(key_inter, covered, pos, nrm, classes, lights[:1], rays, 16,
-                                  rho_s=0.0)
+                                  rho_s=0.0, sequence=sequence)
     assert key_got.rays < 0.5 * key_only.rays
     # outside the refined texels the neighbourhood agreed: visible or blocked
     key = got.visibility["/Key"].reshape(n, n)
