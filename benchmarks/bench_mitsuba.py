@@ -198,7 +198,8 @@ def main() -> None:
                                                 shadow_sampling="full")
         img, _, seconds = skinpipe_irradiance(bench, res)
         mask = alpha >= 1.0
-        ours = {"light_samples": 16, "shadow_sampling": "interleaved", "seconds": seconds,
+        ours = {"light_samples": 16, "shadow_sampling": "interleaved",
+                "light_sequence": RenderOptions().light_sequence, "seconds": seconds,
                 "rel_rmse": rel_rmse(img, ref, mask), "reference_seconds": ref_s}
         result: dict[str, Any] = {"machine": {"platform": platform.platform(),
                                               "cores": os.cpu_count()},
