@@ -324,7 +324,7 @@ def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
 def lighting_tradeoff(scene: Path, texture_size: int = 1024,
                       light_samples: Sequence[int] = (4, 8, 16, 32),
                       sampling: Sequence[str] = SHADOW_SAMPLING, reference_samples: int = 256,
-                      progress: Any = None, sequences: Sequence[str] = ("stratified",)
+                      progress: Any = None, sequences: Sequence[str] = ("sobol",)
                       ) -> list[dict[str, Any]]:
     """Irradiance error against its time, per light samples, shadow sampling (adaptive,
     interleaved, full) and light sample sequence (stratified, sobol), on the skin's

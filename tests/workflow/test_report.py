@@ -114,7 +114,7 @@ def test_lighting_tradeoff_rows_and_page(sphere_lit_patch: Path, tmp_path: Path)
     assert by[16, "adaptive"]["error_max"] <= 1.05 * by[16, "full"]["error_max"]
     assert by[16, "adaptive"]["rays_per_texel"] < 0.6 * by[16, "full"]["rays_per_texel"]
     assert by[16, "interleaved"]["rays_per_texel"] < by[16, "adaptive"]["rays_per_texel"]
-    write_lighting_report(rows, tmp_path, default=(16, "interleaved"))
+    write_lighting_report(rows, tmp_path, default=(16, "interleaved", "sobol"))
     text = write_report_page(tmp_path).read_text()
     assert "## Irradiance" in text and text.count("| 128 | 16 |") == 3
     assert (tmp_path / "lighting_tradeoff.png").stat().st_size > 0
