@@ -378,11 +378,48 @@ def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     centre carried into that chart, P_hit - J_hit^+ J_b o (o the point's offset from
     the centre). Points that miss the skin (beyond the scan's edge), or land farther
     from the tangent plane than half the way out plus two texels, are dropped."""
+    sub = _subsamples(level)
+    texels = np.flatnonzero(margin)
+    # in chunks of texels (a texel's points stay together): the points' float64
+    # intermediates took 1.8 GiB beside the layout at texture 2048 in one piece
+    points = np.where(count[texels] <= 1e-6, 1, sub.shape[0])
+    bounds = np.searchsorted(np.cumsum(points), np.arange(MARGIN_POINTS_PER_CHUNK,
+                                                          int(points.sum()),
+                                                          MARGIN_POINTS_PER_CHUNK))
+    key_of = int(g.tri_chart.max(initial=0)) + 1
+    m_all: list[NDArray[np.int64]] = []
+    xy_all: list[NDArray[np.float64]] = []
+    chart_all: list[NDArray[Any]] = []
+    for chunk in np.split(texels, bounds):
+        for m, xy, chart in _margin_reads(g, level, shift, count, full, nearest, owner, w,
+                                          chunk, sub, key_of):
+            m_all.append(m)
+            xy_all.append(xy)
+            chart_all.append(chart)
+    if not m_all:
+        return np.zeros(0, np.int64), np.zeros((0, 2), np.float32)
+    m_out, xy_out, _ = _mean_per_key(np.concatenate(m_all), np.concatenate(chart_all),
+                                     np.concatenate(xy_all), key_of)
+    return m_out, xy_out.astype(np.float32)
+
+
+MARGIN_POINTS_PER_CHUNK = 1 << 19
+"""Points :func:`_margin_reads` handles at once (about 200 MB of intermediates)."""
+
+
+def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
+                  count: NDArray[np.float32], full: NDArray[np.bool_],
+                  nearest: NDArray[np.int64], owner: NDArray[np.int64], w: int,
+                  m_all: NDArray[np.int64], sub: NDArray[np.float64], key_of: int
+                  ) -> list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[Any]]]:
+    """The reads of :func:`_margin_sources` for the margin texels ``m_all``: (texels,
+    atlas positions, source charts) pieces, one read per texel and chart landed on,
+    then the fully covered texels a partly covered one's read reaches."""
+    if m_all.size == 0:
+        return []
     scale = 1 << level
     n = count.size
-    m_all = np.flatnonzero(margin)
     empty = count[m_all] <= 1e-6
-    sub = _subsamples(level)
     n_e, n_p = int(empty.sum()), int((~empty).sum())
     m_idx = np.concatenate([m_all[empty], np.repeat(m_all[~empty], sub.shape[0])])
     offset_px = np.concatenate([np.zeros((n_e, 2)), np.tile(sub, (n_p, 1))])
@@ -415,7 +452,6 @@ def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     own = src_chart == owner[m_idx]
     far = np.linalg.norm(level_xy - (here - offset_px), axis=1) > 2.0
     ok &= ~partial | ~own | far
-    key_of = int(g.tri_chart.max(initial=0)) + 1
     m_read, xy_read, first = _mean_per_key(m_idx[ok], src_chart[ok], level_xy[ok], key_of)
     read = np.flatnonzero(ok)[first]
     # the fully covered texels up to a read's reach from a partly covered one read that
@@ -426,18 +462,16 @@ def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     carry = np.einsum("mij,mjk->mik", g.texels_per_scene_unit[t_local[read[src]]],
                       jac[read[src]]) / scale
     m_src, chart_src = m_read[src], src_chart[read[src]]
-    m_all, xy_all, chart_all = [m_read], [xy_read], [src_chart[read]]
+    pieces = [(m_read, xy_read, src_chart[read])]
     ring = range(-_read_reach(level), _read_reach(level) + 1)
     for dy in ring:
         for dx in ring:
             m2 = np.clip(m_src + dy * w + dx, 0, n - 1)
             keep = full[m2] & (owner[m2] == owner[m_src])
-            m_all.append(m2[keep])
-            xy_all.append(xy_read[src][keep] + carry[keep] @ np.array([dx, dy], float))
-            chart_all.append(chart_src[keep])
-    m_out, xy_out, _ = _mean_per_key(np.concatenate(m_all), np.concatenate(chart_all),
-                                     np.concatenate(xy_all), key_of)
-    return m_out, xy_out.astype(np.float32)
+            pieces.append((m2[keep], xy_read[src][keep] + carry[keep] @ np.array([dx, dy],
+                                                                                  float),
+                           chart_src[keep]))
+    return pieces
 
 
 def _cell_frames(g: SeamGeometry, level: int, shift: NDArray[np.int64],
