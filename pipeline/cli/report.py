@@ -7,7 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from ..render.options import LIGHT_SEQUENCES, SHADOW_SAMPLING
+from ..render.options import BLURS, LIGHT_SEQUENCES, SHADOW_SAMPLING
 from .common import _eprint, _int_pair, add_force_option
 
 
@@ -43,16 +43,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("profiles", nargs="*", type=Path, metavar="PROFILE.csv|SCENE",
                    help="fit: profiles to fit (default: built-in reference profiles); "
                         "render and all: the scene (e.g. demo_out/scene.usda)")
-    p.add_argument("--sizes", type=lambda t: [int(x) for x in t.split(",")],
+    p.add_argument("--sizes", type=_ints(16, 16384, "texture size"),
                    default=[512, 1024, 2048], metavar="N,N",
                    help="render: texture sizes (4096 works, needs minutes and ~6 GiB)")
-    p.add_argument("--grids", type=lambda t: [int(x) for x in t.split(",")],
+    p.add_argument("--grids", type=_ints(0, 64, "variance grid"),
                    default=[0, 8, 12], metavar="N,N",
                    help="render: variance grids (0 = each region's own variances)")
-    p.add_argument("--blurs", type=lambda t: [b.strip() for b in t.split(",")],
+    p.add_argument("--blurs", type=_choices(BLURS, "blur"),
                    default=["recursive"], metavar="B,B",
                    help="render: diffusion blurs to compare (recursive, gather)")
-    p.add_argument("--light-samples", type=lambda t: [int(x) for x in t.split(",")],
+    p.add_argument("--light-samples", type=_ints(1, 1024, "light samples"),
                    default=[4, 8, 16, 32], metavar="N,N",
                    help="render: light samples per texel and light, each against 256 "
                         "samples traced by every texel")
@@ -63,7 +63,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--light-sequences", type=_choices(LIGHT_SEQUENCES, "light sequence"),
                    default=list(LIGHT_SEQUENCES), metavar="S,S",
                    help="render: light sample sequences to compare (stratified, sobol)")
-    p.add_argument("--lighting-size", type=int, default=1024, metavar="N",
+    p.add_argument("--lighting-size", type=lambda t: _ints(16, 16384, "texture size")(t)[0],
+                   default=1024, metavar="N",
                    help="render: texture size of the light-sample comparison")
     p.add_argument("--k", type=_int_range, default=(1, 8), metavar="A:B",
                    help="range of k to try, inclusive")
@@ -72,6 +73,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")
     add_force_option(p)
     p.set_defaults(handler=cmd_report)
+
+
+def _ints(lo: int, hi: int, what: str) -> Callable[[str], list[int]]:
+    """An argparse type: comma-separated integers in [lo, hi], refused before any
+    measuring starts."""
+    def parse(text: str) -> list[int]:
+        try:
+            values = [int(v) for v in text.split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what}: integers, comma-separated; got "
+                                             f"{text!r}") from None
+        bad = [v for v in values if not lo <= v <= hi]
+        if bad:
+            raise argparse.ArgumentTypeError(f"{what} must be {lo}-{hi}, got {bad}")
+        return values
+    return parse
 
 
 def _choices(allowed: tuple[str, ...], what: str) -> Callable[[str], list[str]]:

@@ -63,6 +63,14 @@ class Spots:
     tints: NDArray[np.float64]
 
 
+def _draw(weights: NDArray[Any], count: int, rng: np.random.Generator) -> NDArray[np.int64]:
+    """``count`` indices drawn in proportion to ``weights`` (>= 0, some > 0) by inverse
+    CDF: rng.choice(p=...) checks and normalises p on every call."""
+    cdf = np.cumsum(weights)
+    return np.minimum(np.searchsorted(cdf, rng.random(count) * cdf[-1], side="right"),
+                      cdf.size - 1)
+
+
 def place_spots(position: NDArray[Any], area_mm2: NDArray[Any], freckle_density: NDArray[Any],
                 freckles: int = 700, moles: int = 5, seed: int = 7) -> Spots:
     """Freckles (0.3-1.0 mm) at surface points drawn in proportion to area times
@@ -72,13 +80,10 @@ def place_spots(position: NDArray[Any], area_mm2: NDArray[Any], freckle_density:
     p = area_mm2 * freckle_density
     if not p.sum() > 0:
         return Spots(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))
-    # inverse-CDF draws: rng.choice(p=...) checks and normalises p on every call
-    freckle_at = np.searchsorted(np.cumsum(p), rng.random(freckles) * p.sum(), side="right")
+    freckle_at = _draw(p, freckles, rng)
     freckle_radii = rng.uniform(0.3, 1.0, freckles)
     freckle_tints = FRECKLE_TINT + rng.uniform(-0.06, 0.06, (freckles, 3))
-    area_cdf = np.cumsum(area_mm2)
-    mole_at = np.searchsorted(area_cdf, rng.random(moles) * area_cdf[-1], side="right")
-    at = np.minimum(np.concatenate([freckle_at, mole_at]), p.size - 1)
+    at = np.concatenate([freckle_at, _draw(area_mm2, moles, rng)])
     return Spots(position[at].astype(np.float64),
                  np.concatenate([freckle_radii, rng.uniform(1.0, 1.8, moles)]),
                  np.concatenate([freckle_tints, np.broadcast_to(MOLE_TINT, (moles, 3))]))

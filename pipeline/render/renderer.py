@@ -476,20 +476,21 @@ class Renderer:
             texel_y, texel_x = np.nonzero(covered)
             interleave = (texel_y % 2) * 2 + texel_x % 2 \
                 if opts.shadow_sampling != "full" else None
-            res = irradiance_texture(maps.position[covered], maps.normal[covered], scene.lights,
-                                     rays, opts.light_samples, opts.roughness, opts.rho_s,
+            positions, normals = maps.position[covered], maps.normal[covered]
+            res = irradiance_texture(positions, normals, scene.lights, rays,
+                                     opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave, opts.light_sequence)
-            refined: dict[str, Any] = {}
+            penumbra: dict[str, int] = {}  # texels refined per light (adaptive)
             if opts.shadow_sampling == "adaptive" and res.interleaved:
                 res, refined = refine_penumbrae(
-                    res, covered, maps.position[covered], maps.normal[covered], interleave,
-                    scene.lights, rays, opts.light_samples, opts.roughness, opts.rho_s,
-                    opts.seed, dome_textures, opts.light_sequence)
+                    res, covered, positions, normals, interleave, scene.lights, rays,
+                    opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
+                    opts.light_sequence)
+                penumbra = {path: int(where.size) for path, where in refined.items()}
             visibility, entering = res.visibility, res.entering
             if interleave is not None and res.interleaved and visibility:
                 visibility = interleaved_visibility(res, maps)
                 entering = res.entering_with(visibility)
-            refined = {path: int(np.size(where)) for path, where in refined.items()}
             e = np.zeros((*covered.shape, 3), np.float32)
             e[covered] = entering
             # one push-pull fills the irradiance and the visibility the specular lobe
@@ -503,9 +504,9 @@ class Renderer:
             filled = dilate_charts(push_pull(planes, maps.coverage), maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
-            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds, refined)
+            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds, penumbra)
 
-        e, filled, vis, (skipped, rays_cast, seconds, refined) = self._cached(
+        e, filled, vis, (skipped, rays_cast, seconds, penumbra) = self._cached(
             log, "irradiance", key, compute)
         tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
         tex.keys["irradiance"] = key
@@ -513,7 +514,7 @@ class Renderer:
         log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
                                       "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
                                       "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
-                                      "penumbra_texels": refined}
+                                      "penumbra_texels": penumbra}
 
     def _diffusion(self, log: TaskLog, tex: SkinTextures, rays: RayScene,
                    mesh_index: int, geometry_key: str) -> None:

@@ -298,26 +298,35 @@ def write_render_report(rows: Sequence[dict[str, Any]], out_dir: Path,
                         default: tuple[int, int, str] = (1024, 12, "recursive")
                         ) -> dict[str, Any]:
     """render_tradeoff.json and render_tradeoff.png in ``out_dir``."""
+    return _write_tradeoff(
+        out_dir, "render", "RMS relative difference to a brute-force surface convolution, "
+        "max over R, G, B", rows,
+        dict(zip(("texture_size", "variance_grid", "blur"), default, strict=True)),
+        [(f"{r['blur']}, grid {r['variance_grid'] or 'per-region'}", r["seconds"],
+          r["error_max"], str(r["texture_size"])) for r in rows],
+        "texture maps + irradiance + diffusion (s)",
+        "Render: error against run time (labels: texture size)",
+        "RMS relative error vs brute-force convolution")
+
+
+def _write_tradeoff(out_dir: Path, stage: str, error_measure: str,
+                    rows: Sequence[dict[str, Any]], default: dict[str, Any],
+                    points: Sequence[tuple[str, float, float, str]], xlabel: str, title: str,
+                    ylabel: str) -> dict[str, Any]:
+    """``<stage>_tradeoff.json`` (the rows with their Pareto flags, the default's values
+    and whether its rows are on the front) and ``<stage>_tradeoff.png`` in ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
     doc = {
-        "stage": "render",
-        "error_measure": "RMS relative difference to a brute-force surface convolution, max "
-                         "over R, G, B",
+        "stage": stage,
+        "error_measure": error_measure,
         "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
-        "default": {"texture_size": default[0], "variance_grid": default[1],
-                    "blur": default[2],
-                    "on_pareto_front": [i in front for i, r in enumerate(rows)
-                                        if (r["texture_size"], r["variance_grid"],
-                                            r.get("blur", "recursive")) == default]},
+        "default": default | {"on_pareto_front": [
+            i in front for i, r in enumerate(rows)
+            if all(r.get(k) == v for k, v in default.items())]},
     }
-    atomic_write_json(out_dir / "render_tradeoff.json", doc)
-    _plot_tradeoff([(f"{r.get('blur', 'recursive')}, grid {r['variance_grid'] or 'per-region'}",
-                     r["seconds"], r["error_max"],
-                     str(r["texture_size"])) for r in rows], out_dir / "render_tradeoff.png",
-                   "texture maps + irradiance + diffusion (s)",
-                   "Render: error against run time (labels: texture size)",
-                   "RMS relative error vs brute-force convolution")
+    atomic_write_json(out_dir / f"{stage}_tradeoff.json", doc)
+    _plot_tradeoff(points, out_dir / f"{stage}_tradeoff.png", xlabel, title, ylabel)
     return doc
 
 
@@ -382,28 +391,15 @@ def write_lighting_report(rows: Sequence[dict[str, Any]], out_dir: Path,
                           default: tuple[int, str, str] = (16, "interleaved", "sobol")
                           ) -> dict[str, Any]:
     """lighting_tradeoff.json and lighting_tradeoff.png in ``out_dir``."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    front = set(pareto_front([(r["seconds"], r["error_max"]) for r in rows]))
-    doc = {
-        "stage": "lighting",
-        "error_measure": "area-weighted RMS of the entering irradiance's difference to "
-                         "full sampling at many samples, over its mean, max over R, G, B",
-        "rows": [dict(r) | {"pareto": i in front} for i, r in enumerate(rows)],
-        "default": {"light_samples": default[0], "shadow_sampling": default[1],
-                    "light_sequence": default[2],
-                    "on_pareto_front": [i in front for i, r in enumerate(rows)
-                                        if (r["light_samples"], r["shadow_sampling"],
-                                            r.get("light_sequence", "stratified"))
-                                        == default]},
-    }
-    atomic_write_json(out_dir / "lighting_tradeoff.json", doc)
-    _plot_tradeoff([(f"{r['shadow_sampling']}, {r.get('light_sequence', 'stratified')}",
-                     r["seconds"], r["error_max"],
-                     str(r["light_samples"])) for r in rows],
-                   out_dir / "lighting_tradeoff.png", "irradiance (s)",
-                   "Irradiance: error against run time (labels: light samples)",
-                   "RMS relative error vs many samples")
-    return doc
+    return _write_tradeoff(
+        out_dir, "lighting", "area-weighted RMS of the entering irradiance's difference to "
+        "full sampling at many samples, over its mean, max over R, G, B", rows,
+        dict(zip(("light_samples", "shadow_sampling", "light_sequence"), default,
+                 strict=True)),
+        [(f"{r['shadow_sampling']}, {r['light_sequence']}", r["seconds"], r["error_max"],
+          str(r["light_samples"])) for r in rows],
+        "irradiance (s)", "Irradiance: error against run time (labels: light samples)",
+        "RMS relative error vs many samples")
 
 
 # --------------------------------------------------------------------- one page

@@ -172,28 +172,39 @@ def test_filter_interleaved_matches_its_definition() -> None:
     np.testing.assert_array_equal(got[:, 0, 0], vis[:, 0, 0])
 
 
-def test_interleaved_shadow_rays_match_full_sampling_in_a_penumbra() -> None:
-    """A plate hides half a floor from a sphere light: the soft shadow from a quarter of
-    the rays per texel, filtered, is as close to a 1024-sample reference as tracing all
-    16 samples everywhere; texels away from the penumbra are exact."""
+PENUMBRA_TEXELS = 64
+"""Texels of 0.5 mm along each side of :func:`_plate_over_floor`'s grid."""
+
+
+def _plate_over_floor() -> tuple[RayScene, Light, np.ndarray, np.ndarray, np.ndarray]:
+    """A plate 10 mm over a floor hides its x < 0 half from a sphere light (radius 12 mm,
+    60 mm up): the rays, the light, and a grid of texels across the shadow edge at x = 0
+    (positions, normals, interleaving classes from each texel's parity)."""
     floor = np.array([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [50.0, 50.0, 0.0],
                       [-50.0, 50.0, 0.0]])
     plate = np.array([[-60.0, -60.0, 10.0], [0.0, -60.0, 10.0], [0.0, 60.0, 10.0],
                       [-60.0, 60.0, 10.0]])
     quads = np.array([[0, 1, 2], [0, 2, 3]])
-    rays = RayScene([(floor, quads), (plate, quads)])
     matrix = np.eye(4)
     matrix[3, :3] = [0.0, 0.0, 60.0]
-    light = Light("/Key", "sphere", np.ones(3), matrix, radius=12.0)
-    n = 64  # texels of 0.5 mm across the shadow edge at x = 0
+    n = PENUMBRA_TEXELS
     ys, xs = np.mgrid[0:n, 0:n]
     pos = np.stack([(xs - n / 2 + 0.5) * 0.5, (ys - n / 2 + 0.5) * 0.5, 0 * xs], -1)
-    pos = pos.reshape(-1, 3)
-    nrm = np.tile([0.0, 0.0, 1.0], (n * n, 1))
+    return (RayScene([(floor, quads), (plate, quads)]),
+            Light("/Key", "sphere", np.ones(3), matrix, radius=12.0), pos.reshape(-1, 3),
+            np.tile([0.0, 0.0, 1.0], (n * n, 1)), ((ys % 2) * 2 + xs % 2).ravel())
+
+
+def test_interleaved_shadow_rays_match_full_sampling_in_a_penumbra() -> None:
+    """A plate hides half a floor from a sphere light: the soft shadow from a quarter of
+    the rays per texel, filtered, is as close to a 1024-sample reference as tracing all
+    16 samples everywhere; texels away from the penumbra are exact."""
+    rays, light, pos, nrm, classes = _plate_over_floor()
+    n = PENUMBRA_TEXELS
     ref = irradiance_texture(pos, nrm, [light], rays, samples=1024, rho_s=0.0)
     full = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0)
     inter = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0,
-                               interleave=((ys % 2) * 2 + xs % 2).ravel())
+                               interleave=classes)
     assert inter.rays * 4 == full.rays
     traced = (inter.unshadowed["/Key"].sum(axis=1) > 0).reshape(1, n, n)
     vis = filter_interleaved(inter.visibility["/Key"].reshape(1, n, n), traced,
@@ -218,22 +229,9 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays(sequence: str)
     disagrees trace the other three quarters of the strata, and then every texel's
     visibility is full sampling's (the same strata: each light's own random numbers),
     outside the penumbra exactly 0 or 1, for well under half of full sampling's rays."""
-    floor = np.array([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [50.0, 50.0, 0.0],
-                      [-50.0, 50.0, 0.0]])
-    plate = np.array([[-60.0, -60.0, 10.0], [0.0, -60.0, 10.0], [0.0, 60.0, 10.0],
-                      [-60.0, 60.0, 10.0]])
-    quads = np.array([[0, 1, 2], [0, 2, 3]])
-    rays = RayScene([(floor, quads), (plate, quads)])
-    matrix = np.eye(4)
-    matrix[3, :3] = [0.0, 0.0, 60.0]
-    lights = [Light("/Key", "sphere", np.ones(3), matrix, radius=12.0),
-              Light("/Fill", "dome", np.full(3, 0.2), np.eye(4))]
-    n = 64
-    ys, xs = np.mgrid[0:n, 0:n]
-    pos = np.stack([(xs - n / 2 + 0.5) * 0.5, (ys - n / 2 + 0.5) * 0.5, 0 * xs], -1)
-    pos = pos.reshape(-1, 3)
-    nrm = np.tile([0.0, 0.0, 1.0], (n * n, 1))
-    classes = ((ys % 2) * 2 + xs % 2).ravel()
+    rays, key, pos, nrm, classes = _plate_over_floor()
+    lights = [key, Light("/Fill", "dome", np.full(3, 0.2), np.eye(4))]
+    n = PENUMBRA_TEXELS
     full = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0,
                                  sequence=sequence)
     inter = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0,

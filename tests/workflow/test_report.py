@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -29,18 +31,16 @@ def test_pareto_front_keeps_only_undominated_points() -> None:
     assert pareto_front([]) == []
 
 
-@pytest.fixture(scope="module")
-def half_shadowed_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 40 mm patch lit from above with a plate shading half of it: the diffused
-    light crossing the shadow edge is what the report measures."""
+def _patch_under_plate(tmp: Path, light: Callable[[Any], None]) -> Path:
+    """A 40 mm patch seen from above, ``light`` (a function of the stage) over it, and a
+    plate 5 mm up shading its x < 0 half."""
     from pxr import Gf, UsdGeom
 
-    tmp = tmp_path_factory.mktemp("report")
     asset = patch_asset(tmp / "asset", [deon_fit()], n=24)
 
     def build(stage) -> None:
         top_camera(stage)
-        distant_down(stage, intensity=3.0)
+        light(stage)
         plate = UsdGeom.Mesh.Define(stage, "/Plate")
         plate.CreatePointsAttr([(-30, -30, 5), (0, -30, 5), (0, 30, 5), (-30, 30, 5)])
         plate.CreateFaceVertexCountsAttr([4])
@@ -48,6 +48,14 @@ def half_shadowed_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
         plate.CreateExtentAttr([Gf.Vec3f(-30, -30, 5), Gf.Vec3f(0, 30, 5)])
 
     return scene_over(asset, tmp / "scene.usda", build)
+
+
+@pytest.fixture(scope="module")
+def half_shadowed_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The patch lit from above: the diffused light crossing the shadow edge is what the
+    report measures."""
+    return _patch_under_plate(tmp_path_factory.mktemp("report"),
+                              lambda stage: distant_down(stage, intensity=3.0))
 
 
 def test_render_tradeoff_rows_and_page(half_shadowed_patch: Path, tmp_path: Path) -> None:
@@ -81,25 +89,16 @@ def test_render_tradeoff_rows_and_page(half_shadowed_patch: Path, tmp_path: Path
 
 @pytest.fixture(scope="module")
 def sphere_lit_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The patch under a sphere light with a plate over half of it: a soft shadow."""
+    """The patch under a sphere light: a soft shadow."""
     from pxr import Gf, UsdGeom, UsdLux
 
-    tmp = tmp_path_factory.mktemp("lighting")
-    asset = patch_asset(tmp / "asset", [deon_fit()], n=24)
-
-    def build(stage) -> None:
-        top_camera(stage)
+    def sphere(stage) -> None:
         light = UsdLux.SphereLight.Define(stage, "/Key")
         light.CreateRadiusAttr(8.0)
         light.CreateIntensityAttr(3.0)
         UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(0, 0, 60))
-        plate = UsdGeom.Mesh.Define(stage, "/Plate")
-        plate.CreatePointsAttr([(-30, -30, 5), (0, -30, 5), (0, 30, 5), (-30, 30, 5)])
-        plate.CreateFaceVertexCountsAttr([4])
-        plate.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-        plate.CreateExtentAttr([Gf.Vec3f(-30, -30, 5), Gf.Vec3f(0, 30, 5)])
 
-    return scene_over(asset, tmp / "scene.usda", build)
+    return _patch_under_plate(tmp_path_factory.mktemp("lighting"), sphere)
 
 
 def test_lighting_tradeoff_rows_and_page(sphere_lit_patch: Path, tmp_path: Path) -> None:
@@ -169,3 +168,17 @@ def test_render_cli_adaptive_equals_full_sampling_in_the_image(
     assert 0 < measures["adaptive"]["penumbra_texels"]["/Key"] < 0.5 * 128 * 128
     # measured: 0.24% at worst (interleaved: 4.7%)
     np.testing.assert_allclose(images["adaptive"], images["full"], rtol=0.01, atol=1e-4)
+
+
+@pytest.mark.parametrize("option", [["--lighting-size", "5"], ["--light-samples", "4,0"],
+                                    ["--shadow-sampling", "some"], ["--sizes", "64,x"],
+                                    ["--light-sequences", "halton"], ["--blurs", "box"]])
+def test_report_render_refuses_bad_axes_before_measuring(
+        option: list[str], sphere_lit_patch: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from pipeline.cli import main
+
+    out = tmp_path / "report"
+    assert main(["report", "render", str(sphere_lit_patch), *option, "-o", str(out)]) == 2
+    assert not out.exists()
+    assert option[0] in capsys.readouterr().err
