@@ -263,6 +263,52 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays(sequence: str)
     assert calm.sum() == n * n - refined["/Key"].size
 
 
+def _visible_fraction(point: np.ndarray, samples: int = 400) -> float:
+    """The cosine-weighted fraction of :func:`_plate_over_floor`'s sphere light a floor
+    point sees past the plate, by a midpoint rule over the cone the sphere subtends
+    (samples x samples directions) and the plate's half-plane tested in closed form:
+    neither skinpipe's samplers nor Embree."""
+    centre, radius, plate_z = np.array([0.0, 0.0, 60.0]), 12.0, 10.0
+    to_c = centre - point
+    axis = to_c / np.linalg.norm(to_c)
+    cos_max = math.sqrt(1.0 - (radius / np.linalg.norm(to_c)) ** 2)
+    u, v = np.meshgrid((np.arange(samples) + 0.5) / samples, (np.arange(samples) + 0.5) / samples)
+    cos_t = 1.0 - u * (1.0 - cos_max)
+    sin_t, phi = np.sqrt(1.0 - cos_t**2), 2.0 * math.pi * v
+    t = np.cross(axis, [0.0, 1.0, 0.0])
+    t /= np.linalg.norm(t)
+    b = np.cross(axis, t)
+    d = ((sin_t * np.cos(phi))[..., None] * t + (sin_t * np.sin(phi))[..., None] * b
+         + cos_t[..., None] * axis)
+    cos_floor = np.maximum(d[..., 2], 0.0)
+    s = (plate_z - point[2]) / d[..., 2]
+    x, y = point[0] + s * d[..., 0], point[1] + s * d[..., 1]
+    blocked = (x > -60.0) & (x < 0.0) & (np.abs(y) < 60.0)
+    return float((cos_floor * ~blocked).sum() / cos_floor.sum())
+
+
+@pytest.mark.parametrize("sequence", ["stratified", "sobol"])
+def test_adaptive_visibility_against_an_independent_quadrature(sequence: str) -> None:
+    """Across the soft shadow edge, adaptive visibility at 16 samples against a
+    160,000-direction quadrature of the sphere light past the plate (measured: RMS
+    0.0146 stratified, 0.0095 Sobol, worst 0.068 over a row of 64 texels, 10 of them in
+    the penumbra); outside the penumbra exactly 0 or 1 as the quadrature says."""
+    rays, key, pos, nrm, classes = _plate_over_floor()
+    n = PENUMBRA_TEXELS
+    row = np.arange(n * n).reshape(n, n)[n // 2]
+    want = np.array([_visible_fraction(pos[i]) for i in row])
+    first = irradiance_texture(pos, nrm, [key], rays, samples=16, rho_s=0.0,
+                               interleave=classes, sequence=sequence)
+    got, _ = refine_penumbrae(first, np.ones((n, n), bool), pos, nrm, classes, [key], rays,
+                              16, rho_s=0.0, sequence=sequence)
+    vis = got.visibility["/Key"][row]
+    assert 5 <= ((want > 0) & (want < 1)).sum() <= 20
+    assert np.sqrt(np.mean((vis - want) ** 2)) < 0.025
+    assert np.abs(vis - want).max() < 0.1
+    clear = (want == 0) | (want == 1)
+    np.testing.assert_array_equal(vis[clear], want[clear])
+
+
 @pytest.mark.parametrize("kind", ["sphere", "dome"])
 @pytest.mark.parametrize("interleaved", [False, True])
 def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool) -> None:
