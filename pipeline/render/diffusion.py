@@ -485,9 +485,8 @@ class ChartLayout:
     n_charts: int
     geometry: SeamGeometry | None = None
     coverage: NDArray[np.float32] | None = None
-    """(H, W, 3): the share of each texel's square its chart covers and that part's
-    centre (:func:`~.chart_tiles.texel_coverage`); None: all of it, at the texel's
-    centre."""
+    """(H, W): the share of each texel's square its chart covers
+    (:func:`~.chart_tiles.texel_coverage`); None: all of it."""
 
 
 def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
