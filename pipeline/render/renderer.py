@@ -531,29 +531,27 @@ class Renderer:
 
         recursive = opts.scattering and opts.blur == "recursive"
 
-        def layout() -> tuple[DiffusionLayout | None, NDArray[np.float32]]:
+        def layout() -> DiffusionLayout:
             # depends on the UV layout and the geometry only: made once for every frame,
             # light and set of terms; the charts' tiles cross the UV seams (chart_tiles),
             # each set of terms adds the tiles and margins it reaches (prepare)
-            prepared = None
-            if recursive:
-                prepared = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v,
-                                           maps.coverage, maps.region_weights,
-                                           chart_layout(maps, tex.mesh.mesh.points,
-                                                        tex.tris, tex.uv, tex.uv_tris, rays,
-                                                        mesh_index))
-            return prepared, (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel()
+            return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                                   maps.region_weights,
+                                   chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
+                                                tex.uv_tris, rays, mesh_index))
 
-        if f"diffusion:{key}" not in self._cache:
-            # its own task (not timed inside the diffusion's): a frame's diffusion reuses it
-            prepared, area = self._cached(log, "diffusion_layout", content_hash(
-                tex.keys["maps"], recursive, geometry_key), layout)
-            if prepared is not None:
-                # other terms (one profile for every region) add the tiles they lack
-                start = time.perf_counter()
-                prepared.prepare(terms.variances_mm2)
-                log.seconds["diffusion_layout"] = (log.seconds.get("diffusion_layout", 0.0)
-                                                   + time.perf_counter() - start)
+        prepared: DiffusionLayout | None = None
+        if recursive and f"diffusion:{key}" not in self._cache:
+            # its own task (not timed inside the diffusion's): a frame's diffusion reuses
+            # it. Only a recursive blur makes it, so a render without scattering in
+            # between (the demo's texture-only comparison) keeps it for the next
+            prepared = self._cached(log, "diffusion_layout", content_hash(
+                tex.keys["maps"], geometry_key), layout)
+            # other terms (one profile for every region) add the tiles they lack
+            start = time.perf_counter()
+            prepared.prepare(terms.variances_mm2)
+            log.seconds["diffusion_layout"] = (log.seconds.get("diffusion_layout", 0.0)
+                                               + time.perf_counter() - start)
 
         def compute() -> Any:
             a = opts.albedo_split
@@ -562,6 +560,7 @@ class Renderer:
             pre = tex.irradiance * before
             cov = maps.coverage
             # the blur moves flux, it must not create or lose it (chart borders included)
+            area = (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel()
             flux_in = float((area @ pre.reshape(-1, 3)).sum())
             skipped: list[str] = []
             if opts.scattering:
