@@ -718,15 +718,16 @@ def irradiance_texture(
             # light the specular lobe reflects does not enter the skin
             d, dist, w = sampler.entering_sample(k)
             wsum = w if w.ndim == 1 else w.max(axis=1)
-            cast = np.flatnonzero(wsum > 0)
-            if cast.size == 0:
+            reached = wsum > 0
+            cast = int(np.count_nonzero(reached))
+            if cast == 0:
                 return None, None, 0
-            if cast.size == n:
-                blocked = rays.occluded(origins, d, dist)
-            else:
-                blocked = np.zeros(n, bool)
-                blocked[cast] = rays.occluded(origins[cast], d[cast], dist[cast])
-            return np.where(blocked if w.ndim == 1 else blocked[:, None], 0, w), w, cast.size
+            # rays of points the sample does not light end where they start: Embree
+            # drops them at the first box, where gathering the others and scattering
+            # their answers back took 25 ms a sample at texture 1024
+            blocked = rays.occluded(origins, d, dist if cast == n else
+                                    np.where(reached, dist, np.float32(0)))
+            return np.where(blocked if w.ndim == 1 else blocked[:, None], 0, w), w, cast
 
         lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
         unshadowed = np.zeros_like(lit)
@@ -752,10 +753,11 @@ def irradiance_texture(
         back = np.empty(n, np.float32)
         back[order] = vis
         visibility[light.path] = back
-        un = np.empty((n, 3), np.float32)
-        un[order] = unshadowed[:, None] * colour if unshadowed.ndim == 1 else \
-            unshadowed * colour
-        unshadowed_by_light[light.path] = un
+        # back to the points' order before the colour: a third of the scattered bytes
+        un = np.empty(unshadowed.shape, np.float32)
+        un[order] = unshadowed
+        unshadowed_by_light[light.path] = un[:, None] * colour if un.ndim == 1 else \
+            un * colour
     result = np.empty((n, 3), np.float32)
     result[order] = entering
     return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,

@@ -148,7 +148,8 @@ class RayScene:
     def occluded(self, origins: NDArray[Any], directions: NDArray[Any],
                  max_distance: NDArray[Any] | float | None = None) -> NDArray[np.bool_]:
         """True where a ray from ``origins`` along unit ``directions`` hits anything before
-        ``max_distance`` (scene units; default: beyond the scene)."""
+        ``max_distance`` (scene units; default: beyond the scene). A ray of distance 0 is
+        not traced (False, and not counted)."""
         n = origins.shape[0]
         out = np.zeros(n, dtype=bool)
         if n == 0:
@@ -165,7 +166,8 @@ class RayScene:
 
         with ThreadPoolExecutor(self.threads) as pool:
             list(pool.map(run, self._chunks(n)))
-        self.stats.add("occlusion", n, time.perf_counter() - start)
+        traced = n if max_distance is None else int(np.count_nonzero(far > 0))
+        self.stats.add("occlusion", traced, time.perf_counter() - start)
         return out
 
     def intersect(self, origins: NDArray[Any], directions: NDArray[Any]

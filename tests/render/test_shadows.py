@@ -58,6 +58,28 @@ def test_a_far_object_moves_no_shadow() -> None:
     np.testing.assert_array_equal(near.visibility["/Sun"], far.visibility["/Sun"])
 
 
+def test_points_a_light_cannot_reach_cast_no_ray_and_count_none() -> None:
+    """Half the points face away from the sun (zero weight): their rays end where they
+    start, so they are neither blocked nor counted, and the others' shadows are those of
+    the analytic edge; RayScene counts only the rays it traced."""
+    pos, nrm = _edge_points()
+    nrm = nrm.copy()
+    nrm[::2] *= -1  # facing down, away from the sun
+    rays = RayScene([_floor_and_wall()])
+    res = irradiance_texture(pos, nrm, [DOWN], rays, samples=1)
+    assert res.rays == pos.shape[0] // 2 == rays.stats.rays["occlusion"]
+    vis = res.visibility["/Sun"]
+    np.testing.assert_array_equal(vis[1::2], np.where(pos[1::2, 0] < 0, 0.0, 1.0))
+    np.testing.assert_array_equal(vis[::2], 0.0)  # unlit: no light to see
+    # zero-length rays directly: never blocked, not counted
+    up = np.tile(np.float32([0, 0, 1]), (4, 1))
+    under = np.float32([[-5, 0, 1]] * 4)  # under the blocker at z = 10
+    before = rays.stats.rays["occlusion"]
+    got = rays.occluded(under, up, np.float32([0, 20, 0, 5]))
+    np.testing.assert_array_equal(got, [False, True, False, False])
+    assert rays.stats.rays["occlusion"] - before == 2
+
+
 def test_ray_origins_follow_the_points_own_precision() -> None:
     n = np.float32([[0, 0, 1]] * 3)
     p = np.float32([[0.0, 0.0, 0.0], [100.0, 0.0, 100.0], [1e4, 0.0, -1e4]])
