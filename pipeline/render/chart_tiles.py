@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import InputError
+
 TILE_GAP = 2
 """Texels of nothing between two tiles' margins: the recursive blur's tail beyond the
 margin, e^(-x^2/2s^2) at x > 3 s, must not pick up the next tile's margin."""
@@ -144,18 +146,12 @@ class TileLevel:
     shape: tuple[int, int]
     shift: NDArray[np.float32]
     """(C, 2): per chart, the atlas position of global level-k cell (0, 0)."""
-    base: NDArray[np.int32]
-    """(N,): per covered finest texel (in the order of ``np.flatnonzero(covered)``) the
-    flat atlas index of the first of the level-k cells of its chart's tile it is
-    splatted to (level 0: the one; above: it, the next, the one below and the next,
-    bilinearly: its mass keeps its centre, where a cell's mean would move it to the
-    cell's centre, up to (2^k - 1) / 2 finest texels)."""
-    phase: NDArray[np.uint16]
-    """(N,): where the texel lies in its level-k cell, (y mod 2^k) 2^k + x mod 2^k: the
-    splat's weights are a row of :func:`_splat_table` (per texel 6 bytes where the four
-    cells and weights took 48: 2.4 GiB over five levels at texture 4096)."""
-    share: NDArray[np.float32]
-    """(N,): the share of each finest texel's square its chart covers."""
+    owner: NDArray[np.int32]
+    """(H W,): the chart whose tile holds each atlas texel (-1: between the tiles).
+    Each covered finest texel is splatted to the level-k cells of its chart's tile
+    around its centre (level 0: its own; above: bilinearly, so its mass keeps its
+    centre, where a cell's mean would move it to the cell's centre, up to
+    (2^k - 1) / 2 finest texels): :func:`splat_geometry`."""
     count: NDArray[np.float32]
     """Per atlas texel: the finest texels of its chart splatted to it, in texels (its
     coverage x 4^k; 0 outside the charts)."""
@@ -171,17 +167,15 @@ class TileLevel:
     """(H, W): mm of surface per atlas texel along u and v (a margin texel: its
     nearest tile texel's)."""
 
-    def splat(self, values: NDArray[Any]) -> NDArray[np.float64]:
-        """(H W, D): per atlas texel the splat-weighted sum of ``values`` (N covered, D)
-        over the finest texels splatted to it (:attr:`base`)."""
-        return _splat(self.base, self.phase, self.share, self.level, self.shape, values)
-
-    def fill(self, values: NDArray[np.float32]) -> NDArray[np.float32]:
+    def fill(self, values: NDArray[np.float32], chart: NDArray[np.int32],
+             coverage: NDArray[np.float32] | None) -> NDArray[np.float32]:
         """The atlas as RGBA (H, W, 4) float32 for a normalised convolution: rgb the sum
         of the chart's finest ``values`` (N covered, 3) under each texel over 4^k (E x
         coverage), alpha its coverage; to each texel not covered in full, what the other
         chart's tile holds (rgb and coverage alike) where its centre lies across the
-        seam.
+        seam. ``chart`` and ``coverage``: those the tiles were made from
+        (:func:`tile_level`). The diffusion splats on the device instead
+        (:func:`read_across_seams` after the kernel); this is its reference.
 
         The read adds coverage with the light, unnormalised: the two sides' splats of a
         texel a seam crosses are complementary parts of one cell, and a cubic read
@@ -192,12 +186,18 @@ class TileLevel:
         h, w = self.shape
         area = float(4**self.level)
         out = np.empty((h * w, 4), np.float32)
-        out[:, :3] = self.splat(values) / area
+        geometry = splat_geometry(chart, coverage, self.shift.astype(np.int64), self.level, w)
+        out[:, :3] = _splat(*geometry, self.level, self.shape, values) / area
         out[:, 3] = self.count / area
+        return self.read_across_seams(out).reshape(h, w, 4)
+
+    def read_across_seams(self, splatted: NDArray[np.float32]) -> NDArray[np.float32]:
+        """``splatted`` (H W, 4: the tiles' own texels) with what each texel not covered
+        in full reads across the seams added, in place (:attr:`reads`)."""
         # read among the tiles' own texels only, before any margin is filled (16 taps a
         # read at 1.6 M reads: 0.9 s a fill as numpy gathers, 0.1 s as one product)
-        out += self.reads @ out
-        return out.reshape(h, w, 4)
+        splatted += self.reads @ splatted
+        return splatted
 
 
 def _read_reach(level: int) -> int:
@@ -278,12 +278,32 @@ def _splat_table(level: int) -> NDArray[np.float32]:
                     axis=1).astype(np.float32)
 
 
+def splat_geometry(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
+                   shift: NDArray[np.int64], level: int, w: int
+                   ) -> tuple[NDArray[np.int32], NDArray[np.uint16], NDArray[np.float32]]:
+    """Per covered finest texel (in the order of ``np.flatnonzero(chart >= 0)``) where
+    it is splatted in a level-k atlas ``w`` texels wide whose charts sit at ``shift``
+    (atlas = global cell + shift): the flat index of the first of its cells (level 0:
+    the one; above: it, the next, the one below and the next), its phase in the cell,
+    (y mod 2^k) 2^k + x mod 2^k, which picks the weights (:func:`_splat_table`), and the
+    share of its square its chart covers (``coverage``; None: all)."""
+    scale = 1 << level
+    ys, xs = np.nonzero(chart >= 0)
+    c_of = chart[ys, xs].astype(np.int64)
+    gx = np.floor((xs + 0.5) / scale - 0.5).astype(np.int64)
+    gy = np.floor((ys + 0.5) / scale - 0.5).astype(np.int64)
+    base = ((gy + shift[c_of, 1]) * w + gx + shift[c_of, 0]).astype(np.int32)
+    share = np.ones(ys.size, np.float32) if coverage is None else \
+        coverage[ys, xs].astype(np.float32)
+    return base, ((ys % scale) * scale + xs % scale).astype(np.uint16), share
+
+
 def _splat(base: NDArray[np.int32], phase: NDArray[np.uint16], share: NDArray[np.float32],
            level: int, shape: tuple[int, int], values: NDArray[Any] | None
            ) -> NDArray[np.float64]:
     """(H W, D): per atlas texel (``shape``) the splat-weighted sum of ``values`` (N, D;
     None: the weights alone, D = 1) over the finest texels splatted to it
-    (:class:`TileLevel`'s ``base``, ``phase`` and ``share``). One corner of the four at a
+    (:func:`splat_geometry`). One corner of the four at a
     time, each an accumulation at ``base`` shifted by the corner's offset: no (4, N)
     cells or weights are made (1.5 GB of temporaries at texture 4096)."""
     n = shape[0] * shape[1]
@@ -318,27 +338,20 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
 
     scale = 1 << level
-    ys, xs = np.nonzero(chart >= 0)
-    c_of = chart[ys, xs].astype(np.int64)
-    # each finest texel's level-k cell (the first of the two around it per axis)
-    gx = np.floor((xs + 0.5) / scale - 0.5).astype(np.int64)
-    gy = np.floor((ys + 0.5) / scale - 0.5).astype(np.int64)
     lo, hi, empty = _chart_cells(chart, n_charts, level)
     sizes = np.where(empty[:, None], 0, hi - lo + 1 + 2 * margin)
     pos, shape = _pack(sizes)
     shift = pos + margin - lo  # atlas = global cell + shift
     h, w = shape
     n = h * w
-    base = (gy + shift[c_of, 1]) * w + gx + shift[c_of, 0]
-    share = np.ones(ys.size, np.float32) if coverage is None else \
-        coverage[ys, xs].astype(np.float32)
-    phase = ((ys % scale) * scale + xs % scale).astype(np.uint16)
-    base32 = base.astype(np.int32)
-    del base, gx, gy
-    count = _splat(base32, phase, share, level, shape, None)[:, 0].astype(np.float32)
-    mm = _splat(base32, phase, share, level, shape,
-                np.stack([mm_u[ys, xs], mm_v[ys, xs]], axis=1)
+    if n >= 2**31:
+        raise InputError(f"a level-{level} tile atlas of {h} x {w} texels is beyond 2^31")
+    splat = splat_geometry(chart, coverage, shift, level, w)
+    count = _splat(*splat, level, shape, None)[:, 0].astype(np.float32)
+    covered = chart >= 0
+    mm = _splat(*splat, level, shape, np.stack([mm_u[covered], mm_v[covered]], axis=1)
                 ) / np.where(count > 0, count, 1.0)[:, None] * scale
+    del splat
     inner = count > 1e-6
     full = count >= (1.0 - 1e-3) * float(4**level)
     # every tile texel's nearest fully covered texel of its own chart (within its
@@ -376,7 +389,7 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     np.cumsum(np.bincount(index, minlength=n) * taps.shape[0], out=indptr[1:])
     reads = csr_matrix((np.ascontiguousarray(tap_weights.T).ravel(),
                         np.ascontiguousarray(taps.T).ravel(), indptr), shape=(n, n))
-    return TileLevel(level, margin, shape, shift.astype(np.float32), base32, phase, share,
+    return TileLevel(level, margin, shape, shift.astype(np.float32), owner.astype(np.int32),
                      count, reads, mm_u_out, mm_v_out)
 
 

@@ -411,18 +411,71 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
     }
     rgb[3 * i] = sum.x; rgb[3 * i + 1] = sum.y; rgb[3 * i + 2] = sum.z;
 }
+
+// A pyramid level's chart tiles from the finest texels (chart_tiles.TileLevel.fill,
+// whose reference this follows; the reads across the seams are added on the host):
+// each atlas texel of chart c's tile sums, over the finest texels of chart c whose
+// bilinear splat reaches it, weight x (E share, share), over 4^level. A finest texel x
+// splats to its first cell g0 = floor((x + 0.5) / 2^k - 0.5) with 1 - f and to g0 + 1
+// with f, f the fraction; so cell g gathers x in [g 2^k - 2^(k-1), g 2^k + 3 2^(k-1)):
+// the first 2^k with f, the next 2^k with 1 - f (per axis; level 0: x = g, weight 1).
+// src: (E share, share) per finest texel; owner: each atlas texel's chart (-1: none);
+// count: the splat's weights summed there (0: no finest texel reaches it).
+__kernel void splat_level(__global const float4 *src, __global const int *chart,
+                          __global const int *owner, __global const float *count,
+                          __global const int2 *shift, __global float4 *out,
+                          const int w, const int h, const int aw, const int ah,
+                          const int level)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= aw || y >= ah) return;
+    const int i = y * aw + x;
+    const int c = owner[i];
+    float4 sum = (float4)(0.0f);
+    if (c >= 0 && count[i] > 0.0f) {
+        const int2 g = (int2)(x, y) - shift[c];
+        if (level == 0) {
+            if (g.x >= 0 && g.x < w && g.y >= 0 && g.y < h && chart[g.y * w + g.x] == c)
+                sum = src[g.y * w + g.x];
+        } else {
+            const int s = 1 << level;
+            const float inv = 1.0f / (float)s;
+            const int x0 = g.x * s - s / 2, y0 = g.y * s - s / 2;
+            for (int dy = 0; dy < 2 * s; ++dy) {
+                const int yy = y0 + dy;
+                if (yy < 0 || yy >= h) continue;
+                float fy = ((float)(yy & (s - 1)) + 0.5f) * inv - 0.5f;
+                fy = fy < 0.0f ? fy + 1.0f : fy;
+                const float wy = dy < s ? fy : 1.0f - fy;
+                float4 row = (float4)(0.0f);
+                for (int dx = 0; dx < 2 * s; ++dx) {
+                    const int xx = x0 + dx;
+                    if (xx < 0 || xx >= w || chart[yy * w + xx] != c) continue;
+                    float fx = ((float)(xx & (s - 1)) + 0.5f) * inv - 0.5f;
+                    fx = fx < 0.0f ? fx + 1.0f : fx;
+                    row += (dx < s ? fx : 1.0f - fx) * src[yy * w + xx];
+                }
+                sum += wy * row;
+            }
+            sum *= inv * inv;
+        }
+    }
+    out[i] = sum;
+}
 """
 
 
 @device_cache(maxsize=8)
 def pyramid_kernels(regions: int) -> dict[str, Any]:
-    """The accumulation kernel for ``regions`` region weights a texel (0: one region).
+    """The accumulation kernel for ``regions`` region weights a texel (0: one region),
+    and the one that splats the finest texels into a level's chart tiles.
     The jobs (their pyramid levels, whether to add to the output) are arguments, not
     compiled in: a program a batch cost a cold render a PoCL build (0.3 s) and a
     compilation per batch, for no measurable gain in the accumulation itself."""
 
     program = build(_PYRAMID_KERNEL, [f"-DREGIONS={regions}"])
-    return {"accumulate_terms": Kernel(program, "accumulate_terms", 2)}
+    return {"accumulate_terms": Kernel(program, "accumulate_terms", 2),
+            "splat_level": Kernel(program, "splat_level", 2)}
 
 
 def _added_variance_texels2(level: int) -> float:
@@ -528,6 +581,16 @@ class LevelGrid:
         self._inner = inner
         self._index: tuple[int, int, int, int, Any, Any] | None = None
         self._texel: TexelSteps | bool | None = False
+        self._splat: tuple[Any, Any, Any] | None = None
+
+    def splat_buffers(self) -> tuple[Any, Any, Any]:
+        """Device buffers of the tiles' owners, counts and chart shifts (int2) for the
+        ``splat_level`` kernel, made on first use (a CPU device reads them in place)."""
+        if self._splat is None:
+            t = self.tiles
+            self._splat = (host_buffer(t.owner), host_buffer(t.count),
+                           host_buffer(np.rint(t.shift).astype(np.int32)))
+        return self._splat
 
     def index(self) -> tuple[int, int, int, int, Any, Any]:
         """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
@@ -690,6 +753,37 @@ class DiffusionLayout:
         return self._buffers[name]
 
 
+def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid],
+                 irradiance: NDArray[np.float32]) -> dict[int, Any]:
+    """Each level's tile atlas filled with ``irradiance`` (:meth:`TileLevel.fill`): the
+    splat on the device (``splat_level``: numpy's accumulations took half of a 4096
+    diffusion, 4.8 of 12 s), the reads across the seams on the host. Host memory a
+    device on this machine reads in place."""
+    charts = layout.charts
+    share = (charts.chart >= 0).astype(np.float32) if charts.coverage is None else \
+        np.asarray(charts.coverage, np.float32)
+    src = np.empty((layout.height, layout.width, 4), np.float32)
+    np.multiply(irradiance, share[..., None], out=src[..., :3])
+    src[..., 3] = share
+    del share
+    src_buf = host_buffer(src)
+    kernel = pyramid_kernels(layout.n_regions)["splat_level"]
+    queue = layout.iir.queue
+    sources: dict[int, Any] = {}
+    for k, grid in grids.items():
+        lh, lw = grid.shape
+        out = np.empty((lh * lw, 4), np.float32)
+        out_buf = host_output(out)
+        owner, count, shift = grid.splat_buffers()
+        kernel(queue, (lw, lh), None, src_buf, layout.chart_buf, owner, count, shift,
+               out_buf, np.int32(layout.width), np.int32(layout.height), np.int32(lw),
+               np.int32(lh), np.int32(k))
+        read_output(queue, out_buf, out)
+        sources[k] = host_buffer(grid.tiles.read_across_seams(out))
+    queue.finish()
+    return sources
+
+
 def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
     """Consecutive jobs grouped so that each group's blurred textures (``sizes`` bytes,
     0 for one that reads the irradiance itself) fit ``budget`` bytes side by side: per
@@ -835,12 +929,9 @@ def diffuse_prepared(
             job_weights.append(tw[:, i].copy())
     # each level's tile atlas, its margin as wide as its widest blur reaches, filled
     # with this irradiance (host memory, read in place on a CPU device)
-    grids: dict[int, LevelGrid] = {}
-    sources: dict[int, Any] = {}
-    covered = e[layout.charts.chart >= 0]
-    for k, margin in sorted(layout.level_margins(v[used]).items()):
-        grids[k] = layout.grid(k, margin)
-        sources[k] = host_buffer(grids[k].tiles.fill(covered))
+    grids = {k: layout.grid(k, margin)
+             for k, margin in sorted(layout.level_margins(v[used]).items())}
+    sources = _fill_levels(layout, grids, e)
     stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
     nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
     tmp = layout.buffer("tmp", nbytes)

@@ -20,7 +20,14 @@ from scipy.special import ndtr
 from pipeline.cli import main
 from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
 from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render.diffusion import ChartLayout, chart_layout, diffuse
+from pipeline.render.diffusion import (
+    ChartLayout,
+    DiffusionLayout,
+    _fill_levels,
+    chart_layout,
+    diffuse,
+)
+from pipeline.render.opencl import cl_context
 from pipeline.render.raytrace import RayScene
 from pipeline.render.texture_maps import rasterize
 from pipeline.usd.author import RegionAssignment, author_asset
@@ -254,3 +261,25 @@ def test_texel_coverage_is_the_share_of_the_square_on_its_chart() -> None:
         # an edge texel (one axis partial) resolves its overlap within 1/8
         edge = border & (want > 0.45)
         assert np.abs(got[edge] - want[edge]).max() <= 0.125 + 1e-6, side
+
+
+def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
+    """The tiles' fill on the device (a gather per atlas texel, float32) against
+    TileLevel.fill (numpy's scatter of the same splat, float64 sums), levels 0-3 of the
+    two-chart patch, margins read across the seam included: within float32 rounding."""
+    import pyopencl as cl
+
+    maps, charts = _layout(256)
+    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                             None, charts)
+    e = np.random.default_rng(3).random((256, 256, 3)).astype(np.float32)
+    grids = {k: layout.grid(k, 4) for k in range(4)}
+    got = _fill_levels(layout, grids, e)
+    _, queue = cl_context()
+    covered = charts.chart >= 0
+    for k, grid in grids.items():
+        want = grid.tiles.fill(e[covered], charts.chart, charts.coverage)
+        mine = np.empty_like(want)
+        cl.enqueue_copy(queue, mine, got[k])
+        assert want[..., 3].max() > 0.99 and np.abs(want).max() < 2, k
+        np.testing.assert_allclose(mine, want, rtol=0, atol=2e-6, err_msg=f"level {k}")
