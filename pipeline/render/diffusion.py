@@ -759,6 +759,8 @@ def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid],
     splat on the device (``splat_level``: numpy's accumulations took half of a 4096
     diffusion, 4.8 of 12 s), the reads across the seams on the host. Host memory a
     device on this machine reads in place."""
+    if not grids:
+        return {}
     charts = layout.charts
     share = (charts.chart >= 0).astype(np.float32) if charts.coverage is None else \
         np.asarray(charts.coverage, np.float32)
