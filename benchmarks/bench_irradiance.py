@@ -39,6 +39,9 @@ from pipeline.render.raytrace import CHUNK_RAYS, RayScene, morton_order, offset_
 from pipeline.render.renderer import Renderer, RenderOptions, TaskLog, triangulate
 from pipeline.usd.io import open_stage_guarded
 
+ROUNDS = 4
+"""Rounds of peers and tasks, taken in turns (the best of each is kept)."""
+
 
 def best_of(fn: Any, repeats: int = 3) -> float:
     best = math.inf
@@ -50,7 +53,7 @@ def best_of(fn: Any, repeats: int = 3) -> float:
 
 
 def embreex_rate(rays: RayScene, origins: np.ndarray, directions: np.ndarray,
-                 far: np.ndarray) -> float:
+                 far: np.ndarray, repeats: int = 3) -> float:
     """Mrays/s of embreex alone on these rays, chunked over the renderer's threads."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -64,7 +67,7 @@ def embreex_rate(rays: RayScene, origins: np.ndarray, directions: np.ndarray,
         with ThreadPoolExecutor(rays.threads) as pool:
             list(pool.map(run, chunks))
 
-    return len(origins) / best_of(all_chunks) / 1e6
+    return len(origins) / best_of(all_chunks, repeats) / 1e6
 
 
 def measure(scene: Path, size: int) -> dict[str, Any]:
@@ -84,35 +87,30 @@ def measure(scene: Path, size: int) -> dict[str, Any]:
     pos, nrm = pos[order], nrm[order]
     origins = np.ascontiguousarray(offset_ray_origin(pos, nrm), np.float32)
     out["rays"] = len(origins)
-    peers: dict[str, dict[str, float]] = {}
+    peer_rays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for light in sc.lights:
         if light.kind == "sphere":
             to_c = np.asarray(light.position, np.float32) - origins
             dist = np.linalg.norm(to_c, axis=1)
             d = np.ascontiguousarray(to_c / dist[:, None], np.float32)
             far = np.ascontiguousarray(np.maximum(dist - light.radius, 0), np.float32)
-            kind = "toward the sphere light"
+            peer_rays["toward the sphere light"] = (d, far)
         elif light.kind == "dome":
             rng = np.random.default_rng(0)
             d = np.ascontiguousarray(cosine_direction(nrm, rng.random(len(nrm)),
                                                       rng.random(len(nrm))), np.float32)
-            far = np.full(len(d), 1e30, np.float32)
-            kind = "dome (cosine-weighted)"
-        else:
-            continue
-        own = embreex_rate(rays, origins, d, far)
-        wrapped = len(origins) / best_of(lambda d=d, far=far: rays.occluded(origins, d, far)) \
-            / 1e6
-        peers[kind] = {"embreex_mrays_per_s": own, "rayscene_mrays_per_s": wrapped,
-                       "ratio": wrapped / own}
-        print(f"{kind:>26}: embreex {own:6.2f} Mrays/s, RayScene.occluded {wrapped:6.2f} "
-              f"({wrapped / own:.2f}x)")
-    out["occlusion"] = peers
-    best_peer = max(p["embreex_mrays_per_s"] for p in peers.values())
+            peer_rays["dome (cosine-weighted)"] = (d, np.full(len(d), 1e30, np.float32))
+    # the peers and the tasks take turns, round after round, and each keeps its best: a
+    # slow spell of the host (1.5-2x here for minutes) then reaches both, not one
+    own: dict[str, float] = {}
+    wrapped: dict[str, float] = {}
     tasks: dict[str, Any] = {}
-    for mode in ("full", "interleaved", "adaptive"):
-        best: dict[str, Any] | None = None
-        for _ in range(3):
+    for _ in range(ROUNDS):
+        for kind, (d, far) in peer_rays.items():
+            own[kind] = max(own.get(kind, 0.0), embreex_rate(rays, origins, d, far, 1))
+            wrapped[kind] = max(wrapped.get(kind, 0.0), len(origins) / best_of(
+                lambda d=d, far=far: rays.occluded(origins, d, far), 1) / 1e6)
+        for mode in ("full", "interleaved", "adaptive"):
             r = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8),
                                               shadow_sampling=mode))
             try:
@@ -123,11 +121,19 @@ def measure(scene: Path, size: int) -> dict[str, Any]:
             finally:
                 r.close()
             m = log.measures["irradiance"]
-            if best is None or m["seconds"] < best["seconds"]:
-                best = {k: m[k] for k in ("rays", "seconds", "mrays_per_s", "rays_per_texel")}
-        assert best is not None
+            if mode not in tasks or m["seconds"] < tasks[mode]["seconds"]:
+                tasks[mode] = {k: m[k] for k in ("rays", "seconds", "mrays_per_s",
+                                                  "rays_per_texel")}
+    peers = {kind: {"embreex_mrays_per_s": own[kind], "rayscene_mrays_per_s": wrapped[kind],
+                    "ratio": wrapped[kind] / own[kind]} for kind in peer_rays}
+    for kind, p in peers.items():
+        print(f"{kind:>26}: embreex {p['embreex_mrays_per_s']:6.2f} Mrays/s, "
+              f"RayScene.occluded {p['rayscene_mrays_per_s']:6.2f} ({p['ratio']:.2f}x)")
+    out["occlusion"] = peers
+    out["rounds"] = ROUNDS
+    best_peer = max(p["embreex_mrays_per_s"] for p in peers.values())
+    for mode, best in tasks.items():
         best["ratio_to_embreex"] = best["mrays_per_s"] / best_peer
-        tasks[mode] = best
         print(f"irradiance {mode:>11}: {best['rays'] / 1e6:6.2f} M rays in "
               f"{best['seconds']:.2f} s, {best['mrays_per_s']:6.2f} Mrays/s "
               f"({best['ratio_to_embreex']:.2f}x embreex's best)")
