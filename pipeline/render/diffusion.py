@@ -419,9 +419,11 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 // splats to its first cell g0 = floor((x + 0.5) / 2^k - 0.5) with 1 - f and to g0 + 1
 // with f, f the fraction; so cell g gathers x in [g 2^k - 2^(k-1), g 2^k + 3 2^(k-1)):
 // the first 2^k with f, the next 2^k with 1 - f (per axis; level 0: x = g, weight 1).
-// src: (E share, share) per finest texel; owner: each atlas texel's chart (-1: none);
-// count: the splat's weights summed there (0: no finest texel reaches it).
-__kernel void splat_level(__global const float4 *src, __global const int *chart,
+// base: (E, 1) per finest texel; share: the part of its square its chart covers;
+// owner: each atlas texel's chart (-1: none); count: the splat's weights summed there
+// (0: no finest texel reaches it).
+__kernel void splat_level(__global const float4 *base, __global const float *share,
+                          __global const int *chart,
                           __global const int *owner, __global const float *count,
                           __global const int2 *shift, __global float4 *out,
                           const int w, const int h, const int aw, const int ah,
@@ -436,7 +438,7 @@ __kernel void splat_level(__global const float4 *src, __global const int *chart,
         const int2 g = (int2)(x, y) - shift[c];
         if (level == 0) {
             if (g.x >= 0 && g.x < w && g.y >= 0 && g.y < h && chart[g.y * w + g.x] == c)
-                sum = src[g.y * w + g.x];
+                sum = share[g.y * w + g.x] * base[g.y * w + g.x];
         } else {
             const int s = 1 << level;
             const float inv = 1.0f / (float)s;
@@ -453,7 +455,7 @@ __kernel void splat_level(__global const float4 *src, __global const int *chart,
                     if (xx < 0 || xx >= w || chart[yy * w + xx] != c) continue;
                     float fx = ((float)(xx & (s - 1)) + 0.5f) * inv - 0.5f;
                     fx = fx < 0.0f ? fx + 1.0f : fx;
-                    row += (dx < s ? fx : 1.0f - fx) * src[yy * w + xx];
+                    row += ((dx < s ? fx : 1.0f - fx) * share[yy * w + xx]) * base[yy * w + xx];
                 }
                 sum += wy * row;
             }
@@ -689,6 +691,9 @@ class DiffusionLayout:
         self.iir = iir_kernels()
         self.cover_buf = host_buffer(cov)
         self.chart_buf = host_buffer(charts.chart.astype(np.int32))
+        # the part of each texel's square its chart covers, for the tiles' splat
+        self.share_buf = host_buffer(covered.astype(np.float32) if charts.coverage is None
+                                     else charts.coverage)
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
         self.rw_buf = host_buffer(self.region_weights if self.region_weights is not None
                                   else np.zeros(1, np.float32))
@@ -753,22 +758,15 @@ class DiffusionLayout:
         return self._buffers[name]
 
 
-def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid],
-                 irradiance: NDArray[np.float32]) -> dict[int, Any]:
-    """Each level's tile atlas filled with ``irradiance`` (:meth:`TileLevel.fill`): the
+def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid], base: Any
+                 ) -> dict[int, Any]:
+    """Each level's tile atlas filled with the irradiance in ``base`` (the device's (E,
+    1) per finest texel, as the accumulation reads it; :meth:`TileLevel.fill`): the
     splat on the device (``splat_level``: numpy's accumulations took half of a 4096
     diffusion, 4.8 of 12 s), the reads across the seams on the host. Host memory a
     device on this machine reads in place."""
     if not grids:
         return {}
-    charts = layout.charts
-    share = (charts.chart >= 0).astype(np.float32) if charts.coverage is None else \
-        np.asarray(charts.coverage, np.float32)
-    src = np.empty((layout.height, layout.width, 4), np.float32)
-    np.multiply(irradiance, share[..., None], out=src[..., :3])
-    src[..., 3] = share
-    del share
-    src_buf = host_buffer(src)
     kernel = pyramid_kernels(layout.n_regions)["splat_level"]
     queue = layout.iir.queue
     sources: dict[int, Any] = {}
@@ -777,9 +775,9 @@ def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid],
         out = np.empty((lh * lw, 4), np.float32)
         out_buf = host_output(out)
         owner, count, shift = grid.splat_buffers()
-        kernel(queue, (lw, lh), None, src_buf, layout.chart_buf, owner, count, shift,
-               out_buf, np.int32(layout.width), np.int32(layout.height), np.int32(lw),
-               np.int32(lh), np.int32(k))
+        kernel(queue, (lw, lh), None, base, layout.share_buf, layout.chart_buf, owner, count,
+               shift, out_buf, np.int32(layout.width), np.int32(layout.height),
+               np.int32(lw), np.int32(lh), np.int32(k))
         read_output(queue, out_buf, out)
         sources[k] = host_buffer(grid.tiles.read_across_seams(out))
     queue.finish()
@@ -933,7 +931,8 @@ def diffuse_prepared(
     # with this irradiance (host memory, read in place on a CPU device)
     grids = {k: layout.grid(k, margin)
              for k, margin in sorted(layout.level_margins(v[used]).items())}
-    sources = _fill_levels(layout, grids, e)
+    base = host_buffer(np.concatenate([e, np.ones((h, w, 1), np.float32)], axis=2))
+    sources = _fill_levels(layout, grids, base)
     stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
     nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
     tmp = layout.buffer("tmp", nbytes)
@@ -941,7 +940,6 @@ def diffuse_prepared(
              for var, k in jobs]
     batches = _term_batches(sizes, TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16))
     kernels = pyramid_kernels(layout.n_regions)
-    base = host_buffer(np.concatenate([e, np.ones((h, w, 1), np.float32)], axis=2))
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
     mf = cl.mem_flags

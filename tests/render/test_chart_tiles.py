@@ -27,7 +27,7 @@ from pipeline.render.diffusion import (
     chart_layout,
     diffuse,
 )
-from pipeline.render.opencl import cl_context
+from pipeline.render.opencl import cl_context, host_buffer
 from pipeline.render.raytrace import RayScene
 from pipeline.render.texture_maps import rasterize
 from pipeline.usd.author import RegionAssignment, author_asset
@@ -274,7 +274,8 @@ def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
                              None, charts)
     e = np.random.default_rng(3).random((256, 256, 3)).astype(np.float32)
     grids = {k: layout.grid(k, 4) for k in range(4)}
-    got = _fill_levels(layout, grids, e)
+    base = host_buffer(np.concatenate([e, np.ones((256, 256, 1), np.float32)], axis=2))
+    got = _fill_levels(layout, grids, base)
     _, queue = cl_context()
     covered = charts.chart >= 0
     for k, grid in grids.items():
