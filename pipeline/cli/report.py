@@ -190,7 +190,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         reads += usd_inputs(scene)
     stages = ("fit", "ingest", "render") if args.stage == "all" else (args.stage,)
     # render also writes the irradiance's trade-off, lighting_tradeoff.json|png
-    names = [s for s in stages] + (["lighting"] if "render" in stages else [])
+    names = list(stages) + (["lighting"] if "render" in stages else [])
     written = [f"{s}_tradeoff.{ext}" for s in names for ext in ("json", "png")] + \
         ["report.md"]
     for name in written:  # before minutes of measuring, not after

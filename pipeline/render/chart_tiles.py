@@ -174,8 +174,8 @@ class TileLevel:
         coverage), alpha its coverage; to each texel not covered in full, what the other
         chart's tile holds (rgb and coverage alike) where its centre lies across the
         seam. ``chart`` and ``coverage``: those the tiles were made from
-        (:func:`tile_level`). The diffusion splats on the device instead
-        (:func:`read_across_seams` after the kernel); this is its reference.
+        (:func:`tile_level`). The diffusion splats on the device instead (then
+        :meth:`read_across_seams`); this is its reference.
 
         The read adds coverage with the light, unnormalised: the two sides' splats of a
         texel a seam crosses are complementary parts of one cell, and a cubic read
@@ -266,8 +266,8 @@ def _pack(sizes: NDArray[np.int64]) -> tuple[NDArray[np.int64], tuple[int, int]]
 
 
 def _splat_table(level: int) -> NDArray[np.float32]:
-    """(4^k, 4) the bilinear weights of a finest texel's four level-k cells by its
-    :attr:`TileLevel.phase`: its centre at ((x + 0.5) / 2^k - 0.5) in cells, whose
+    """(4^k, 4) the bilinear weights of a finest texel's four level-k cells by its phase
+    in the cell (:func:`splat_geometry`): its centre at ((x + 0.5) / 2^k - 0.5) in cells, whose
     fraction depends on x mod 2^k alone (exactly: 2^k is a power of two)."""
     scale = 1 << level
     r = np.arange(scale * scale)
@@ -299,17 +299,14 @@ def splat_geometry(chart: NDArray[np.int32], coverage: NDArray[np.float32] | Non
 
 
 def _splat(base: NDArray[np.int32], phase: NDArray[np.uint16], share: NDArray[np.float32],
-           level: int, shape: tuple[int, int], values: NDArray[Any] | None
-           ) -> NDArray[np.float64]:
-    """(H W, D): per atlas texel (``shape``) the splat-weighted sum of ``values`` (N, D;
-    None: the weights alone, D = 1) over the finest texels splatted to it
-    (:func:`splat_geometry`). One corner of the four at a
-    time, each an accumulation at ``base`` shifted by the corner's offset: no (4, N)
-    cells or weights are made (1.5 GB of temporaries at texture 4096)."""
+           level: int, shape: tuple[int, int], values: NDArray[Any]) -> NDArray[np.float64]:
+    """(H W, D): per atlas texel (``shape``) the splat-weighted sum of ``values`` (N, D)
+    over the finest texels splatted to it (:func:`splat_geometry`). One corner of the
+    four at a time, each an accumulation at ``base`` shifted by the corner's offset: no
+    (4, N) cells or weights are made (1.5 GB of temporaries at texture 4096)."""
     n = shape[0] * shape[1]
     at = base.astype(np.intp)
-    columns = [None] if values is None else [values[:, d] for d in range(values.shape[1])]
-    out = np.zeros((n, len(columns)))
+    out = np.zeros((n, values.shape[1]))
     if level == 0:  # the texel itself
         corners = [(0, share)]
     else:
@@ -317,9 +314,8 @@ def _splat(base: NDArray[np.int32], phase: NDArray[np.uint16], share: NDArray[np
         corners = [(off, table[:, j][phase] * share)
                    for j, off in enumerate((0, 1, shape[1], shape[1] + 1))]
     for off, weight in corners:
-        for d, column in enumerate(columns):
-            summed = np.bincount(at, weights=weight if column is None else weight * column,
-                                 minlength=n)
+        for d in range(values.shape[1]):
+            summed = np.bincount(at, weights=weight * values[:, d], minlength=n)
             out[off:, d] += summed[:n - off]  # a splat never reaches past the atlas
     return out
 
@@ -346,12 +342,14 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     n = h * w
     if n >= 2**31:
         raise InputError(f"a level-{level} tile atlas of {h} x {w} texels is beyond 2^31")
-    splat = splat_geometry(chart, coverage, shift, level, w)
-    count = _splat(*splat, level, shape, None)[:, 0].astype(np.float32)
+    # the coverage each atlas texel gathers (weights alone) and its texel sizes' sums
     covered = chart >= 0
-    mm = _splat(*splat, level, shape, np.stack([mm_u[covered], mm_v[covered]], axis=1)
-                ) / np.where(count > 0, count, 1.0)[:, None] * scale
-    del splat
+    summed = _splat(*splat_geometry(chart, coverage, shift, level, w), level, shape,
+                    np.stack([np.ones(int(covered.sum()), np.float32), mm_u[covered],
+                              mm_v[covered]], axis=1))
+    count = summed[:, 0].astype(np.float32)
+    mm = summed[:, 1:] / np.where(count > 0, count, 1.0)[:, None] * scale
+    del summed
     inner = count > 1e-6
     full = count >= (1.0 - 1e-3) * float(4**level)
     # every tile texel's nearest fully covered texel of its own chart (within its
@@ -459,24 +457,18 @@ def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     bounds = np.searchsorted(np.cumsum(points), np.arange(per_chunk, int(points.sum()),
                                                           per_chunk))
     key_of = int(g.tri_chart.max(initial=0)) + 1
-    m_all: list[NDArray[np.int64]] = []
-    xy_all: list[NDArray[np.float64]] = []
-    chart_all: list[NDArray[Any]] = []
+
     def reads(chunk: NDArray[np.int64]) -> list[tuple[Any, Any, Any]]:
         return _margin_reads(g, level, shift, count, full, nearest, owner, w, chunk, sub,
                              key_of)
 
     # numpy and Embree release the GIL for most of a chunk's work: chunks side by side
     with ThreadPoolExecutor(MARGIN_THREADS) as pool:
-        for pieces in pool.map(reads, np.split(texels, bounds)):
-            for m, xy, chart in pieces:
-                m_all.append(m)
-                xy_all.append(xy)
-                chart_all.append(chart)
-    if not m_all:
+        pieces = [p for chunk in pool.map(reads, np.split(texels, bounds)) for p in chunk]
+    if not pieces:
         return np.zeros(0, np.int64), np.zeros((0, 2), np.float32)
-    m_out, xy_out, _ = _mean_per_key(np.concatenate(m_all), np.concatenate(chart_all),
-                                     np.concatenate(xy_all), key_of)
+    m, xy, chart = (np.concatenate(column) for column in zip(*pieces, strict=True))
+    m_out, xy_out, _ = _mean_per_key(m, chart, xy, key_of)
     return m_out, xy_out.astype(np.float32)
 
 

@@ -572,16 +572,11 @@ def _interleave_kernel(lights: int) -> Any:
 def sample_plan(light: Light, samples: int, interleaved: bool,
                 sequence: str = "stratified") -> tuple[int, bool]:
     """(samples each point traces, whether they are interleaved) for ``light`` at
-    ``samples`` per point, as :class:`LightSampler` takes them."""
-    if is_delta_light(light):
-        samples = 1
-    if sequence == "sobol":
-        m = sobol_points(samples)
-        return (m // 4, True) if interleaved and m >= 4 else (m, False)
-    if interleaved and samples >= 4:
-        return int(interleaved_strata(samples).shape[1]), True
-    nx, ny = grid_shape(samples)
-    return nx * ny, False
+    ``samples`` per point, as :class:`LightSampler` takes them: from the same
+    :func:`light_sample_set` (its points are a few dozen at most)."""
+    grid, sets = light_sample_set(1 if is_delta_light(light) else samples,
+                                  np.random.default_rng(0), interleaved, sequence)
+    return (int(sets.shape[1]), True) if sets is not None else (int(grid.shape[0]), False)
 
 
 def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,

@@ -7,6 +7,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import product
 from pathlib import Path
 from typing import Any
 
@@ -346,7 +347,7 @@ def lighting_tradeoff(scene: Path, texture_size: int = 1024,
     """
     stage = open_stage_guarded(scene)
 
-    def irradiance(samples: int, mode: str, sequence: str = "stratified"
+    def irradiance(samples: int, mode: str, sequence: str
                    ) -> tuple[NDArray[Any], NDArray[Any], dict[str, Any]]:
         opts = RenderOptions(texture_size=texture_size, light_samples=samples,
                              shadow_sampling=mode, light_sequence=sequence, resolution=(8, 8))
@@ -365,25 +366,24 @@ def lighting_tradeoff(scene: Path, texture_size: int = 1024,
         area = (tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered]
         return tex.irradiance[covered].astype(np.float64), area, log.measures["irradiance"]
 
-    reference, area, _ = irradiance(reference_samples, "full")
+    reference, area, _ = irradiance(reference_samples, "full", "stratified")
     weights = area / area.sum()
     mean = (reference * weights[:, None]).sum(axis=0)
     rows = []
-    for samples, mode, sequence in [(n, m, q) for n in light_samples for m in sampling
-                                    for q in sequences]:
-            got, _, measures = irradiance(samples, mode, sequence)
-            rms = np.sqrt(((got - reference) ** 2 * weights[:, None]).sum(axis=0))
-            error = float((rms / np.maximum(mean, 1e-30)).max())
-            rows.append({"texture_size": texture_size, "light_samples": samples,
-                         "shadow_sampling": mode, "light_sequence": sequence,
-                         "seconds": measures["seconds"],
-                         "rays_per_texel": measures["rays_per_texel"],
-                         "penumbra_texels": measures["penumbra_texels"],
-                         "error_max": error})
-            if progress:
-                progress(f"light samples {samples} {mode} {sequence}: error {error:.2e}, "
-                         f"{measures['seconds']:.1f} s, {measures['rays_per_texel']:.1f} "
-                         "rays a texel")
+    for samples, mode, sequence in product(light_samples, sampling, sequences):
+        got, _, measures = irradiance(samples, mode, sequence)
+        rms = np.sqrt(((got - reference) ** 2 * weights[:, None]).sum(axis=0))
+        error = float((rms / np.maximum(mean, 1e-30)).max())
+        rows.append({"texture_size": texture_size, "light_samples": samples,
+                     "shadow_sampling": mode, "light_sequence": sequence,
+                     "seconds": measures["seconds"],
+                     "rays_per_texel": measures["rays_per_texel"],
+                     "penumbra_texels": measures["penumbra_texels"],
+                     "error_max": error})
+        if progress:
+            progress(f"light samples {samples} {mode} {sequence}: error {error:.2e}, "
+                     f"{measures['seconds']:.1f} s, {measures['rays_per_texel']:.1f} "
+                     "rays a texel")
     return rows
 
 
