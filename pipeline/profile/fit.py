@@ -552,59 +552,98 @@ def swap_terms(
 # ------------------------------------------------------------------------ IPOPT refine
 
 
-@lru_cache(maxsize=64)
-def _ipopt_solver(
-    layout: tuple[tuple[int, int], ...], k: int, fixed: bool, free_scale: bool
-) -> Any:
-    """A casadi IPOPT solver for one group's data layout (cached by structure).
+def _upper_gram(left: Any, right: Any, symmetric: bool) -> Any:
+    """left' right for (n, k) SX matrices; only the upper triangle when the product is
+    symmetric (the lower one is never read: IPOPT takes the Hessian's upper triangle)."""
+    k = left.shape[1]
+    out = ca.SX.zeros(k, k)
+    for i in range(k):
+        for j in range(i if symmetric else 0, k):
+            out[i, j] = ca.dot(left[:, i], right[:, j])
+    return out
 
-    ``layout`` lists, per radius set, (samples, curves using it): the Gaussians are
-    evaluated once per radius set and shared by its curves. Decision variables are
-    [log-variances (k, unless fixed), weights (k per curve)]; parameters are, per
-    radius set, [rho, then q and a of each curve], then fixed log-variances if any.
+
+def _gauss_newton_problem(
+    layout: tuple[tuple[int, int], ...], k: int, fixed: bool, free_scale: bool
+) -> tuple[dict[str, Any], Any]:
+    """The NLP (casadi dict) and its Gauss-Newton Lagrangian Hessian (a casadi Function
+    of x, p, lam_f, lam_g giving the upper triangle) for one group's data layout.
+
+    ``layout`` lists, per sample set, (samples, curves using it): curves of one sample
+    set share their radii and, up to a factor, their sample weights a = s_c a_unit
+    (:class:`_Curve`). Decision variables are [log-variances (k, unless fixed), weights
+    (k per curve)]; parameters are, per sample set, [rho, a_unit, then q and s_c of each
+    curve], then fixed log-variances if any.
 
     The objective is a weighted sum of squares, so the Lagrangian Hessian given to
     IPOPT is the Gauss-Newton one, 2 J' diag(a) J (the constraints are linear): exact
     at a zero-residual fit, always positive semi-definite, and an order of magnitude
-    cheaper to evaluate than the full second derivative.
+    cheaper to evaluate than the full second derivative. Its blocks come from three
+    k x k Gram matrices per sample set, with G the Gaussians and D = dG/dlog u:
+    2 sum_c s_c (D'AD o w_c w_c') for the log-variances, 2 s_c diag(w_c) D'AB between
+    them and curve c's weights, 2 s_c B'AB for those weights (3x fewer operations than
+    forming J'J for three curves).
     """
-    n_total = sum(n * (1 + 2 * m) for n, m in layout)
+    n_total = sum(n * (2 + m) + m for n, m in layout)
     n_curves = sum(m for _, m in layout)
     log_u = ca.SX.sym("log_u", k)
     w = ca.SX.sym("w", k * n_curves)
     params = ca.SX.sym("p", n_total + (k if fixed else 0))
     log_v = params[n_total:] if fixed else log_u
     u = ca.exp(log_v).T
-    residuals, sqrt_a, constraints = [], [], []
+    objective, constraints = 0, []
+    n_x = k * n_curves + (0 if fixed else k)
+    hess = ca.SX.zeros(n_x, n_x)
+    w0 = 0 if fixed else k  # where the weights start in x
     offset, ci = 0, 0
     for n, m in layout:
         rho = params[offset : offset + n]
-        offset += n
+        a_unit = params[offset + n : offset + 2 * n]
+        offset += 2 * n
         uu = ca.repmat(u, n, 1)
-        basis = ca.exp(-ca.repmat(rho**2, 1, k) / (2 * uu)) / (2 * math.pi * uu)
+        half_rho2 = ca.repmat(rho**2, 1, k) / 2
+        basis = ca.exp(-half_rho2 / uu) / (2 * math.pi * uu)
+        weighted_basis = basis * ca.repmat(a_unit, 1, k)
+        gram_bb = _upper_gram(basis, weighted_basis, True)
+        if not fixed:
+            d_basis = basis * (half_rho2 / uu - 1.0)  # dG/dlog u
+            gram_db = _upper_gram(d_basis, weighted_basis, False)
+            gram_dd = _upper_gram(d_basis, d_basis * ca.repmat(a_unit, 1, k), True)
         for _ in range(m):
             q = params[offset : offset + n]
-            a = params[offset + n : offset + 2 * n]  # sqrt of the sample weights
-            offset += 2 * n
+            scale = params[offset + n]
+            offset += n + 1
             wc = w[ci * k : (ci + 1) * k]
-            ci += 1
-            residuals.append(q - ca.mtimes(basis, wc))
-            sqrt_a.append(a)
+            resid = q - ca.mtimes(basis, wc)
+            objective += scale * ca.dot(a_unit, resid * resid)
             constraints.append(ca.sum1(wc))
-    weighted = ca.vertcat(*residuals) * ca.vertcat(*sqrt_a)
+            at = w0 + ci * k
+            hess[at : at + k, at : at + k] = 2 * scale * gram_bb
+            if not fixed:
+                hess[:k, :k] += 2 * scale * gram_dd * ca.mtimes(wc, wc.T)
+                hess[:k, at : at + k] = 2 * scale * ca.mtimes(ca.diag(wc), gram_db)
+            ci += 1
     x = w if fixed else ca.vertcat(log_u, w)
-    objective = ca.sumsqr(weighted)
-    jac = ca.jacobian(weighted, x)
     lam_f = ca.SX.sym("lam_f")
     lam_g = ca.SX.sym("lam_g", 0 if free_scale else n_curves)
-    hess = ca.Function(
+    hess_fn = ca.Function(
         "gauss_newton_hess", [x, params, lam_f, lam_g],
-        [ca.triu(lam_f * (2 * ca.mtimes(jac.T, jac) + HESS_REG * ca.SX.eye(x.numel())))],
+        [ca.triu(lam_f * (hess + HESS_REG * ca.SX.eye(n_x)))],
         ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"],
     )
     nlp = {"x": x, "p": params, "f": objective}
     if not free_scale:
         nlp["g"] = ca.vertcat(*constraints)
+    return nlp, hess_fn
+
+
+@lru_cache(maxsize=64)
+def _ipopt_solver(
+    layout: tuple[tuple[int, int], ...], k: int, fixed: bool, free_scale: bool
+) -> Any:
+    """A casadi IPOPT solver for one group's data layout (:func:`_gauss_newton_problem`),
+    cached by structure."""
+    nlp, hess = _gauss_newton_problem(layout, k, fixed, free_scale)
     opts = {
         "print_time": False,
         "error_on_fail": True,
@@ -639,17 +678,18 @@ def _polish_weights(log_u: FloatArray, curves: Sequence[_Curve], free_scale: boo
 
 
 def _layout(curves: Sequence[_Curve]) -> tuple[tuple[tuple[int, int], ...], list[FloatArray]]:
-    """Group consecutive curves that share radii; return the layout and parameter chunks."""
+    """Group consecutive curves that share radii and unit sample weights; return the
+    layout and the parameter chunks (:func:`_ipopt_solver`)."""
     layout: list[tuple[int, int]] = []
     chunks: list[FloatArray] = []
-    last = None
+    last: tuple[FloatArray, FloatArray] | None = None
     for cv in curves:
-        if cv.rho is not last:
+        if last is None or cv.rho is not last[0] or cv.a_unit is not last[1]:
             layout.append((cv.rho.size, 0))
-            chunks.append(cv.rho)
-            last = cv.rho
+            chunks.extend([cv.rho, cv.a_unit])
+            last = (cv.rho, cv.a_unit)
         layout[-1] = (layout[-1][0], layout[-1][1] + 1)
-        chunks.extend([cv.q, np.sqrt(cv.a)])
+        chunks.extend([cv.q, np.array([cv.a_scale])])
     return tuple(layout), chunks
 
 

@@ -382,3 +382,45 @@ def test_pivoting_leaves_what_it_cannot_settle_to_lawson_hanson() -> None:
     w = _gram_weights(hess, grad, False)
     assert np.all(np.isfinite(w)) and np.all(w >= 0)
     np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("fixed", [False, True])
+def test_gauss_newton_hessian_is_2_jt_j_by_finite_differences(fixed: bool) -> None:
+    """IPOPT's Hessian (built from Gram matrices shared by a sample set's curves) against
+    2 J'J with J the finite-difference Jacobian of the weighted residuals sqrt(a) (q - G w),
+    computed here in numpy; two sample sets (one profile's channels sharing weights, one
+    with per-channel standard deviations), so both groupings are covered."""
+    from pipeline.profile.fit import HESS_REG, _gauss_newton_problem, _layout, _make_curves
+
+    rng = np.random.default_rng(11)
+    r = np.linspace(0.0, 3.0, 40)
+    values = sum_of_gaussians(DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights, r)
+    plain = MeasuredProfile(r, values)
+    noisy = MeasuredProfile(r, values * 1.01, stddev=values * 0.02 + 1e-3)
+    curves = (_make_curves([plain], [(0, c) for c in range(3)], 1.0)
+              + _make_curves([noisy], [(0, 0), (0, 1)], 1.0, use_stddev=True))
+    layout, chunks = _layout(curves)
+    assert [m for _, m in layout] == [3, 1, 1]
+    k = 4
+    log_u = np.log([0.01, 0.1, 0.7, 3.0])
+    w = rng.uniform(0.1, 1.0, (len(curves), k))
+    params = np.concatenate(chunks + ([log_u] if fixed else []))
+    _, hess = _gauss_newton_problem(layout, k, fixed, False)
+    x = w.ravel() if fixed else np.concatenate([log_u, w.ravel()])
+    ours = np.array(hess(x, params, 1.0, np.zeros(len(curves)))).reshape(x.size, x.size)
+
+    def residuals(xv: np.ndarray) -> np.ndarray:
+        lu = log_u if fixed else xv[:k]
+        ww = (xv if fixed else xv[k:]).reshape(len(curves), k)
+        v = np.exp(lu)
+        out = []
+        for cv, wc in zip(curves, ww, strict=True):
+            g = np.exp(-(cv.rho[:, None] ** 2) / (2 * v)) / (2 * np.pi * v)
+            out.append(np.sqrt(cv.a) * (cv.q - g @ wc))
+        return np.concatenate(out)
+
+    step = 1e-6
+    jac = np.stack([(residuals(x + step * e) - residuals(x - step * e)) / (2 * step)
+                    for e in np.eye(x.size)], axis=1)
+    reference = np.triu(2 * jac.T @ jac + HESS_REG * np.eye(x.size))
+    np.testing.assert_allclose(ours, reference, rtol=1e-5, atol=1e-6 * np.abs(reference).max())
