@@ -290,8 +290,9 @@ _SAMPLE_KERNEL = r"""
 // LightSampler.sample does it, with the fraction that enters the skin folded into the
 // weight: 1 - rho_dt(cos), linear in the table (specular_albedo). The cone and the
 // frame (Duff et al. 2017) are made here per point, not uploaded. min/max/clamp,
-// vload3/vstore3 and trigonometry are kept out: PoCL leaves them as calls, which keeps
-// the work-item loop from being vectorised.
+// vload3/vstore3 and trigonometry are kept out and the square root is SQRTF: PoCL
+// leaves them as calls, which keeps the work-item loop from being vectorised; so is
+// any vector-typed value (the stratum is read as three floats, not a float4).
 __kernel void sample_entering(__global const float *origin, __global const float *normal,
                               __global const float4 *strata_uv, __global const int *strata,
                               const float lx, const float ly, const float lz,
@@ -303,30 +304,31 @@ __kernel void sample_entering(__global const float *origin, __global const float
     if (i >= n) return;
     // (u, cos 2 pi v, sin 2 pi v) of the stratum: the host takes the trigonometry
 #if INTERLEAVED
-    const float4 uv = strata_uv[strata[(size_t)i * COUNT + k]];
+    __global const float *uv = (__global const float *)strata_uv
+                               + (size_t)4 * strata[(size_t)i * COUNT + k];
 #else
-    const float4 uv = strata_uv[k];
+    __global const float *uv = (__global const float *)strata_uv + (size_t)4 * k;
 #endif
     __global const float *nr = normal + (size_t)3 * i;
     float ax, ay, az, a, b, c;  // the frame's axis; local coordinates along t, b, axis
 #if KIND == 1
     __global const float *o = origin + (size_t)3 * i;
     const float tx = lx - o[0], ty = ly - o[1], tz = lz - o[2];
-    const float dist = sqrt(tx * tx + ty * ty + tz * tz);
+    const float dist = SQRTF(tx * tx + ty * ty + tz * tz);
     const float inv = 1.0f / (dist > 1e-12f ? dist : 1e-12f);
     ax = tx * inv; ay = ty * inv; az = tz * inv;
     const float q = radius / (dist > 1.0001f * radius ? dist : 1.0001f * radius);
-    const float cos_max = sqrt(1.0f - q * q);
+    const float cos_max = SQRTF(1.0f - q * q);
     const float one_minus = q * q / (1.0f + cos_max);  // 1 - cos_max without cancellation
-    c = 1.0f - uv.x * one_minus;
+    c = 1.0f - uv[0] * one_minus;
     const float s2 = 1.0f - c * c;
-    const float sin_t = sqrt(s2 > 0.0f ? s2 : 0.0f);
-    a = sin_t * uv.y; b = sin_t * uv.z;
+    const float sin_t = SQRTF(s2 > 0.0f ? s2 : 0.0f);
+    a = sin_t * uv[1]; b = sin_t * uv[2];
 #else
     ax = nr[0]; ay = nr[1]; az = nr[2];
-    const float r = sqrt(uv.x);
-    c = sqrt(uv.x < 1.0f ? 1.0f - uv.x : 0.0f);
-    a = r * uv.y; b = r * uv.z;
+    const float r = SQRTF(uv[0]);
+    c = SQRTF(uv[0] < 1.0f ? 1.0f - uv[0] : 0.0f);
+    a = r * uv[1]; b = r * uv[2];
 #endif
     const float sgn = az >= 0.0f ? 1.0f : -1.0f;
     const float kk = -1.0f / (sgn + az);
