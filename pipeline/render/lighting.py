@@ -527,7 +527,8 @@ class LightSampler:
 
 _INTERLEAVE_KERNEL = r"""
 // one work-item per texel; planes (light, y, x) with traced = 0 or 1; normals packed
-// xyz per texel
+// xyz per texel, read as floats (vload3, dot and abs are calls or vector values to
+// PoCL, which then does not vectorise the work-item loop)
 __kernel void filter_interleaved(__global const float *vis, __global const float *traced,
                                  __global const float *normal, __global float *out,
                                  const int h, const int w, const float min_cos)
@@ -535,7 +536,7 @@ __kernel void filter_interleaved(__global const float *vis, __global const float
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= w || y >= h) return;
     const int i = y * w + x;
-    const float3 n = vload3(i, normal);
+    const float nx = normal[3 * i], ny = normal[3 * i + 1], nz = normal[3 * i + 2];
     const int plane = h * w;
     float num[LIGHTS], den[LIGHTS];
     for (int l = 0; l < LIGHTS; ++l) { num[l] = 0.0f; den[l] = 0.0f; }
@@ -546,8 +547,9 @@ __kernel void filter_interleaved(__global const float *vis, __global const float
             const int xx = x + dx;
             if (xx < 0 || xx >= w) continue;
             const int j = yy * w + xx;
-            if (dot(n, vload3(j, normal)) < min_cos) continue;
-            const float tent = (float)((2 - abs(dy)) * (2 - abs(dx)));
+            if (nx * normal[3 * j] + ny * normal[3 * j + 1] + nz * normal[3 * j + 2] < min_cos)
+                continue;
+            const float tent = (dy == 0 ? 2.0f : 1.0f) * (dx == 0 ? 2.0f : 1.0f);
             for (int l = 0; l < LIGHTS; ++l) {
                 const float kt = tent * traced[l * plane + j];
                 num[l] += kt * vis[l * plane + j];
