@@ -17,7 +17,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any, Literal
 
 import casadi as ca
@@ -92,13 +92,17 @@ class _Curve:
 
     rho: FloatArray  # radius / L
     q: FloatArray  # value * L^2 (so that q ~ sum w G(u, rho))
-    a: FloatArray  # sample weight: rho drho / sigma^2, normalised so the curve's sum a q^2 = 1
     profile: int
     channel: int
-    # a = a_scale * a_unit; channels of a profile share a_unit (unless weighted by their
-    # own standard deviations), so their Gram matrices differ by a factor only.
+    # The sample weights a = a_scale * a_unit (rho drho / sigma^2, normalised so that the
+    # curve's sum a q^2 = 1): the channels of a profile share a_unit (unless weighted by
+    # their own standard deviations), so their Gram matrices differ by a factor only.
     a_unit: FloatArray
     a_scale: float
+
+    @cached_property
+    def a(self) -> FloatArray:
+        return self.a_unit * self.a_scale
 
 
 MAX_FIT_SAMPLES = 4000
@@ -268,7 +272,7 @@ def _make_curves(
         norm = float(np.sum(unit * q * q))
         # A silent channel (free_scale only) keeps unit weights; its amplitude goes to 0.
         scale = 1.0 / norm if norm > 0 else 1.0 / max(float(np.sum(unit)), 1e-300)
-        curves.append(_Curve(rho, q, unit * scale, pi, c, unit, scale))
+        curves.append(_Curve(rho, q, pi, c, unit, scale))
     return curves
 
 
@@ -298,7 +302,8 @@ def gram_weights_pivoting(
     """
     batch, k = grad.shape
     n = k if free_scale else k + 1
-    h = hess + 1e-12 * np.trace(hess, axis1=-2, axis2=-1)[:, None, None] * np.eye(k)
+    scale = np.trace(hess, axis1=-2, axis2=-1)
+    h = hess + 1e-12 * scale[:, None, None] * np.eye(k)
     kkt = np.zeros((batch, n, n))
     kkt[:, :k, :k] = h
     rhs = np.zeros((batch, n))
@@ -312,9 +317,8 @@ def gram_weights_pivoting(
     out = np.full((batch, k), np.nan)
     # A Gram matrix of Gaussians that underflow at every sample is zero: any weights
     # do, and Lawson-Hanson picks one; the KKT matrix would be singular.
-    scale = np.trace(hess, axis1=-2, axis2=-1)
-    todo = np.flatnonzero(np.isfinite(scale) & (scale > 0))
-    lawson_hanson = np.flatnonzero(~(np.isfinite(scale) & (scale > 0)))
+    solvable = np.isfinite(scale) & (scale > 0)
+    todo, lawson_hanson = np.flatnonzero(solvable), np.flatnonzero(~solvable)
     for _ in range(rounds):
         if todo.size == 0:
             break
@@ -340,7 +344,8 @@ def gram_weights_pivoting(
         if not free_scale:
             # The simplex needs a free variable: a system that would free none keeps its
             # set and is left to NNLS when the rounds run out.
-            nxt[~nxt.any(axis=1)] = ~bound[~nxt.any(axis=1)]
+            none_free = ~nxt.any(axis=1)
+            nxt[none_free] = ~bound[none_free]
         free[todo] = nxt
         todo = todo[~settled]
     return out, np.concatenate([lawson_hanson, todo])

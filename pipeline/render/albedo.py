@@ -102,7 +102,8 @@ def paint_skin_albedo(maps: TextureMaps, region_names: tuple[str, ...],
     with ThreadPoolExecutor(1) as pool:
         tree_ahead = pool.submit(cKDTree, pos, balanced_tree=False, compact_nodes=False)
         base, freckle_density = _region_tone(maps, covered, region_names)
-        base = _spotted(base, pos, maps, freckle_density, meters_per_unit, seed, tree_ahead)
+        base = _spotted(base, pos, maps, covered, freckle_density, meters_per_unit, seed,
+                        tree_ahead)
     out[covered] = np.clip(base, 0.0, 1.0)
     return out
 
@@ -121,11 +122,10 @@ def _region_tone(maps: TextureMaps, covered: NDArray[np.bool_], region_names: tu
 
 
 def _spotted(base: NDArray[Any], pos: NDArray[Any], maps: TextureMaps,
-             freckle_density: NDArray[Any], meters_per_unit: float, seed: int,
-             tree_ahead: Any) -> NDArray[Any]:
-    """The covered texels' albedo: ``base`` tone with blotchiness and pigment spots;
+             covered: NDArray[np.bool_], freckle_density: NDArray[Any],
+             meters_per_unit: float, seed: int, tree_ahead: Any) -> NDArray[Any]:
+    """The ``covered`` texels' albedo: ``base`` tone with blotchiness and pigment spots;
     ``tree_ahead`` is the future of a cKDTree of ``pos``."""
-    covered = maps.triangle >= 0
     # low-frequency blotchiness (+-4%), a function of the surface point so seams match
     mm = pos * meters_per_unit * 1000.0
     base *= 1.0 + 0.04 * np.sin(mm[:, :1] * 0.21 + 1.3) * np.sin(mm[:, 1:2] * 0.17 + 0.4)

@@ -292,9 +292,9 @@ _SAMPLE_KERNEL = r"""
 // frame (Duff et al. 2017) are made here per point, not uploaded. min/max/clamp,
 // vload3/vstore3 and trigonometry are kept out and the square root is SQRTF: PoCL
 // leaves them as calls, which keeps the work-item loop from being vectorised; so is
-// any vector-typed value (the stratum is read as three floats, not a float4).
+// any vector-typed value (the stratum, four floats, is read as floats, not a float4).
 __kernel void sample_entering(__global const float *origin, __global const float *normal,
-                              __global const float4 *strata_uv, __global const int *strata,
+                              __global const float *strata_uv, __global const int *strata,
                               const float lx, const float ly, const float lz,
                               const float radius, __global const float *table,
                               const int table_n, const int k, __global float *dir,
@@ -304,10 +304,9 @@ __kernel void sample_entering(__global const float *origin, __global const float
     if (i >= n) return;
     // (u, cos 2 pi v, sin 2 pi v) of the stratum: the host takes the trigonometry
 #if INTERLEAVED
-    __global const float *uv = (__global const float *)strata_uv
-                               + (size_t)4 * strata[(size_t)i * COUNT + k];
+    __global const float *uv = strata_uv + (size_t)4 * strata[(size_t)i * COUNT + k];
 #else
-    __global const float *uv = (__global const float *)strata_uv + (size_t)4 * k;
+    __global const float *uv = strata_uv + (size_t)4 * k;
 #endif
     __global const float *nr = normal + (size_t)3 * i;
     float ax, ay, az, a, b, c;  // the frame's axis; local coordinates along t, b, axis

@@ -414,7 +414,7 @@ def sqrt_function() -> str:
     (with scalar loads in place of a float4 one, the light-sample kernel on 700k points
     went 14.7 -> 3.6 ms on PoCL, Intel's runtime 3.9-4.1 ms either way). Other runtimes
     keep ``sqrt``: their compilers need not know clang's builtins."""
-    return "__builtin_sqrtf" if device_choice().candidate.runtime.startswith("pocl") else "sqrt"
+    return "__builtin_sqrtf" if _on_pocl() else "sqrt"
 
 
 def _build_now(source: str, options: list[str] | None) -> Any:
@@ -511,6 +511,10 @@ class Kernel:
 def jit_at_first_launch() -> bool:
     """Whether the device compiles kernels at their first launch (PoCL) rather than when
     their program is built (Intel's runtime, GPU drivers)."""
+    return _on_pocl()
+
+
+def _on_pocl() -> bool:
     return device_choice().candidate.runtime.startswith("pocl")
 
 
