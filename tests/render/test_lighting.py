@@ -333,6 +333,12 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool) ->
         enters = 1 - specular_albedo(np.einsum("ij,ij->i", nrm, d_ref.astype(np.float64)),
                                      0.3, 0.3)
         np.testing.assert_allclose(d, d_ref, atol=2e-6)
-        np.testing.assert_allclose(dist, dist_ref, rtol=1e-6)
         np.testing.assert_allclose(w, w_ref * enters, rtol=2e-5, atol=1e-7)
+        # the ray ends where it starts (length 0) where the sample carries nothing: the
+        # two agree on which points those are but at grazing directions (cos ~ 0)
+        lit = w_ref * enters > 0
+        agree = (w > 0) == lit
+        assert agree.mean() > 0.999
+        np.testing.assert_allclose(dist[agree], np.where(lit, dist_ref, 0)[agree], rtol=1e-6)
+        assert np.all(dist[w == 0] == 0) and np.all(dist[w > 0] > 0)
     assert np.all(np.isfinite(w)) and np.all(w >= 0)
