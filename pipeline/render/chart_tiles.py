@@ -206,14 +206,15 @@ def _read_reach(level: int) -> int:
 
 
 def _bilinear_taps(xy: NDArray[np.float32], shape: tuple[int, int]
-                   ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
-    """(4, M) flat indices and weights of bilinear reads at atlas positions ``xy``: at
-    level 0, whose texels are boxes, the share of the read texel's square each texel's
-    square overlaps (where the two lattices are aligned), so a read moves no light."""
+                   ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """(4, M) flat indices (int32: an atlas holds under 2^31 texels, :func:`tile_level`)
+    and weights of bilinear reads at atlas positions ``xy``: at level 0, whose texels
+    are boxes, the share of the read texel's square each texel's square overlaps (where
+    the two lattices are aligned), so a read moves no light."""
     h, w = shape
     x, y = xy[:, 0].astype(np.float64), xy[:, 1].astype(np.float64)
-    x0 = np.clip(np.floor(x).astype(np.int64), 0, w - 2)
-    y0 = np.clip(np.floor(y).astype(np.int64), 0, h - 2)
+    x0 = np.clip(np.floor(x).astype(np.int32), 0, w - 2)
+    y0 = np.clip(np.floor(y).astype(np.int32), 0, h - 2)
     ax, ay = np.clip(x - x0, 0.0, 1.0), np.clip(y - y0, 0.0, 1.0)
     i = y0 * w + x0
     return (np.stack([i, i + 1, i + w, i + w + 1]),
@@ -234,15 +235,16 @@ def _cubic_weights(t: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _cubic_taps(xy: NDArray[np.float32], shape: tuple[int, int]
-                ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
-    """(16, M) flat indices and weights of Catmull-Rom reads at atlas positions ``xy``."""
+                ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """(16, M) flat indices (int32, as :func:`_bilinear_taps`') and weights of
+    Catmull-Rom reads at atlas positions ``xy``."""
     h, w = shape
     x, y = xy[:, 0].astype(np.float64), xy[:, 1].astype(np.float64)
-    x0 = np.clip(np.floor(x).astype(np.int64), 1, w - 3)
-    y0 = np.clip(np.floor(y).astype(np.int64), 1, h - 3)
+    x0 = np.clip(np.floor(x).astype(np.int32), 1, w - 3)
+    y0 = np.clip(np.floor(y).astype(np.int32), 1, h - 3)
     wx = _cubic_weights(np.clip(x - x0, 0.0, 1.0))
     wy = _cubic_weights(np.clip(y - y0, 0.0, 1.0))
-    d = np.arange(-1, 3)
+    d = np.arange(-1, 3, dtype=np.int32)
     idx = ((y0[None, None, :] + d[:, None, None]) * w
            + x0[None, None, :] + d[None, :, None]).reshape(16, -1)
     return idx, (wy[:, None, :] * wx[None, :, :]).reshape(16, -1).astype(np.float32)
@@ -354,8 +356,9 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     full = count >= (1.0 - 1e-3) * float(4**level)
     # every tile texel's nearest fully covered texel of its own chart (within its
     # tile): where the extrapolation across the seam starts
-    nearest = np.full(n, -1, np.int64)
-    owner = np.full(n, -1, np.int64)
+    # int32 (n < 2^31): 0.3 GiB less at level 0 of texture 4096
+    nearest = np.full(n, -1, np.int32)
+    owner = np.full(n, -1, np.int32)
     for c in np.flatnonzero(~empty):
         x0, y0 = pos[c]
         tw, th = sizes[c]
@@ -387,8 +390,8 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     np.cumsum(np.bincount(index, minlength=n) * taps.shape[0], out=indptr[1:])
     reads = csr_matrix((np.ascontiguousarray(tap_weights.T).ravel(),
                         np.ascontiguousarray(taps.T).ravel(), indptr), shape=(n, n))
-    return TileLevel(level, margin, shape, shift.astype(np.float32), owner.astype(np.int32),
-                     count, reads, mm_u_out, mm_v_out)
+    return TileLevel(level, margin, shape, shift.astype(np.float32), owner, count, reads,
+                     mm_u_out, mm_v_out)
 
 
 def _chart_cells(chart: NDArray[np.int32], n_charts: int, level: int
@@ -433,8 +436,8 @@ def _subsamples(level: int) -> NDArray[np.float64]:
 
 def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
                     count: NDArray[np.float32], margin: NDArray[np.bool_],
-                    full: NDArray[np.bool_], nearest: NDArray[np.int64],
-                    owner: NDArray[np.int64], w: int
+                    full: NDArray[np.bool_], nearest: NDArray[np.int32],
+                    owner: NDArray[np.int32], w: int
                     ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
     """Where the texels in ``margin`` read the surface across a seam (module docstring):
     the texel each read is for and the read's atlas position in the other chart's tile.
@@ -482,7 +485,7 @@ intermediates), split evenly between them."""
 
 def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
                   count: NDArray[np.float32], full: NDArray[np.bool_],
-                  nearest: NDArray[np.int64], owner: NDArray[np.int64], w: int,
+                  nearest: NDArray[np.int32], owner: NDArray[np.int32], w: int,
                   m_all: NDArray[np.int64], sub: NDArray[np.float64], key_of: int
                   ) -> list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[Any]]]:
     """The reads of :func:`_margin_sources` for the margin texels ``m_all``: (texels,
@@ -567,7 +570,7 @@ def _matvec(a: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float6
 
 
 def _cell_frames(g: SeamGeometry, level: int, shift: NDArray[np.int64],
-                 owner: NDArray[np.int64], cells: NDArray[np.int64], w: int
+                 owner: NDArray[np.int32], cells: NDArray[np.int64], w: int
                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Per fully covered atlas texel in ``cells``: the surface point at its centre, the
     normal there and J = dP / d texel of its level (scene units), from the finest texel

@@ -20,6 +20,7 @@ comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -507,6 +508,8 @@ be far smaller than the rest (degenerate UV, on the demo face ten at 0.011 mm ag
 0.082 mm at this quantile and 0.105 mm median), and they would set a radius far wider
 than every other texel needs; they are blurred as if they were the quantile's size
 (narrower than their own sigma), and counted."""
+LAYOUT_LEVELS_AT_ONCE = 2
+"""Pyramid levels whose chart tiles :meth:`DiffusionLayout.prepare` makes side by side."""
 TERM_BUFFER_TEXTURES = 4
 """Blurred terms kept at once before they are added up, in full-resolution textures
 (64 MiB each at 2048^2): each further batch reads and writes the result once more."""
@@ -730,8 +733,13 @@ class DiffusionLayout:
         """Make the chart tiles the terms of ``variances_mm2`` need ahead of a diffusion
         (a renderer's layout task does, so that the frames' diffusion finds them)."""
         if self.any_covered:
-            for k, margin in self.level_margins(variances_mm2).items():
-                self.grid(k, margin)
+            # two levels at once: each level's single-threaded parts (splats, distance
+            # transforms, read taps) run beside the other's ray casts (texture 2048:
+            # 13.6 -> 10.3 s; 4096: peak RSS of the layout 4.8 -> 5.5 GB, per-thread
+            # heaps kept)
+            wanted = sorted(self.level_margins(variances_mm2).items())
+            with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
+                list(pool.map(lambda km: self.grid(*km), wanted))
 
     def grid(self, level: int, margin: int) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
