@@ -504,14 +504,15 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     start, b_texel = np.unique(nearest[m_all], return_inverse=True)
     b = np.concatenate([b_texel[empty], np.repeat(b_texel[~empty], sub.shape[0])])
     position, normal, jac_b = _cell_frames(g, level, shift, owner, start, w)
-    jac = jac_b[b]  # scene units per level texel
-    normal = normal[b]
+    # rows gathered by np.take throughout (3-10x faster than fancy indexing of rows)
+    jac = np.take(jac_b, b, axis=0)  # scene units per level texel
+    normal = np.take(normal, b, axis=0)
     here = np.stack([m_idx % w, m_idx // w], axis=1) + offset_px  # atlas position
-    step = here - np.stack([start % w, start // w], axis=1)[b]
+    step = here - np.take(np.stack([start % w, start // w], axis=1), b, axis=0)
     offset = _matvec(jac, step)
     reach = 0.5 * np.linalg.norm(offset, axis=1) + \
-        2.0 * np.linalg.norm(jac_b, axis=1).max(axis=1)[b]
-    target = position[b] + offset
+        2.0 * np.take(np.linalg.norm(jac_b, axis=1).max(axis=1), b)
+    target = np.take(position, b, axis=0) + offset
     prim, bu, bv, dist = g.rays.intersect(target + normal * reach[:, None], -normal)
     del target, normal, position
     hit = prim >= 0
@@ -520,42 +521,46 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     ok = hit & (owner_mesh == g.mesh_index) & (dist <= 2.0 * reach)
     # the rest for the points that landed on the skin only
     sel = np.flatnonzero(ok)
-    m_idx, offset_px, partial, jac, here = (m_idx[sel], offset_px[sel], partial[sel],
-                                            jac[sel], here[sel])
+    m_idx, offset_px, partial, jac, here = (np.take(a, sel, axis=0) for a in (
+        m_idx, offset_px, partial, jac, here))
     t_local = g.rays.owner[prim[sel], 1]
     bu, bv = bu[sel], bv[sel]
-    corner = g.uv_corners[t_local]
+    corner = np.take(g.uv_corners, t_local, axis=0)
     xy = (corner[:, 0] * (1.0 - bu - bv)[:, None] + corner[:, 1] * bu[:, None]
           + corner[:, 2] * bv[:, None])  # finest texel coordinates
     del corner
     src_chart = g.tri_chart[t_local]
     # a point of a partly covered texel: its centre carried into the chart it landed on
     # (the offset o back through that chart's parameterization)
-    inverse_jac = g.texels_per_scene_unit[t_local[partial]]
-    back = _matvec(jac[partial], offset_px[partial])
-    xy[partial] -= _matvec(inverse_jac, back)
-    level_xy = (xy + 0.5) / scale - 0.5 + shift[src_chart]
+    at = np.flatnonzero(partial)
+    inverse_jac = np.take(g.texels_per_scene_unit, t_local[at], axis=0)
+    back = _matvec(np.take(jac, at, axis=0), np.take(offset_px, at, axis=0))
+    xy[at] -= _matvec(inverse_jac, back)
+    level_xy = (xy + 0.5) / scale - 0.5 + np.take(shift, src_chart, axis=0)
     own = src_chart == owner[m_idx]
     far = np.linalg.norm(level_xy - (here - offset_px), axis=1) > 2.0
-    ok = ~partial | ~own | far
-    m_read, xy_read, first = _mean_per_key(m_idx[ok], src_chart[ok], level_xy[ok], key_of)
-    read = np.flatnonzero(ok)[first]
+    ok = np.flatnonzero(~partial | ~own | far)
+    m_read, xy_read, first = _mean_per_key(m_idx[ok], src_chart[ok],
+                                           np.take(level_xy, ok, axis=0), key_of)
+    read = ok[first]
     # the fully covered texels up to a read's reach from a partly covered one read that
     # chart too, at their centres carried along the chart's parameterization: the other
     # side's splat reaches a texel past its border, and a read as far again (without
     # them a pencil at a seam lost 5-19% at levels 1 and 4)
     src = np.flatnonzero(partial[read])
-    carry = np.einsum("mij,mjk->mik", g.texels_per_scene_unit[t_local[read[src]]],
-                      jac[read[src]]) / scale
+    carry = np.einsum("mij,mjk->mik", np.take(g.texels_per_scene_unit, t_local[read[src]],
+                                              axis=0),
+                      np.take(jac, read[src], axis=0)) / scale
     m_src, chart_src = m_read[src], src_chart[read[src]]
+    xy_src = np.take(xy_read, src, axis=0)
     pieces = [(m_read, xy_read, src_chart[read])]
     ring = range(-_read_reach(level), _read_reach(level) + 1)
     for dy in ring:
         for dx in ring:
             m2 = np.clip(m_src + dy * w + dx, 0, n - 1)
-            keep = full[m2] & (owner[m2] == owner[m_src])
-            pieces.append((m2[keep], xy_read[src][keep] + carry[keep] @ np.array([dx, dy],
-                                                                                  float),
+            keep = np.flatnonzero(full[m2] & (owner[m2] == owner[m_src]))
+            pieces.append((m2[keep], np.take(xy_src, keep, axis=0)
+                           + np.take(carry, keep, axis=0) @ np.array([dx, dy], float),
                            chart_src[keep]))
     return pieces
 
@@ -578,12 +583,15 @@ def _cell_frames(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     flat across the level texel)."""
     scale = 1 << level
     c = owner[cells]
-    centre = (np.stack([cells % w, cells // w], axis=1) - shift[c] + 0.5) * scale - 0.5
+    centre = (np.stack([cells % w, cells // w], axis=1) - np.take(shift, c, axis=0) + 0.5
+              ) * scale - 0.5
     h0, w0 = g.triangle.shape
     f = np.clip(np.rint(centre).astype(np.int64), 0, [w0 - 1, h0 - 1])
-    jac = g.jacobian[g.triangle[f[:, 1], f[:, 0]]]  # per finest texel
-    point = g.position[f[:, 1], f[:, 0]] + np.einsum("mij,mj->mi", jac, centre - f)
-    normal = g.normal[f[:, 1], f[:, 0]].astype(np.float64)
+    texel = f[:, 1] * w0 + f[:, 0]
+    jac = np.take(g.jacobian, g.triangle.reshape(-1)[texel], axis=0)  # per finest texel
+    point = np.take(g.position.reshape(-1, 3), texel, axis=0) + \
+        np.einsum("mij,mj->mi", jac, centre - f)
+    normal = np.take(g.normal.reshape(-1, 3), texel, axis=0).astype(np.float64)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
     return point, normal, jac * scale
 
