@@ -150,6 +150,9 @@ def write_texture(path: str | Path, pixels: NDArray[Any], colorspace: str = ACES
     config = oiio.ImageSpec()
     config.format = oiio.TypeDesc("half")
     config.attribute("compression", "zip")
+    # no SHA-1 fingerprint of the pixels (maketx's default, for a texture cache to find
+    # duplicate files): 40 ms of a 1024^2 texture's 240, and a file per asset has none
+    config.attribute("maketx:hash", 0)
     with atomic_path(path) as tmp:
         if not oiio.ImageBufAlgo.make_texture(oiio.MakeTxTexture, buf, str(tmp), config):
             raise OSError(f"{path}: make_texture failed: {oiio_error()}")
