@@ -31,7 +31,10 @@ from .opencl import (
     cl_context,
     device_buffer,
     device_cache,
+    host_buffer,
+    host_output,
     jit_at_first_launch,
+    read_output,
 )
 from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS
 from .raytrace import RayScene, morton_order, offset_ray_origin
@@ -407,7 +410,8 @@ class LightSampler:
             samples = 1
         self.grid, sets = light_sample_set(samples, rng, interleave is not None, sequence)
         if sets is not None:
-            self.strata = sets.astype(np.int32)[np.asarray(interleave) % 4]
+            # rows by np.take: fancy indexing took 5x as long (0.27 s at texture 4096)
+            self.strata = np.take(sets.astype(np.int32), np.asarray(interleave) % 4, axis=0)
             self.count = self.strata.shape[1]
         else:
             self.count = self.grid.shape[0]
@@ -633,20 +637,22 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
         raise InputError(f"visibility (L, H, W), traced (L, H, W) and normal (H, W, 3) must "
                          f"agree; got {vis.shape}, {np.shape(traced)}, {np.shape(normal)}")
     lights, h, w = vis.shape
-    ctx, queue = cl_context()
-    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-    nrm_buf = cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(normal, np.float32))
+    _, queue = cl_context()
+    # over the arrays' own memory on a CPU device (copies of 0.3 GB took 0.5 s at
+    # texture 4096)
+    nrm_buf = host_buffer(np.asarray(normal, np.float32))
     out = np.empty_like(vis)
     for start in range(0, lights, MAX_FILTER_LIGHTS):
         part = slice(start, min(start + MAX_FILTER_LIGHTS, lights))
-        vis_buf = cl.Buffer(ctx, flags, hostbuf=vis[part])
-        traced_buf = cl.Buffer(ctx, flags, hostbuf=np.ascontiguousarray(
-            np.asarray(traced[part]) > 0, np.float32))
-        out_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, vis[part].nbytes)
+        out_part = out[part]
+        # the buffers (and the arrays they hold) stay referenced until the read
+        vis_buf = host_buffer(vis[part])
+        traced_buf = host_buffer((np.asarray(traced[part]) > 0).astype(np.float32))
+        out_buf = host_output(out_part)
         _interleave_kernel(part.stop - start)(
             queue, (w, h), None, vis_buf, traced_buf, nrm_buf, out_buf, np.int32(h),
             np.int32(w), np.float32(min_cos))
-        cl.enqueue_copy(queue, out[part], out_buf)
+        read_output(queue, out_buf, out_part)
     return out
 
 
