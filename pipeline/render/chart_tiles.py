@@ -134,6 +134,40 @@ class SeamGeometry:
         return np.einsum("tij,tkj->tik", inv, j)
 
 
+@dataclass(frozen=True)
+class FinestTexels:
+    """What every pyramid level's tiles are made from and is the same for all of them
+    (:func:`finest_texels`): the covered finest texels in row order, their charts,
+    covered shares and sizes, and each chart's bounding box. Made once for a layout's
+    levels (at texture 4096 each level found them again: 0.5 s of its splat)."""
+
+    ys: NDArray[np.int64]
+    xs: NDArray[np.int64]
+    chart: NDArray[np.int64]
+    share: NDArray[np.float32]
+    """The share of each texel's square its chart covers (1 where no coverage map)."""
+    mm: NDArray[Any]
+    """(N, 2) mm of surface per texel along u and v (the maps' dtype)."""
+    boxes: list[Any]
+    """Per chart its finest texels' bounding box (``scipy.ndimage.find_objects``;
+    None: no texel)."""
+
+
+def finest_texels(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
+                  mm_v: NDArray[Any], coverage: NDArray[np.float32] | None = None
+                  ) -> FinestTexels:
+    """:class:`FinestTexels` of a chart map (H, W; -1: none), its texel sizes and the
+    share of each texel its chart covers (:func:`texel_coverage`; None: all)."""
+    from scipy.ndimage import find_objects  # lazy: 0.25 s to import
+
+    ys, xs = np.nonzero(chart >= 0)
+    share = np.ones(ys.size, np.float32) if coverage is None else \
+        coverage[ys, xs].astype(np.float32)
+    mm = np.stack([np.asarray(mm_u)[ys, xs], np.asarray(mm_v)[ys, xs]], axis=1)
+    return FinestTexels(ys, xs, chart[ys, xs].astype(np.int64), share, mm,
+                        find_objects(chart + 1, max_label=n_charts))
+
+
 @dataclass
 class TileLevel:
     """Pyramid level ``level`` as an atlas of chart tiles with ``margin`` texels around.
@@ -186,7 +220,9 @@ class TileLevel:
         h, w = self.shape
         area = float(4**self.level)
         out = np.empty((h * w, 4), np.float32)
-        geometry = splat_geometry(chart, coverage, self.shift.astype(np.int64), self.level, w)
+        finest = finest_texels(chart, int(chart.max(initial=-1)) + 1, np.ones(chart.shape),
+                               np.ones(chart.shape), coverage)
+        geometry = splat_geometry(finest, self.shift.astype(np.int64), self.level, w)
         out[:, :3] = _splat(*geometry, self.level, self.shape, values) / area
         out[:, 3] = self.count / area
         return self.read_across_seams(out).reshape(h, w, 4)
@@ -280,24 +316,20 @@ def _splat_table(level: int) -> NDArray[np.float32]:
                     axis=1).astype(np.float32)
 
 
-def splat_geometry(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
-                   shift: NDArray[np.int64], level: int, w: int
+def splat_geometry(finest: FinestTexels, shift: NDArray[np.int64], level: int, w: int
                    ) -> tuple[NDArray[np.int32], NDArray[np.uint16], NDArray[np.float32]]:
-    """Per covered finest texel (in the order of ``np.flatnonzero(chart >= 0)``) where
-    it is splatted in a level-k atlas ``w`` texels wide whose charts sit at ``shift``
-    (atlas = global cell + shift): the flat index of the first of its cells (level 0:
-    the one; above: it, the next, the one below and the next), its phase in the cell,
-    (y mod 2^k) 2^k + x mod 2^k, which picks the weights (:func:`_splat_table`), and the
-    share of its square its chart covers (``coverage``; None: all)."""
+    """Per covered finest texel (:class:`FinestTexels`, row order) where it is splatted
+    in a level-k atlas ``w`` texels wide whose charts sit at ``shift`` (atlas = global
+    cell + shift): the flat index of the first of its cells (level 0: the one; above:
+    it, the next, the one below and the next), its phase in the cell, (y mod 2^k) 2^k +
+    x mod 2^k, which picks the weights (:func:`_splat_table`), and the share of its
+    square its chart covers."""
     scale = 1 << level
-    ys, xs = np.nonzero(chart >= 0)
-    c_of = chart[ys, xs].astype(np.int64)
+    ys, xs, c_of = finest.ys, finest.xs, finest.chart
     gx = np.floor((xs + 0.5) / scale - 0.5).astype(np.int64)
     gy = np.floor((ys + 0.5) / scale - 0.5).astype(np.int64)
     base = ((gy + shift[c_of, 1]) * w + gx + shift[c_of, 0]).astype(np.int32)
-    share = np.ones(ys.size, np.float32) if coverage is None else \
-        coverage[ys, xs].astype(np.float32)
-    return base, ((ys % scale) * scale + xs % scale).astype(np.uint16), share
+    return base, ((ys % scale) * scale + xs % scale).astype(np.uint16), finest.share
 
 
 def _splat(base: NDArray[np.int32], phase: NDArray[np.uint16], share: NDArray[np.float32],
@@ -325,10 +357,12 @@ def _splat(base: NDArray[np.int32], phase: NDArray[np.uint16], share: NDArray[np
 def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
                mm_v: NDArray[Any], level: int, margin: int,
                geometry: SeamGeometry | None = None,
-               coverage: NDArray[np.float32] | None = None) -> TileLevel:
+               coverage: NDArray[np.float32] | None = None,
+               finest: FinestTexels | None = None) -> TileLevel:
     """Level ``level`` as a :class:`TileLevel`: ``chart`` (H, W) the chart of each finest
     texel (-1: none), ``mm_u``/``mm_v`` its size in mm, ``coverage`` the share of its
-    square the chart covers (:func:`texel_coverage`; None: all of it). With
+    square the chart covers (:func:`texel_coverage`; None: all of it); ``finest``: what
+    :func:`finest_texels` makes of them, when a caller keeps it for several levels. With
     ``geometry`` the margins, and the shares of texels a chart's border crosses, are
     filled with the surface across each chart's border (module docstring); without,
     they stay empty (each chart blurred alone)."""
@@ -336,7 +370,9 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
 
     scale = 1 << level
-    lo, hi, empty = _chart_cells(chart, n_charts, level)
+    if finest is None:
+        finest = finest_texels(chart, n_charts, mm_u, mm_v, coverage)
+    lo, hi, empty = _chart_cells(finest.boxes, n_charts, level)
     sizes = np.where(empty[:, None], 0, hi - lo + 1 + 2 * margin)
     pos, shape = _pack(sizes)
     shift = pos + margin - lo  # atlas = global cell + shift
@@ -345,10 +381,9 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     if n >= 2**31:
         raise InputError(f"a level-{level} tile atlas of {h} x {w} texels is beyond 2^31")
     # the coverage each atlas texel gathers (weights alone) and its texel sizes' sums
-    covered = chart >= 0
-    summed = _splat(*splat_geometry(chart, coverage, shift, level, w), level, shape,
-                    np.stack([np.ones(int(covered.sum()), np.float32), mm_u[covered],
-                              mm_v[covered]], axis=1))
+    summed = _splat(*splat_geometry(finest, shift, level, w), level, shape,
+                    np.concatenate([np.ones((finest.share.size, 1), np.float32), finest.mm],
+                                   axis=1))
     count = summed[:, 0].astype(np.float32)
     mm = summed[:, 1:] / np.where(count > 0, count, 1.0)[:, None] * scale
     del summed
@@ -394,18 +429,17 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
                      mm_u_out, mm_v_out)
 
 
-def _chart_cells(chart: NDArray[np.int32], n_charts: int, level: int
+def _chart_cells(boxes: list[Any], n_charts: int, level: int
                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
     """Per chart the lowest and highest level-k cell (x, y) its finest texels splat to,
     and which charts cover no texel (theirs 0 and -1): from each chart's bounding box
-    of finest texels, as a texel's first cell grows with its position."""
-    from scipy.ndimage import find_objects  # lazy: 0.25 s to import
-
+    of finest texels (:attr:`FinestTexels.boxes`), as a texel's first cell grows with
+    its position."""
     scale = 1 << level
     lo = np.zeros((n_charts, 2), np.int64)
     hi = np.full((n_charts, 2), -1, np.int64)
     empty = np.ones(n_charts, bool)
-    for c, box in enumerate(find_objects(chart + 1, max_label=n_charts)):
+    for c, box in enumerate(boxes):
         if box is None:
             continue
         first = np.array([box[1].start, box[0].start], np.float64)

@@ -30,7 +30,15 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from .blur_switch import prefers_direct
-from .chart_tiles import SeamGeometry, TileLevel, texel_coverage, tile_level, uv_charts
+from .chart_tiles import (
+    FinestTexels,
+    SeamGeometry,
+    TileLevel,
+    finest_texels,
+    texel_coverage,
+    tile_level,
+    uv_charts,
+)
 from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter
 from .opencl import (
     DeviceTexture,
@@ -732,30 +740,36 @@ class DiffusionLayout:
     def prepare(self, variances_mm2: NDArray[Any]) -> None:
         """Make the chart tiles the terms of ``variances_mm2`` need ahead of a diffusion
         (a renderer's layout task does, so that the frames' diffusion finds them)."""
-        if self.any_covered:
+        wanted = [km for km in sorted(self.level_margins(variances_mm2).items())
+                  if self._made(*km) is None] if self.any_covered else []
+        if wanted:
             # two levels at once: each level's single-threaded parts (splats, distance
             # transforms, read taps) run beside the other's ray casts (texture 2048:
             # 13.6 -> 10.3 s; 4096: peak RSS of the layout 4.8 -> 5.5 GB, per-thread
             # heaps kept)
-            wanted = sorted(self.level_margins(variances_mm2).items())
+            c = self.charts
+            finest = finest_texels(c.chart, c.n_charts, self._mm[0], self._mm[1], c.coverage)
             with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
-                list(pool.map(lambda km: self.grid(*km), wanted))
+                list(pool.map(lambda km: self.grid(*km, finest=finest), wanted))
 
-    def grid(self, level: int, margin: int) -> LevelGrid:
+    def grid(self, level: int, margin: int, finest: FinestTexels | None = None) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
-        on first use (:func:`~.chart_tiles.tile_level`)."""
-        key = (level, margin)
-        # a wider margin holds what a narrower one would (more texels blurred, the same
-        # light): a second set of terms (one profile for all regions) reuses the tiles
-        wider = [m for (k, m) in self._grids if k == level and m >= margin]
-        if wider:
-            key = (level, min(wider))
+        on first use (:func:`~.chart_tiles.tile_level`; ``finest``: the layout's
+        :class:`~.chart_tiles.FinestTexels`, when the caller has them)."""
+        key = self._made(level, margin) or (level, margin)
         if key not in self._grids:
             c = self.charts
             self._grids[key] = LevelGrid(tile_level(c.chart, c.n_charts, self._mm[0],
                                                     self._mm[1], level, margin, c.geometry,
-                                                    c.coverage), self.iir.ctx)
+                                                    c.coverage, finest), self.iir.ctx)
         return self._grids[key]
+
+    def _made(self, level: int, margin: int) -> tuple[int, int] | None:
+        """The key of tiles already made that serve (``level``, ``margin``), if any: a
+        wider margin holds what a narrower one would (more texels blurred, the same
+        light), so a second set of terms (one profile for all regions) reuses them."""
+        wider = [m for (k, m) in self._grids if k == level and m >= margin]
+        return (level, min(wider)) if wider else None
 
     def buffer(self, name: str, nbytes: int) -> Any:
         """A device work buffer of at least ``nbytes``, kept for the next diffusion of
