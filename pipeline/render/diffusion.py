@@ -19,6 +19,7 @@ comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
 
 from __future__ import annotations
 
+import ctypes
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -751,6 +752,7 @@ class DiffusionLayout:
             finest = finest_texels(c.chart, c.n_charts, self._mm[0], self._mm[1], c.coverage)
             with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
                 list(pool.map(lambda km: self.grid(*km, finest=finest), wanted))
+            _release_freed_heap()
 
     def grid(self, level: int, margin: int, finest: FinestTexels | None = None) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
@@ -778,6 +780,20 @@ class DiffusionLayout:
             self._buffers.pop(name, None)  # its memory goes before the larger one comes
             self._buffers[name] = device_buffer(nbytes)
         return self._buffers[name]
+
+
+def _release_freed_heap() -> None:
+    """Hand the memory the C heap keeps after freeing back to the system (glibc's
+    ``malloc_trim``; a no-op elsewhere). The layout's threads free gigabytes of
+    intermediates of under 32 MB each, which glibc keeps in per-thread arenas for the
+    next allocation there: the diffusion that follows allocates on the main thread and
+    the kept memory stays on top of it (as Dask's workers trim theirs)."""
+    try:
+        libc = ctypes.CDLL(None)
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):  # not glibc: its allocator keeps its own counsel
+        return
+    trim(0)
 
 
 def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid], base: Any
