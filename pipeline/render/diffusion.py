@@ -750,9 +750,12 @@ class DiffusionLayout:
             # heaps kept)
             c = self.charts
             finest = finest_texels(c.chart, c.n_charts, self._mm[0], self._mm[1], c.coverage)
+            def make(level: int, margin: int) -> None:
+                self.grid(level, margin, finest)
+                _release_freed_heap()  # before the next level's intermediates
+
             with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
-                list(pool.map(lambda km: self.grid(*km, finest=finest), wanted))
-            _release_freed_heap()
+                list(pool.map(lambda km: make(*km), wanted))
 
     def grid(self, level: int, margin: int, finest: FinestTexels | None = None) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
