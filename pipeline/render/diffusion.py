@@ -794,7 +794,7 @@ def _release_freed_heap() -> None:
     try:
         libc = ctypes.CDLL(None)
         trim = libc.malloc_trim
-    except (OSError, AttributeError):  # not glibc: its allocator keeps its own counsel
+    except (OSError, AttributeError, TypeError):  # no glibc (musl, macOS, Windows)
         return
     trim(0)
 
