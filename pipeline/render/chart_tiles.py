@@ -146,15 +146,15 @@ class FinestTexels:
     chart: NDArray[np.int64]
     share: NDArray[np.float32]
     """The share of each texel's square its chart covers (1 where no coverage map)."""
-    mm: NDArray[Any]
-    """(N, 2) mm of surface per texel along u and v (the maps' dtype)."""
+    mm: NDArray[Any] | None
+    """(N, 2) mm of surface per texel along u and v (the maps' dtype; None: not asked)."""
     boxes: list[Any]
     """Per chart its finest texels' bounding box (``scipy.ndimage.find_objects``;
     None: no texel)."""
 
 
-def finest_texels(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
-                  mm_v: NDArray[Any], coverage: NDArray[np.float32] | None = None
+def finest_texels(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any] | None,
+                  mm_v: NDArray[Any] | None, coverage: NDArray[np.float32] | None = None
                   ) -> FinestTexels:
     """:class:`FinestTexels` of a chart map (H, W; -1: none), its texel sizes and the
     share of each texel its chart covers (:func:`texel_coverage`; None: all)."""
@@ -163,7 +163,8 @@ def finest_texels(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     ys, xs = np.nonzero(chart >= 0)
     share = np.ones(ys.size, np.float32) if coverage is None else \
         coverage[ys, xs].astype(np.float32)
-    mm = np.stack([np.asarray(mm_u)[ys, xs], np.asarray(mm_v)[ys, xs]], axis=1)
+    mm = None if mm_u is None or mm_v is None else \
+        np.stack([np.asarray(mm_u)[ys, xs], np.asarray(mm_v)[ys, xs]], axis=1)
     return FinestTexels(ys, xs, chart[ys, xs].astype(np.int64), share, mm,
                         find_objects(chart + 1, max_label=n_charts))
 
@@ -220,8 +221,7 @@ class TileLevel:
         h, w = self.shape
         area = float(4**self.level)
         out = np.empty((h * w, 4), np.float32)
-        finest = finest_texels(chart, int(chart.max(initial=-1)) + 1, np.ones(chart.shape),
-                               np.ones(chart.shape), coverage)
+        finest = finest_texels(chart, int(chart.max(initial=-1)) + 1, None, None, coverage)
         geometry = splat_geometry(finest, self.shift.astype(np.int64), self.level, w)
         out[:, :3] = _splat(*geometry, self.level, self.shape, values) / area
         out[:, 3] = self.count / area
@@ -381,6 +381,8 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     if n >= 2**31:
         raise InputError(f"a level-{level} tile atlas of {h} x {w} texels is beyond 2^31")
     # the coverage each atlas texel gathers (weights alone) and its texel sizes' sums
+    if finest.mm is None:
+        raise InputError("tile_level needs the finest texels' sizes (finest_texels' mm)")
     summed = _splat(*splat_geometry(finest, shift, level, w), level, shape,
                     np.concatenate([np.ones((finest.share.size, 1), np.float32), finest.mm],
                                    axis=1))
