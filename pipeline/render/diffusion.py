@@ -522,6 +522,11 @@ LAYOUT_LEVELS_AT_ONCE = 2
 TERM_BUFFER_TEXTURES = 4
 """Blurred terms kept at once before they are added up, in full-resolution textures
 (64 MiB each at 2048^2): each further batch reads and writes the result once more."""
+TERM_BUFFER_MAX_BYTES = 512 << 20
+"""...but at most this many bytes of them (or one term, if larger): at texture 4096 four
+textures are 1 GiB; at this cap the demo scene's render peaked at 6.71 GB instead of
+7.38 GB, the same image, the diffusion as fast (two textures: 9.15 s against 9.19 s).
+Textures of 2048 and below stay under it."""
 _TERM_ALIGN = 4096
 """Byte alignment of each term in the term buffer (a sub-buffer's origin must be aligned
 to the device's base address alignment, at most 4 KiB)."""
@@ -928,8 +933,9 @@ def diffuse_prepared(
     variance the tent splat and the B-spline read add is taken off the blur). Every level is an
     atlas of chart tiles whose margins hold the surface across the charts' seams, as
     wide as the level's widest blur reaches (:mod:`.chart_tiles`), so light crosses
-    seams. The blurred terms are kept TERM_BUFFER_TEXTURES at a time and added up in
-    one pass per batch, each texel reading its own chart's tiles. On a CPU device the
+    seams. The blurred terms are kept TERM_BUFFER_TEXTURES at a time (at most
+    TERM_BUFFER_MAX_BYTES) and added up in one pass per batch, each texel reading its
+    own chart's tiles. On a CPU device the
     irradiance is read and the result written where they are, in host memory. Terms
     with zero weight on every texel are skipped; one narrower than a quarter texel
     everywhere is the unblurred irradiance.
@@ -979,7 +985,8 @@ def diffuse_prepared(
     tmp = layout.buffer("tmp", nbytes)
     sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
              for var, k in jobs]
-    batches = _term_batches(sizes, TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16))
+    batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
+                                       max(TERM_BUFFER_MAX_BYTES, nbytes)))
     kernels = pyramid_kernels(layout.n_regions)
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)

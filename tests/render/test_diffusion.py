@@ -329,3 +329,28 @@ def test_term_batches_add_up_like_one(monkeypatch: pytest.MonkeyPatch) -> None:
     assert len(d._term_batches([n * n * 16] * 3 + [0], n * n * 16)) == 3
     batched, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     np.testing.assert_allclose(batched, one, rtol=1e-6, atol=1e-7)
+
+
+def test_term_buffer_byte_cap_batches_and_adds_up_like_one(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # the blurred terms' buffer is capped in bytes too (large textures): under a cap of
+    # one texture the terms go in several batches, and the sum is the same
+    import pipeline.render.diffusion as d
+
+    n = 96
+    e, mm_u, mm_v, cov, rw = _stretched_layout(n)
+    v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
+    one, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    seen: list[int] = []
+    batches = d._term_batches
+
+    def spy(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
+        out = batches(sizes, budget)
+        seen.append(len(out))
+        return out
+
+    monkeypatch.setattr(d, "_term_batches", spy)
+    monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", n * n * 16)
+    capped, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    assert seen and max(seen) > 1
+    np.testing.assert_allclose(capped, one, rtol=1e-6, atol=1e-7)
