@@ -563,6 +563,7 @@ class Renderer:
             # sqrt before and after (the default) without two general powers
             before = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, a)
             pre = tex.irradiance * before
+            del before  # made again after the blur: not held through its peak (texture-sized)
             cov = maps.coverage
             # the blur moves flux, it must not create or lose it (chart borders included)
             area = (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel()
@@ -585,10 +586,9 @@ class Renderer:
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             flux_out = float((area @ out.reshape(-1, 3)).sum())
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            if a != 0.5:
-                before = np.power(tex.albedo, 1.0 - a)
-            out *= before  # out is this task's own array: in place
-            del before
+            after = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, 1.0 - a)
+            out *= after  # out is this task's own array: in place
+            del after
             out *= np.float32(1.0 / math.pi)
             radiance = dilate_charts(push_pull(out, cov), cov)
             return radiance, skipped, passes, energy, work
