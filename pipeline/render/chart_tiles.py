@@ -546,8 +546,7 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     here = np.stack([m_idx % w, m_idx // w], axis=1) + offset_px  # atlas position
     step = here - np.take(np.stack([start % w, start // w], axis=1), b, axis=0)
     offset = _matvec(jac, step)
-    reach = 0.5 * np.linalg.norm(offset, axis=1) + \
-        2.0 * np.take(np.linalg.norm(jac_b, axis=1).max(axis=1), b)
+    reach = 0.5 * _norm_axis1(offset) + 2.0 * np.take(_norm_axis1(jac_b).max(axis=1), b)
     target = np.take(position, b, axis=0) + offset
     prim, bu, bv, dist = g.rays.intersect(target + normal * reach[:, None], -normal)
     del target, normal, position
@@ -574,7 +573,7 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     xy[at] -= _matvec(inverse_jac, back)
     level_xy = (xy + 0.5) / scale - 0.5 + np.take(shift, src_chart, axis=0)
     own = src_chart == owner[m_idx]
-    far = np.linalg.norm(level_xy - (here - offset_px), axis=1) > 2.0
+    far = _norm_axis1(level_xy - (here - offset_px)) > 2.0
     ok = np.flatnonzero(~partial | ~own | far)
     m_read, xy_read, first = _mean_per_key(m_idx[ok], src_chart[ok],
                                            np.take(level_xy, ok, axis=0), key_of)
@@ -599,6 +598,15 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
                            + np.take(carry, keep, axis=0) @ np.array([dx, dy], float),
                            chart_src[keep]))
     return pieces
+
+
+def _norm_axis1(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``np.linalg.norm(a, axis=1)`` for a short axis 1, the same sums in the same order
+    as columns added in turn (2-3x faster than numpy's reduction over it)."""
+    squares = a[:, 0] * a[:, 0]
+    for j in range(1, a.shape[1]):
+        squares += a[:, j] * a[:, j]
+    return np.sqrt(squares)
 
 
 def _matvec(a: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -628,7 +636,7 @@ def _cell_frames(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     point = np.take(g.position.reshape(-1, 3), texel, axis=0) + \
         np.einsum("mij,mj->mi", jac, centre - f)
     normal = np.take(g.normal.reshape(-1, 3), texel, axis=0).astype(np.float64)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+    normal /= np.maximum(_norm_axis1(normal), 1e-30)[:, None]
     return point, normal, jac * scale
 
 
