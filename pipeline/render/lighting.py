@@ -296,15 +296,15 @@ _SAMPLE_KERNEL = r"""
 // vload3/vstore3 and trigonometry are kept out and the square root is SQRTF: PoCL
 // leaves them as calls, which keeps the work-item loop from being vectorised; so is
 // any vector-typed value (the stratum, four floats, is read as floats, not a float4).
-// The shadow ray's length comes out too: 0 where the sample carries nothing (the host's
-// np.where for it took 2.2 ms a sample at texture 1024, the cast rays' own time 80 ms).
+// The shadow ray's length comes out too (to the sphere's surface, from the distance
+// made here): 0 where the sample carries nothing (the host's np.where for it took 2.2 ms
+// a sample at texture 1024, the cast rays' own time 80 ms).
 __kernel void sample_entering(__global const float *origin, __global const float *normal,
                               __global const float *strata_uv, __global const int *strata,
                               const float lx, const float ly, const float lz,
                               const float radius, __global const float *table,
-                              const int table_n, const int k, __global const float *far,
-                              __global float *dir, __global float *weight,
-                              __global float *ray_far, const int n)
+                              const int table_n, const int k, __global float *dir,
+                              __global float *weight, __global float *ray_far, const int n)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
@@ -349,7 +349,7 @@ __kernel void sample_entering(__global const float *origin, __global const float
 #if KIND == 1
     const float wi = (cos_n > 0.0f ? cos_n : 0.0f) * 6.283185307179586f * one_minus
                      / (float)COUNT * enters;
-    ray_far[i] = wi > 0.0f ? far[i] : 0.0f;
+    ray_far[i] = wi > 0.0f && dist > radius ? dist - radius : 0.0f;  // rays end at it
 #else
     const float wi = 3.141592653589793f / (float)COUNT * enters;
     ray_far[i] = wi > 0.0f ? INFINITY : 0.0f;
@@ -427,14 +427,11 @@ class LightSampler:
             self.half = math.radians(max(light.angle_deg, 0.0)) / 2
             self.frame = _frame(-light.axis)
         elif light.kind == "sphere":
-            if on_device:
-                to_c = np.asarray(light.position, np.float32) - origins
-                dist = np.sqrt(np.einsum("ij,ij->i", to_c, to_c))
-            else:
+            if not on_device:  # the device makes the cone and the rays' length per point
                 dist, axis, self.cos_max = sphere_cone(light, origins)
                 self.solid = 2 * math.pi * (1 - self.cos_max)
                 self.frame = _frame(axis, np.float32)
-            self.far = np.maximum(dist - radius, 0.0).astype(np.float32)  # rays end at it
+                self.far = np.maximum(dist - radius, 0.0).astype(np.float32)  # rays end at it
         elif light.kind == "rect":
             self.area = emitting_area(light)
         elif light.kind == "dome":
@@ -462,7 +459,6 @@ class LightSampler:
         return {**points, "strata_uv": buf(strata_uv),
                 "strata": buf([0] if self.strata is None else self.strata, np.int32),
                 "table": buf(table), "table_n": np.int32(table.size),
-                "far": buf(self.far if self.light.kind == "sphere" else [0.0]),
                 "dir": device_buffer(n * 12), "weight": device_buffer(n * 4),
                 "ray_far": device_buffer(n * 4),
                 "kernel": _sample_kernel(self.light.kind, self.count, self.strata is not None)}
@@ -494,8 +490,7 @@ class LightSampler:
         with _SAMPLE_LOCK:
             dev["kernel"](queue, (n,), None, dev["origin"], dev["normal"], dev["strata_uv"],
                           dev["strata"], *self._sphere, dev["table"], dev["table_n"],
-                          np.int32(k), dev["far"], dev["dir"], dev["weight"], dev["ray_far"],
-                          np.int32(n))
+                          np.int32(k), dev["dir"], dev["weight"], dev["ray_far"], np.int32(n))
             cl.enqueue_copy(queue, d, dev["dir"])
             cl.enqueue_copy(queue, w, dev["weight"])
             cl.enqueue_copy(queue, far, dev["ray_far"])
