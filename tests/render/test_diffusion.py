@@ -70,6 +70,24 @@ def test_pencil_light_reproduces_the_profile_in_mm(mm_u: float, mm_v: float) -> 
     assert fit_error_eq2c(rr, gg, truth).max() < 0.02
 
 
+def test_pencil_under_a_one_texture_term_cap_reproduces_the_profile(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # the term buffer's byte cap (large textures) splits the terms into batches; the
+    # pencil still gives d'Eon's profile (the analytic sum of Gaussians) and its energy
+    import pipeline.render.diffusion as d
+
+    v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
+    mm = 0.1
+    n = int(2 * 11.0 / mm) | 1
+    monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
+    r, got, _ = _pencil(n, mm, mm, v, w)
+    sel = (r > 0.3) & (r < 3.5)
+    order = np.argsort(r[sel])
+    rr, gg = r[sel][order], got[sel][order]
+    assert fit_error_eq2c(rr, gg, sum_of_gaussians(v, w, rr)).max() < 0.02
+    np.testing.assert_allclose(got.sum(axis=0) * mm * mm, 1.0, rtol=2e-3)
+
+
 def test_energy_is_conserved_away_from_borders() -> None:
     import pipeline.render.diffusion as d
 
