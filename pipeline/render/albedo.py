@@ -10,6 +10,7 @@ on the surface, and the result is written as an ACEScg EXR and bound to the mate
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -94,9 +95,10 @@ def paint_skin_albedo(maps: TextureMaps, region_names: tuple[str, ...],
     """The albedo map (S, S, 3) in linear ACEScg for ``maps``' layout."""
     from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
-    covered = maps.triangle >= 0
-    out = np.zeros((*covered.shape, 3), np.float32)
-    pos = maps.position[covered].astype(np.float64)
+    # the covered texels by flat index: np.take of rows is 3-5x faster than a boolean
+    # mask over (S, S, C) maps
+    covered = np.flatnonzero(maps.triangle.ravel() >= 0)
+    pos = _covered_rows(maps.position, covered).astype(np.float64)
     # The texels' tree is built (scipy releases the GIL) while the tone is worked out:
     # 0.08-0.12 s at texture 1024, most of it hidden.
     with ThreadPoolExecutor(1) as pool:
@@ -104,32 +106,38 @@ def paint_skin_albedo(maps: TextureMaps, region_names: tuple[str, ...],
         base, freckle_density = _region_tone(maps, covered, region_names)
         base = _spotted(base, pos, maps, covered, freckle_density, meters_per_unit, seed,
                         tree_ahead)
+    out = np.zeros((maps.size * maps.size, 3), np.float32)
     out[covered] = np.clip(base, 0.0, 1.0)
-    return out
+    return out.reshape(maps.size, maps.size, 3)
 
 
-def _region_tone(maps: TextureMaps, covered: NDArray[np.bool_], region_names: tuple[str, ...]
+def _covered_rows(texture: NDArray[Any], covered: NDArray[np.intp]) -> NDArray[Any]:
+    """The rows (N, C) of an (S, S, C) ``texture`` at the ``covered`` flat texel indices."""
+    return np.take(texture.reshape(-1, texture.shape[-1]), covered, axis=0)
+
+
+def _region_tone(maps: TextureMaps, covered: NDArray[np.intp], region_names: tuple[str, ...]
                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Each covered texel's tone (N, 3) and freckle density (N,): its regions' blended."""
-    count = int(covered.sum())
     if maps.region_weights is None or not region_names:
-        return (np.broadcast_to(np.asarray(DEFAULT_TONE), (count, 3)).copy(),
-                np.full(count, OTHER_FRECKLE_DENSITY))
+        return (np.broadcast_to(np.asarray(DEFAULT_TONE), (covered.size, 3)).copy(),
+                np.full(covered.size, OTHER_FRECKLE_DENSITY))
     tones = np.array([REGION_TONES.get(n, DEFAULT_TONE) for n in region_names])
     densities = np.array([FRECKLE_DENSITY.get(n, OTHER_FRECKLE_DENSITY) for n in region_names])
-    weights = maps.region_weights[covered].astype(np.float64)
+    weights = _covered_rows(maps.region_weights, covered).astype(np.float64)
     return weights @ tones, weights @ densities
 
 
 def _spotted(base: NDArray[Any], pos: NDArray[Any], maps: TextureMaps,
-             covered: NDArray[np.bool_], freckle_density: NDArray[Any],
+             covered: NDArray[np.intp], freckle_density: NDArray[Any],
              meters_per_unit: float, seed: int, tree_ahead: Any) -> NDArray[Any]:
     """The ``covered`` texels' albedo: ``base`` tone with blotchiness and pigment spots;
     ``tree_ahead`` is the future of a cKDTree of ``pos``."""
     # low-frequency blotchiness (+-4%), a function of the surface point so seams match
     mm = pos * meters_per_unit * 1000.0
     base *= 1.0 + 0.04 * np.sin(mm[:, :1] * 0.21 + 1.3) * np.sin(mm[:, 1:2] * 0.17 + 0.4)
-    area_mm2 = (maps.mm_per_texel_u * maps.mm_per_texel_v)[covered].astype(np.float64)
+    area_mm2 = np.take((maps.mm_per_texel_u * maps.mm_per_texel_v).ravel(),
+                       covered).astype(np.float64)
     spots = place_spots(pos, area_mm2, freckle_density, seed=seed)
     if spots.radii_mm.size:
         # every spot's texels in one query (the spots' tints multiply, in any order);
@@ -141,8 +149,10 @@ def _spotted(base: NDArray[Any], pos: NDArray[Any], maps: TextureMaps,
         counts = np.fromiter((len(f) for f in found), np.int64, len(found))
         if counts.sum():
             which = np.repeat(np.arange(counts.size), counts)
-            texel = np.concatenate([np.asarray(f, np.int64) for f in found if f])
-            d_mm = np.linalg.norm(pos[texel] - spots.centres[which], axis=1) / scale
+            texel = np.fromiter(itertools.chain.from_iterable(found), np.intp, counts.sum())
+            offset = np.take(pos, texel, axis=0)
+            offset -= np.take(spots.centres, which, axis=0)
+            d_mm = np.linalg.norm(offset, axis=1) / scale
             falloff = np.exp(-0.5 * (d_mm / (0.6 * spots.radii_mm[which])) ** 4)[:, None]
             np.multiply.at(base, texel, 1.0 - (1.0 - spots.tints[which]) * falloff)
     return base
