@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -424,3 +426,66 @@ def test_gauss_newton_hessian_is_2_jt_j_by_finite_differences(fixed: bool) -> No
                     for e in np.eye(x.size)], axis=1)
     reference = np.triu(2 * jac.T @ jac + HESS_REG * np.eye(x.size))
     np.testing.assert_allclose(ours, reference, rtol=1e-5, atol=1e-6 * np.abs(reference).max())
+
+
+def test_moves_refined_side_by_side_equal_moves_refined_in_turn(monkeypatch) -> None:
+    """The hop round's moves refined on the solver threads (each with IPOPT solvers of its
+    own) give the fit, bit for bit, that refining them one after another gives; a move
+    that fails there fails the fit."""
+    import pipeline.profile.fit as fit_module
+
+    clean = dipole_normalised("skin1")
+    noise = 1 + 0.01 * np.random.default_rng(4).standard_normal(clean.values.shape)
+    profile = MeasuredProfile(clean.radius_mm, clean.values * noise)
+    threads = fit_module._solver_threads()
+    if threads is None:
+        pytest.skip("one core: the moves are always refined in turn")
+    submitted = []
+    submit = threads.submit
+    monkeypatch.setattr(threads, "submit", lambda *a: submitted.append(a[1]) or submit(*a))
+    fits = {}
+    for seed in (0, 1, 2):
+        fit_sum_of_gaussians(profile, k=6, seed=seed)  # this thread's solver, then theirs
+    for _ in range(600):  # the threads build theirs in the background (0.25 s each)
+        if len(threads.ready(next(iter(threads._asked))[1])) == len(threads._queues):
+            break
+        time.sleep(0.05)
+    tries: dict[str, list] = {"side by side": [], "in turn": []}
+    real_side_by_side = fit_module._refine_side_by_side
+
+    def recorded(mode):
+        def side_by_side(*args, **kwargs):
+            out = real_side_by_side(*args, **kwargs)
+            tries[mode].extend(out)
+            return out
+        return side_by_side
+
+    submitted.clear()
+    monkeypatch.setattr(fit_module, "_refine_side_by_side", recorded("side by side"))
+    fits["side by side"] = [fit_sum_of_gaussians(profile, k=6, seed=s) for s in (5, 6)]
+    assert submitted.count(fit_module._refine) >= 2, "no move went to a solver thread"
+    monkeypatch.setattr(fit_module, "_solver_threads", lambda: None)
+    monkeypatch.setattr(fit_module, "_refine_side_by_side", recorded("in turn"))
+    fits["in turn"] = [fit_sum_of_gaussians(profile, k=6, seed=s) for s in (5, 6)]
+    assert len(tries["in turn"]) == len(tries["side by side"]) >= 4
+    for a, b in zip(tries["side by side"], tries["in turn"], strict=True):
+        assert (a.objective, a.iterations, a.status) == (b.objective, b.iterations, b.status)
+        np.testing.assert_array_equal(a.log_u, b.log_u)
+        np.testing.assert_array_equal(a.weights, b.weights)
+    for a, b in zip(fits["side by side"], fits["in turn"], strict=True):
+        assert a.objective == b.objective and a.iterations == b.iterations
+        np.testing.assert_array_equal(a.variances_mm2, b.variances_mm2)
+        np.testing.assert_array_equal(a.weights, b.weights)
+
+    monkeypatch.setattr(fit_module, "_solver_threads", lambda: threads)
+    monkeypatch.setattr(fit_module, "_refine_side_by_side", real_side_by_side)
+    real_refine = fit_module._refine
+
+    def refine_failing_away(*args, **kwargs):
+        if threading.current_thread().name.startswith("skinpipe-fit"):
+            raise FloatingPointError("a move failed on a solver thread")
+        return real_refine(*args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "_refine", refine_failing_away)
+    with pytest.raises(FloatingPointError, match="solver thread"):
+        fit_sum_of_gaussians(profile, k=6, seed=5)
