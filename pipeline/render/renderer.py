@@ -250,6 +250,16 @@ def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: ND
     return str(layer.realPath)
 
 
+def region_pieces(mesh: SceneMesh) -> NDArray[np.int32] | None:
+    """Each triangle's region (the largest of its corners' summed region weights), for
+    xatlas to chart a skin mesh's regions side by side (:func:`~.unwrap.unwrap`); None
+    for a mesh with fewer than two regions."""
+    if mesh.region_weights is None or len(mesh.region_names) < 2:
+        return None
+    corners = mesh.region_weights[triangulate(mesh.mesh)]
+    return np.argmax(corners.sum(axis=1), axis=1).astype(np.int32)
+
+
 def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
                           progress: Callable[[str], None] | None = None
                           ) -> tuple[NDArray[np.float64], NDArray[np.int32], dict[str, Any]]:
@@ -258,7 +268,7 @@ def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
     meshes only: a polygon split across charts has no faceVarying form)."""
     if progress:
         progress(f"unwrap {mesh.path} with xatlas ({reason})")
-    layout = unwrap(mesh.mesh)
+    layout = unwrap(mesh.mesh, pieces=region_pieces(mesh))
     uv = layout.uv.astype(np.float32).astype(np.float64)
     measures: dict[str, Any] = {"charts": layout.charts, "utilization": layout.utilization,
                                 "seconds": layout.seconds, "reason": reason}

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
+from pipeline.errors import InputError, SkinpipeError
 from pipeline.render.texture_maps import rasterize, rasterize_reference
 from pipeline.render.unwrap import triangulate, unwrap
 from pipeline.usd.mesh import MeshData
@@ -84,6 +84,41 @@ def test_xatlas_unwrap_keeps_triangles_and_gives_finite_uvs() -> None:
     # xatlas packs charts with uniform texel density: stretch varies little
     ratio = maps.mm_per_texel_u[cov] / np.median(maps.mm_per_texel_u[cov])
     assert np.percentile(np.abs(ratio - 1), 90) < 0.2
+
+
+def test_unwrap_in_pieces_charts_no_triangle_across_them() -> None:
+    # two halves of a curved sheet as pieces: xatlas charts them side by side; every UV
+    # vertex belongs to one piece's triangles, and each maps back to its own vertex
+    pts, tris, _ = _grid(10, 100.0)
+    pts[:, 2] = 5.0 * np.sin(pts[:, 0] / 20.0)
+    mesh = MeshData(pts, np.full(tris.shape[0], 3, np.int32), tris.reshape(-1), 0.001)
+    pieces = (pts[tris].mean(axis=1)[:, 0] > 50.0).astype(np.int32)
+    layout = unwrap(mesh, resolution=256, timeout_s=60, pieces=pieces)
+    uv_tris = layout.uv_indices.reshape(-1, 3)
+    owner = np.full(layout.uv.shape[0], -1)
+    for piece in (0, 1):
+        used = np.unique(uv_tris[pieces == piece])
+        assert np.all(owner[used] == -1), "a UV vertex shared by both pieces"
+        owner[used] = piece
+    assert np.all(np.isfinite(layout.uv)) and np.all((layout.uv >= 0) & (layout.uv <= 1))
+    whole = unwrap(mesh, resolution=256, timeout_s=60)
+    assert layout.charts >= whole.charts >= 1
+    with pytest.raises(InputError, match="one integer per triangle"):
+        unwrap(mesh, pieces=pieces[:-1])
+
+
+def test_unwrap_past_its_time_or_crashing_is_an_error(monkeypatch, tmp_path) -> None:
+    import pipeline.render.unwrap as unwrap_module
+
+    pts, tris, _ = _grid(10, 100.0)
+    mesh = MeshData(pts, np.full(tris.shape[0], 3, np.int32), tris.reshape(-1), 0.001)
+    with pytest.raises(SkinpipeError, match="did not finish in 0 s"):
+        unwrap(mesh, timeout_s=0.01)
+    crashing = tmp_path / "crash.py"
+    crashing.write_text("import os, signal\nos.kill(os.getpid(), signal.SIGSEGV)\n")
+    monkeypatch.setattr(unwrap_module, "_CHILD", crashing)
+    with pytest.raises(SkinpipeError, match=r"xatlas crashed \(signal 11\)"):
+        unwrap(mesh)
 
 
 def test_unwrap_refuses_a_degenerate_mesh() -> None:
