@@ -389,3 +389,29 @@ def test_the_manifest_sensor_and_its_black_level(tmp_path: Path) -> None:
         (caps / "capture.json").write_text(json.dumps(doc))
         with pytest.raises(InputError, match=key):
             read_capture_set(caps)
+
+
+def test_regions_ingested_side_by_side_equal_each_region_alone(small_capture: Path,
+                                                               tmp_path: Path) -> None:
+    """The capture set's regions run on threads side by side: each region's profile and
+    merged HDR are the same, bit for bit, as ingesting it alone, in the manifest's order;
+    and a region that fails fails the set, which writes nothing."""
+    from pipeline.capture.ingest import ingest_region
+    from pipeline.imageio import read_image
+    from pipeline.profile.io import write_profile_csv
+
+    report = ingest_capture_set(small_capture, tmp_path / "out")
+    captures = read_capture_set(small_capture)
+    assert list(report["regions"]) == list(captures.regions)
+    for name in captures.regions:
+        alone = ingest_region(captures, name)
+        csv = write_profile_csv(tmp_path / f"{name}_alone.csv", alone.profile)
+        assert Path(report["regions"][name]["csv"]).read_bytes() == csv.read_bytes()
+        np.testing.assert_array_equal(read_image(report["regions"][name]["exr"]).pixels,
+                                      alone.hdr.astype(np.float32))
+    caps = _copy(small_capture, tmp_path)
+    doc = _manifest(caps)
+    (caps / doc["regions"]["forehead"]["images"][1]["file"]).write_bytes(b"not an image")
+    with pytest.raises(InputError):
+        ingest_capture_set(caps, tmp_path / "bad")
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
