@@ -21,7 +21,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
-from functools import cached_property, lru_cache, partial
+from functools import cached_property, partial
 from typing import Any, Literal
 
 import casadi as ca
@@ -952,12 +952,31 @@ class _SolverThreads:
         return [t for t in range(len(self._queues)) if (t, key) in self._ready]
 
 
-@lru_cache(maxsize=1)
+_SOLVER_THREADS: list[_SolverThreads | None] = []
+_SOLVER_THREADS_LOCK = threading.Lock()
+
+
+def _forget_solver_threads() -> None:
+    """In a forked child: the parent's solver threads do not exist there (a move sent to
+    one would wait for ever), and its lock may have been held by one of them."""
+    global _SOLVER_THREADS_LOCK
+    _SOLVER_THREADS_LOCK = threading.Lock()
+    _SOLVER_THREADS.clear()
+
+
+os.register_at_fork(after_in_child=_forget_solver_threads)
+
+
 def _solver_threads() -> _SolverThreads | None:
-    """The threads for all but one of a hop round's moves, on a machine with two cores or
-    more (on two cores three solves side by side beat two then one: 0.134-0.151 s against
-    0.147-0.205 s median a fit)."""
-    return _SolverThreads(HOP_TRIES - 1) if (os.cpu_count() or 1) > 1 else None
+    """The process's threads for all but one of a hop round's moves, on a machine with two
+    cores or more (on two cores three solves side by side beat two then one: 0.134-0.151 s
+    against 0.147-0.205 s median a fit). Made once, also when fits start on several
+    threads at once."""
+    with _SOLVER_THREADS_LOCK:
+        if not _SOLVER_THREADS:
+            _SOLVER_THREADS.append(_SolverThreads(HOP_TRIES - 1)
+                                   if (os.cpu_count() or 1) > 1 else None)
+        return _SOLVER_THREADS[0]
 
 
 def _build_solvers_ahead(curves: Sequence[_Curve], k: int, options: FitOptions) -> None:

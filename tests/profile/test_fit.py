@@ -489,3 +489,19 @@ def test_moves_refined_side_by_side_equal_moves_refined_in_turn(monkeypatch) -> 
     monkeypatch.setattr(fit_module, "_refine", refine_failing_away)
     with pytest.raises(FloatingPointError, match="solver thread"):
         fit_sum_of_gaussians(profile, k=6, seed=5)
+
+
+def test_a_forked_child_fits_with_threads_of_its_own(tmp_path) -> None:
+    """A process forked after fits (multiprocessing's fork) does not send moves to its
+    parent's solver threads, which it does not have: its fit finishes, as the parent's."""
+    import multiprocessing
+
+    clean = dipole_normalised("skin2")
+    noise = 1 + 0.01 * np.random.default_rng(5).standard_normal(clean.values.shape)
+    profile = MeasuredProfile(clean.radius_mm, clean.values * noise)
+    for seed in range(3):  # the solver threads exist and have their solvers
+        parent = fit_sum_of_gaussians(profile, k=6, seed=seed)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(fit_sum_of_gaussians, (profile,), {"k": 6, "seed": 2})
+        objective = child.get(timeout=120).objective
+    assert objective == parent.objective
