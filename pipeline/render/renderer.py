@@ -717,10 +717,11 @@ class Renderer:
                     log: TaskLog, camera_rays: RayScene, origins: NDArray[Any],
                     dirs: NDArray[Any]) -> tuple[dict[str, NDArray[np.float32]],
                                                  NDArray[np.bool_]]:
-        """Every AOV for camera rays (origins, dirs) traced against ``camera_rays`` (the
-        meshes the camera sees; shadow rays against ``rays``, every mesh), and which
-        rays hit."""
+        """The AOVs asked for (the others stay zero) for camera rays (origins, dirs)
+        traced against ``camera_rays`` (the meshes the camera sees; shadow rays against
+        ``rays``, every mesh), and which rays hit."""
         opts = self.options
+        wanted = set(opts.aovs)
         prim, bu, bv, dist = camera_rays.intersect(origins, dirs)
         n_pix = origins.shape[0]
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
@@ -748,16 +749,22 @@ class Renderer:
                 self._shade_plain(scene, mesh, pos, n, sel, rays, out)
                 continue
             uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
-            n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
-            leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
-            assert tex.radiance is not None and tex.irradiance_filled is not None
-            out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
-            out["albedo"][sel] = bilinear(tex.albedo, uv)
-            out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
-            if mesh.region_weights is not None:
+            # only the AOVs asked for (the demo's comparison renders ask for beauty alone:
+            # the albedo, irradiance and region lookups were 0.35 s of a 1.1 s shade)
+            if wanted & {"beauty", "diffuse"}:
+                n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
+                leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
+                assert tex.radiance is not None
+                out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
+            if "albedo" in wanted:
+                out["albedo"][sel] = bilinear(tex.albedo, uv)
+            if "irradiance" in wanted:
+                assert tex.irradiance_filled is not None
+                out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
+            if "region" in wanted and mesh.region_weights is not None:
                 weights = (mesh.region_weights[tris[tri_idx]] * b).sum(axis=1)
                 out["region"][sel, 0] = np.argmax(weights, axis=1)
-            if "specular" in opts.aovs or "beauty" in opts.aovs:
+            if wanted & {"beauty", "specular"}:
                 out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
         out["beauty"] = out["diffuse"] + out["specular"]
         return out, prim >= 0
