@@ -356,6 +356,21 @@ class TaskLog:
     measures: dict[str, Any] = field(default_factory=dict)
 
 
+class CameraHits(NamedTuple):
+    """What a render's camera sees (:meth:`Renderer._camera_hits`): rays through the
+    pixel centres (origins, unit directions) and their first hits (triangle or -1,
+    barycentric u, v, distance), the silhouette pixels' flat indices and their extra
+    rays and hits."""
+
+    origins: NDArray[np.float64]
+    dirs: NDArray[np.float64]
+    hits: tuple[NDArray[Any], ...]
+    edge: NDArray[np.intp]
+    edge_origins: NDArray[np.float64]
+    edge_dirs: NDArray[np.float64]
+    edge_hits: tuple[NDArray[Any], ...]
+
+
 @dataclass
 class SkinTextures:
     """Texture-space results of one skin mesh."""
@@ -673,6 +688,36 @@ class Renderer:
                                 "mrays_per_s": rays.stats.mrays_per_s()}
         return images, log
 
+    def _camera_hits(self, scene: SceneData, log: TaskLog, camera_rays: RayScene
+                     ) -> CameraHits:
+        """The camera's rays through the pixel centres and their first hits, the
+        silhouette pixels (a 3 x 3 neighbourhood with both geometry and background) and
+        their :data:`EDGE_SAMPLES` rays and hits: the same for every render of one camera,
+        image size and geometry (the demo's three renders, a relit shot), so cached."""
+        width, height = self.options.resolution
+        cam = scene.camera
+        assert cam is not None
+
+        def compute() -> CameraHits:
+            origins, dirs = cam.rays(width, height)
+            hits = camera_rays.intersect(origins, dirs)
+            mask = (hits[0] >= 0).reshape(height, width)
+            padded = np.pad(mask, 1, mode="edge")
+            windows = [padded[dy:dy + height, dx:dx + width]
+                       for dy in range(3) for dx in range(3)]
+            edge = np.flatnonzero((np.any(windows, axis=0) & ~np.all(windows, axis=0)).ravel())
+            py, px = np.divmod(edge, width)
+            offs = np.asarray(EDGE_SAMPLES)
+            sx = (px[:, None] + 0.5 + offs[None, :, 0]).ravel()
+            sy = (py[:, None] + 0.5 + offs[None, :, 1]).ravel()
+            sub_origins, sub_dirs = cam.rays_at(sx, sy, width, height)
+            return CameraHits(origins, dirs, hits, edge, sub_origins, sub_dirs,
+                              camera_rays.intersect(sub_origins, sub_dirs))
+
+        seen = [m.camera_visible for m in scene.meshes]
+        return self._cached(log, "camera_hits", content_hash(
+            cam.key(), width, height, scene_geometry_key(scene), seen), compute)
+
     def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
                log: TaskLog, camera_rays: RayScene) -> dict[str, NDArray[np.float32]]:
         """The AOV images: one camera ray through each pixel centre, and where a pixel's
@@ -681,22 +726,14 @@ class Renderer:
         their coverage, its colours their mean (premultiplied)."""
         opts = self.options
         width, height = opts.resolution
-        cam = scene.camera
-        assert cam is not None
-        origins, dirs = cam.rays(width, height)
-        out, hit = self._shade_rays(scene, skins, rays, log, camera_rays, origins, dirs)
+        cam = self._camera_hits(scene, log, camera_rays)
+        out, hit = self._shade_rays(scene, skins, rays, camera_rays, cam.origins, cam.dirs,
+                                    cam.hits, log)
         alpha = hit.astype(np.float32)
-        mask = hit.reshape(height, width)
-        padded = np.pad(mask, 1, mode="edge")
-        windows = [padded[dy:dy + height, dx:dx + width] for dy in range(3) for dx in range(3)]
-        edge = np.flatnonzero((np.any(windows, axis=0) & ~np.all(windows, axis=0)).ravel())
+        edge = cam.edge
         if edge.size:
-            py, px = np.divmod(edge, width)
-            offs = np.asarray(EDGE_SAMPLES)
-            sx = (px[:, None] + 0.5 + offs[None, :, 0]).ravel()
-            sy = (py[:, None] + 0.5 + offs[None, :, 1]).ravel()
-            sub, sub_hit = self._shade_rays(scene, skins, rays, log, camera_rays,
-                                            *cam.rays_at(sx, sy, width, height))
+            sub, sub_hit = self._shade_rays(scene, skins, rays, camera_rays, cam.edge_origins,
+                                            cam.edge_dirs, cam.edge_hits, log)
             k = len(EDGE_SAMPLES)
             for a in AOVS:  # colours: the samples' mean; a region index stays the centre's
                 out[a][edge] = sub[a].reshape(edge.size, k, 3).mean(axis=1)
@@ -714,15 +751,15 @@ class Renderer:
         return images
 
     def _shade_rays(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
-                    log: TaskLog, camera_rays: RayScene, origins: NDArray[Any],
-                    dirs: NDArray[Any]) -> tuple[dict[str, NDArray[np.float32]],
-                                                 NDArray[np.bool_]]:
-        """The AOVs asked for (the others stay zero) for camera rays (origins, dirs)
-        traced against ``camera_rays`` (the meshes the camera sees; shadow rays against
+                    camera_rays: RayScene, origins: NDArray[Any], dirs: NDArray[Any],
+                    hits: tuple[NDArray[Any], ...], log: TaskLog
+                    ) -> tuple[dict[str, NDArray[np.float32]], NDArray[np.bool_]]:
+        """The AOVs asked for (the others stay zero) for camera rays (origins, dirs) and
+        their ``hits`` in ``camera_rays`` (the meshes the camera sees; shadow rays against
         ``rays``, every mesh), and which rays hit."""
         opts = self.options
         wanted = set(opts.aovs)
-        prim, bu, bv, dist = camera_rays.intersect(origins, dirs)
+        prim, bu, bv, dist = hits
         n_pix = origins.shape[0]
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
         out["region"] = np.full((n_pix, 1), -1.0, np.float32)

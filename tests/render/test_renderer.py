@@ -259,11 +259,17 @@ def test_camera_change_reuses_texture_space_work(lit_patch: Path) -> None:
 
     stage = open_stage_guarded(lit_patch)
     renderer = Renderer(stage, SMALL)
-    renderer.render()
+    first, _ = renderer.render()
+    again, log = renderer.render()  # the same camera: its rays and hits too
+    assert "camera_hits" in log.cached
+    for aov, image in first.items():
+        np.testing.assert_array_equal(again[aov], image, err_msg=aov)
     cam = UsdGeom.Xformable(stage.GetPrimAtPath("/Cam"))
     cam.GetOrderedXformOps()[0].Set(Gf.Vec3d(5, 0, 90))  # a USD edit: a notice marks it
-    _, log = renderer.render()
+    moved, log = renderer.render()
     assert {"texture_maps", "irradiance", "diffusion"} <= set(log.cached)
+    assert "camera_hits" not in log.cached
+    assert not np.array_equal(moved["beauty"], first["beauty"])
     stage.GetPrimAtPath("/Sun").GetAttribute("inputs:intensity").Set(4.0)
     _, log = renderer.render()
     assert "irradiance" in log.seconds and "texture_maps" in log.cached
