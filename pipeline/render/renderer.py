@@ -13,8 +13,10 @@ mm with the stage's metersPerUnit); colours linear in the stage's working space
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -910,7 +912,12 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
     proc = config.getProcessor(transform).getDefaultCPUProcessor()
     rgb = np.ascontiguousarray(np.nan_to_num(beauty[..., :3], nan=0.0, posinf=1e4), np.float32)
     rgb = rgb.copy()
-    proc.applyRGB(rgb.reshape(-1, 3))
+    # in row bands on the cores: OCIO lets go of the GIL, and the default view's ACES 2.0
+    # output transform took 0.45 s for a 768 x 768 image on one core (0.23 s on two); a
+    # pixel's value does not depend on the band
+    bands = np.array_split(rgb.reshape(-1, 3), max(1, min(os.cpu_count() or 1, 8)))
+    with ThreadPoolExecutor(len(bands)) as pool:
+        list(pool.map(proc.applyRGB, bands))
     return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
 
 

@@ -528,3 +528,24 @@ def test_texture_space_outputs_hold_the_layout(tmp_path: Path) -> None:
     np.testing.assert_allclose(px[..., names.index("stretch.v_mm")][cov], 40 / 128, rtol=1e-3)
     assert set(np.unique(px[..., names.index("region.id")][cov])) == {0.0}
     assert buf.spec().getattribute("oiio:ColorSpace") == "lin_ap1_scene"
+
+
+def test_display_image_is_ocios_display_view_applied_at_once() -> None:
+    """The PNG's display-referred pixels (applied in row bands on the cores) equal OCIO's
+    own processor for the config's default display and view applied to the whole image
+    at once, clipped to [0, 1]; NaN and +inf are made 0 and 1e4 first."""
+    import PyOpenColorIO as OCIO
+
+    from pipeline.render.renderer import display_image, ocio_config
+
+    rng = np.random.default_rng(1)
+    beauty = np.concatenate([rng.random((37, 53, 3), np.float32) * 4,
+                             np.ones((37, 53, 1), np.float32)], axis=2)
+    beauty[0, 0, 0], beauty[1, 1, 1] = np.nan, np.inf
+    pixels, info = display_image(beauty, "lin_ap1_scene", "ocio://default")
+    config = ocio_config("ocio://default")
+    proc = config.getProcessor(OCIO.DisplayViewTransform(
+        src="lin_ap1_scene", display=info["display"], view=info["view"])).getDefaultCPUProcessor()
+    whole = np.nan_to_num(beauty[..., :3], nan=0.0, posinf=1e4).astype(np.float32)
+    proc.applyRGB(whole.reshape(-1, 3))
+    np.testing.assert_array_equal(pixels, np.clip(whole, 0, 1))
