@@ -63,8 +63,9 @@ def _xatlas_in_child(points: NDArray[Any], tris: NDArray[Any], pieces: NDArray[A
         np.savez(mesh, points=points.astype(np.float32), tris=tris.astype(np.uint32),
                  pieces=pieces.astype(np.int32))
         try:
+            # -P as for pymeshlab's reader (pipeline.usd.mesh_files.load_in_child)
             proc = subprocess.run(
-                [sys.executable, "-I", str(_CHILD), str(mesh), str(out), repr(chart_area),
+                [sys.executable, "-P", str(_CHILD), str(mesh), str(out), repr(chart_area),
                  str(resolution), str(padding)],
                 capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:

@@ -314,7 +314,9 @@ def load_in_child(path: Path, facts: MeshFileFacts, timeout_s: float = LOAD_TIME
     with tempfile.TemporaryDirectory(prefix="skinpipe-mesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         try:
-            proc = subprocess.run([sys.executable, "-I", str(_CHILD), str(path), str(out)],
+            # -P: not the script's folder first on the path; the user's site-packages and
+            # PYTHONPATH stay (a --user install, a studio's package environment)
+            proc = subprocess.run([sys.executable, "-P", str(_CHILD), str(path), str(out)],
                                   capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:
             raise InputError(f"pymeshlab did not read it in {timeout_s:.0f} s", path) from None

@@ -459,3 +459,40 @@ def test_any_profile_csv_is_read_or_refused(tmp_path: Path, header: str,
         assert "p.csv" in str(exc)
         return
     assert prof.values.shape == (prof.radius_mm.size, 3) and prof.radius_mm.size > 0
+
+
+def test_child_processes_find_packages_on_pythonpath(tmp_path: Path) -> None:
+    """pymeshlab's reader and xatlas run in child processes of the same interpreter. In
+    an environment whose packages come only through PYTHONPATH (a studio's package
+    environment; likewise a --user install's site-packages) the children find them too:
+    started isolated (``python -I``) they did not."""
+    import subprocess
+    import sys
+    import sysconfig
+    import venv
+
+    env_dir = tmp_path / "bare"
+    venv.EnvBuilder(with_pip=False).create(env_dir)  # no packages of its own
+    paths = [str(Path(__file__).resolve().parents[2]), sysconfig.get_paths()["purelib"],
+             sysconfig.get_paths()["platlib"]]
+    (tmp_path / "quad.obj").write_text(OBJ_QUAD + "f 1 2 3\nf 2 4 3\n")
+    script = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "from pipeline.render.unwrap import unwrap\n"
+        "from pipeline.usd.mesh import load_mesh\n"
+        "mesh = load_mesh(Path(sys.argv[1]))\n"
+        "layout = unwrap(mesh, resolution=64, timeout_s=60)\n"
+        "print(mesh.n_faces, layout.uv_indices.size)\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONHOME"}
+    env["PYTHONPATH"] = os.pathsep.join(paths)
+    python = env_dir / "bin" / "python"
+    check = subprocess.run([str(python), "-c", "import numpy"], env={**env, "PYTHONPATH": ""},
+                           capture_output=True, text=True)
+    assert check.returncode != 0, "the bare environment must not have numpy of its own"
+    run = subprocess.run([str(python), "-c", script, str(tmp_path / "quad.obj")], env=env,
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    faces, indices = map(int, run.stdout.split())
+    assert indices == 3 * faces > 0
+    assert sys.executable != str(python)
