@@ -7,6 +7,9 @@ bad indices, so every mesh is validated here before any later stage sees it.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -224,6 +227,73 @@ def seal_scan(mesh: MeshData) -> MeshData | None:
     return validate_mesh(replace(mesh, points=mesh.points[used],
                                  face_counts=np.full(new.shape[0], 3, np.int32),
                                  face_indices=tris.reshape(-1).astype(np.int32), st=None))
+
+
+PREPARE_TIMEOUT_S = 600.0
+
+
+class ScanPreparation:
+    """:func:`prepare_scan` and :func:`seal_scan` of a triangle mesh in a child process
+    started at once (``_prepare_child``), so that the caller works meanwhile: the demo
+    ingests and fits while the face scan is cleaned and decimated (4 s), and a pymeshlab
+    crash there is an error here. :meth:`result` waits; :meth:`close` (or leaving a
+    ``with`` block) stops a child no one waits for and removes its files."""
+
+    def __init__(self, mesh: MeshData, target_faces: int = 60000) -> None:
+        if np.any(mesh.face_counts != 3):
+            raise InputError("prepare_scan needs a triangle mesh", mesh.source)
+        self._mesh = mesh
+        self._tmp = tempfile.TemporaryDirectory(prefix="skinpipe-prepare-")
+        folder = Path(self._tmp.name)
+        self._out = folder / "prepared.npz"
+        np.savez(folder / "scan.npz", points=mesh.points,
+                 faces=mesh.face_indices.reshape(-1, 3), meters_per_unit=mesh.meters_per_unit)
+        # -P as for pymeshlab's reader (mesh_files.load_in_child)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-P", "-m", "pipeline.usd._prepare_child",
+             str(folder / "scan.npz"), str(self._out), str(int(target_faces))],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    def result(self, timeout_s: float = PREPARE_TIMEOUT_S) -> tuple[MeshData, MeshData | None]:
+        """The prepared mesh and its seal (None for a closed mesh), as
+        :func:`prepare_scan` and :func:`seal_scan` make them."""
+        try:
+            _, err = self._proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.close()
+            raise InputError(f"preparing the scan took over {timeout_s:.0f} s",
+                             self._mesh.source) from None
+        code = self._proc.returncode
+        if code != 0 or not self._out.is_file():
+            refused = [line.split(":", 1)[1].strip() for line in (err or "").splitlines()
+                       if line.startswith("skinpipe-prepare-error:")]
+            why = refused[-1] if refused else (
+                f"pymeshlab crashed (signal {-code})" if code < 0 else
+                f"the preparation failed (exit {code}): {(err or '').strip()[-300:]}")
+            raise InputError(f"cannot prepare the scan: {why}", self._mesh.source)
+        with np.load(self._out) as data:
+            prepared = self._mesh_of(data["points"], data["faces"])
+            seal = self._mesh_of(data["seal_points"], data["seal_faces"]) \
+                if "seal_points" in data.files else None
+        return prepared, seal
+
+    def _mesh_of(self, points: NDArray[Any], faces: NDArray[Any]) -> MeshData:
+        return validate_mesh(replace(self._mesh, points=np.asarray(points, np.float64),
+                                     face_counts=np.full(faces.shape[0], 3, np.int32),
+                                     face_indices=np.asarray(faces, np.int32).reshape(-1),
+                                     st=None))
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.communicate()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> ScanPreparation:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def pymeshlab_face_scan() -> Path:

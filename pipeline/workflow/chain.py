@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -46,7 +47,7 @@ from ..usd.author import (
 )
 from ..usd.io import USD_SUFFIXES, open_stage_guarded, usd_inputs
 from ..usd.materialx import library as mtlx_library
-from ..usd.mesh import MeshData, load_mesh, prepare_scan, seal_scan
+from ..usd.mesh import MeshData, ScanPreparation, load_mesh, prepare_scan, seal_scan
 from ..usd.shot import author_shot
 from ..usd.validate import validate_file
 
@@ -111,20 +112,29 @@ def author_inputs(fits_paths: list[Path], mesh_path: Path, landmarks: Path | Non
     return reads
 
 
+PREPARED_FACES = 60000
+"""Faces a raw scan is decimated to by ``prepare`` (:func:`~..usd.mesh.prepare_scan`)."""
+
+
 def author_from_files(fits_paths: list[Path], mesh_path: Path, out: Path, *,
                       landmarks: Path | None = None, region_primvar: str | None = None,
                       region_names: list[str] | None = None, blend_mm: float = 8.0,
                       profiles_dir: Path | None = None, meters_per_unit: float | None = None,
-                      prepare: bool = False, target_faces: int = 60000, name: str = "Face",
+                      prepare: bool = False, target_faces: int = PREPARED_FACES,
+                      name: str = "Face",
                       mesh_prim: str | None = None, progress: Progress = _quiet,
-                      loaded: MeshData | None = None) -> AssetPaths:
+                      loaded: MeshData | None = None,
+                      prepared: ScanPreparation | None = None) -> AssetPaths:
     """The author stage from files: FIT.json files (or folders of them) and a mesh to a
     USD asset, regions from landmarks or from a uniform primvar of a USD mesh
-    (``loaded``: the mesh at ``mesh_path``, already loaded and validated)."""
+    (``loaded``: the mesh at ``mesh_path``, already loaded and validated; ``prepared``:
+    its preparation, started earlier, which ``prepare`` then waits for)."""
     fits = read_fit_inputs(fits_paths)
     mesh = loaded if loaded is not None else load_mesh(mesh_path, meters_per_unit, mesh_prim)
     seal = None
-    if prepare:
+    if prepare and prepared is not None:
+        mesh, seal = prepared.result()
+    elif prepare:
         progress(f"preparing the scan ({mesh.n_faces} faces -> {target_faces})")
         mesh = prepare_scan(mesh, target_faces)
         seal = seal_scan(mesh)
@@ -182,20 +192,13 @@ class ChainResult:
         return bool(self.report["valid"])
 
 
-def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
-              prepare: bool, paint: bool, options: RenderOptions, ocio: str,
-              truth: dict[str, Any] | None = None, comparisons: bool = False,
-              progress: Progress = _quiet, loaded_mesh: MeshData | None = None
-              ) -> ChainResult:
-    """ingest -> fit -> author -> (paint) -> validate -> shot -> render (-> the demo's
-    comparison renders, which reuse the render's texture-space work)."""
-    start = time.perf_counter()
-    result = ChainResult({"stages": {}, "regions": {}})
+def _ingest_fit_author(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
+                       prepare: bool, preparation: ScanPreparation | None,
+                       truth: dict[str, Any] | None, progress: Progress,
+                       loaded_mesh: MeshData | None, result: ChainResult, start: float
+                       ) -> AssetPaths:
+    """:func:`run_chain`'s ingest, fit and author stages, into ``result``'s report."""
     report = result.report
-    if paint:
-        # the painter's kernels are built (on PoCL, compiled) and MaterialX's libraries
-        # loaded while the captures are ingested: 0.4-0.5 s of a 1 s paint stage otherwise
-        start_prewarm([texture_kernels, push_pull_kernels, mtlx_library])
     progress(f"ingest {captures}")
     ingest = ingest_capture_set(captures, out / "profiles", progress=progress)
     report["stages"]["ingest"] = {"seconds": time.perf_counter() - start}
@@ -225,8 +228,37 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
     progress(f"author {out / 'asset'}")
     paths = author_from_files([out / "fits"], mesh, out / "asset", landmarks=landmarks,
                               profiles_dir=out / "profiles", prepare=prepare,
-                              progress=progress, loaded=loaded_mesh)
+                              progress=progress, loaded=loaded_mesh, prepared=preparation)
     report["stages"]["author"] = {"seconds": time.perf_counter() - t0, "asset": str(paths.asset)}
+    return paths
+
+
+def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
+              prepare: bool, paint: bool, options: RenderOptions, ocio: str,
+              truth: dict[str, Any] | None = None, comparisons: bool = False,
+              progress: Progress = _quiet, loaded_mesh: MeshData | None = None
+              ) -> ChainResult:
+    """ingest -> fit -> author -> (paint) -> validate -> shot -> render (-> the demo's
+    comparison renders, which reuse the render's texture-space work)."""
+    start = time.perf_counter()
+    result = ChainResult({"stages": {}, "regions": {}})
+    report = result.report
+    if paint:
+        # the painter's kernels are built (on PoCL, compiled) and MaterialX's libraries
+        # loaded while the captures are ingested: 0.4-0.5 s of a 1 s paint stage otherwise
+        start_prewarm([texture_kernels, push_pull_kernels, mtlx_library])
+    with ExitStack() as stack:
+        preparation = None
+        if prepare:
+            # the scan is cleaned and decimated in a child process while the captures are
+            # ingested and fitted: 4 s of the author stage otherwise
+            scan = loaded_mesh if loaded_mesh is not None else load_mesh(mesh)
+            progress(f"preparing the scan in a child process ({scan.n_faces} faces -> "
+                     f"{PREPARED_FACES})")
+            preparation = stack.enter_context(ScanPreparation(scan, PREPARED_FACES))
+            loaded_mesh = scan
+        paths = _ingest_fit_author(captures, mesh, landmarks, out, k, prepare, preparation,
+                                   truth, progress, loaded_mesh, result, start)
     if paint:
         # the unwrap is its own stage: painting then finds the asset's UVs
         t0 = time.perf_counter()

@@ -73,3 +73,27 @@ def test_seal_scan_of_a_closed_mesh_is_none() -> None:
     tris = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
     mesh = MeshData(pts, np.full(4, 3, np.int32), tris.reshape(-1), 0.001)
     assert seal_scan(mesh) is None
+
+
+def test_scan_preparation_in_a_child_equals_preparing_here(face_scan) -> None:
+    """The demo cleans and seals the scan in a child process while it ingests: the same
+    meshes, bit for bit, as :func:`prepare_scan` and :func:`seal_scan` here; a child
+    past its time is an error and leaves nothing behind."""
+    from pathlib import Path
+
+    from pipeline.errors import InputError
+    from pipeline.usd.mesh import ScanPreparation
+
+    raw, skin, seal = face_scan
+    with ScanPreparation(raw, 20000) as preparation:
+        got_skin, got_seal = preparation.result()
+    assert got_seal is not None and seal is not None
+    for got, want in ((got_skin, skin), (got_seal, seal)):
+        np.testing.assert_array_equal(got.points, want.points)
+        np.testing.assert_array_equal(got.face_indices, want.face_indices)
+        assert got.meters_per_unit == want.meters_per_unit and got.source == want.source
+    slow = ScanPreparation(raw, 20000)
+    folder = Path(slow._tmp.name)
+    with pytest.raises(InputError, match="preparing the scan took over"):
+        slow.result(timeout_s=0.01)
+    assert slow._proc.poll() is not None and not folder.exists()
