@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import math
 import os
-import queue
 import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property, partial
 from typing import Any, Literal
@@ -912,32 +911,22 @@ class _SolverThreads:
     fit's time) and a move goes only to a thread whose solver is ready."""
 
     def __init__(self, count: int) -> None:
-        self._queues: list[queue.SimpleQueue[Any]] = [queue.SimpleQueue() for _ in range(count)]
+        # one single-thread executor a thread: a task goes to the thread asked for
+        self._threads = [ThreadPoolExecutor(1, thread_name_prefix=f"skinpipe-fit-{i}")
+                         for i in range(count)]
         self._asked: set[tuple[int, tuple[Any, ...]]] = set()
         self._ready: set[tuple[int, tuple[Any, ...]]] = set()
-        for i, tasks in enumerate(self._queues):
-            threading.Thread(target=self._serve, args=(tasks,), name=f"skinpipe-fit-{i}",
-                             daemon=True).start()
 
-    @staticmethod
-    def _serve(tasks: queue.SimpleQueue[Any]) -> None:
-        while True:
-            future, fn, args = tasks.get()
-            if future.set_running_or_notify_cancel():
-                try:
-                    future.set_result(fn(*args))
-                except BaseException as error:  # handed to the caller, which re-raises
-                    future.set_exception(error)
+    def __len__(self) -> int:
+        return len(self._threads)
 
     def submit(self, thread: int, fn: Callable[..., Any], *args: Any) -> Future[Any]:
-        future: Future[Any] = Future()
-        self._queues[thread].put((future, fn, args))
-        return future
+        return self._threads[thread].submit(fn, *args)
 
     def build_ahead(self, key: tuple[Any, ...]) -> None:
         """Each thread builds its solver for ``key`` (:func:`_ipopt_solver`'s arguments),
         unless it was asked to already."""
-        for thread in range(len(self._queues)):
+        for thread in range(len(self)):
             if (thread, key) not in self._asked:
                 self._asked.add((thread, key))
                 built = self.submit(thread, _ipopt_solver, *key)
@@ -949,7 +938,7 @@ class _SolverThreads:
 
     def ready(self, key: tuple[Any, ...]) -> list[int]:
         """The threads whose solver for ``key`` is built."""
-        return [t for t in range(len(self._queues)) if (t, key) in self._ready]
+        return [t for t in range(len(self)) if (t, key) in self._ready]
 
 
 _SOLVER_THREADS: list[_SolverThreads | None] = []

@@ -9,7 +9,6 @@ after ``timeout_s``, and the UVs that come back are checked.
 from __future__ import annotations
 
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..children import child_failure, python_command
 from ..errors import InputError, SkinpipeError
 from ..usd.mesh import MeshData, validate_mesh
 
@@ -63,19 +63,15 @@ def _xatlas_in_child(points: NDArray[Any], tris: NDArray[Any], pieces: NDArray[A
         np.savez(mesh, points=points.astype(np.float32), tris=tris.astype(np.uint32),
                  pieces=pieces.astype(np.int32))
         try:
-            # -P as for pymeshlab's reader (pipeline.usd.mesh_files.load_in_child)
             proc = subprocess.run(
-                [sys.executable, "-P", str(_CHILD), str(mesh), str(out), repr(chart_area),
-                 str(resolution), str(padding)],
+                python_command(str(_CHILD), str(mesh), str(out), repr(chart_area),
+                               str(resolution), str(padding)),
                 capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:
             raise SkinpipeError(f"xatlas did not finish in {timeout_s:.0f} s; decimate the "
                                 "mesh or raise charts_per_mesh") from None
         if proc.returncode != 0 or not out.is_file():
-            last = (proc.stderr or "").strip().splitlines()[-1:] or [""]
-            raise SkinpipeError(
-                f"xatlas crashed (signal {-proc.returncode})" if proc.returncode < 0 else
-                f"xatlas failed (exit {proc.returncode}) {last[0][:200]}".rstrip())
+            raise SkinpipeError(child_failure("xatlas", proc.returncode, proc.stderr))
         with np.load(out) as npz:
             return {key: npz[key] for key in npz.files}
 

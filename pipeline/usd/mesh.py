@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,6 +18,7 @@ import pymeshlab
 from numpy.typing import NDArray
 from pxr import Usd, UsdGeom
 
+from ..children import child_failure, python_command
 from ..errors import InputError
 from .io import USD_SUFFIXES, open_stage_guarded
 from .mesh_files import load_in_child, scan_mesh_file
@@ -248,10 +248,9 @@ class ScanPreparation:
         self._out = folder / "prepared.npz"
         np.savez(folder / "scan.npz", points=mesh.points,
                  faces=mesh.face_indices.reshape(-1, 3), meters_per_unit=mesh.meters_per_unit)
-        # -P as for pymeshlab's reader (mesh_files.load_in_child)
         self._proc = subprocess.Popen(
-            [sys.executable, "-P", "-m", "pipeline.usd._prepare_child",
-             str(folder / "scan.npz"), str(self._out), str(int(target_faces))],
+            python_command("-m", "pipeline.usd._prepare_child", str(folder / "scan.npz"),
+                           str(self._out), str(int(target_faces))),
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
     def result(self, timeout_s: float = PREPARE_TIMEOUT_S) -> tuple[MeshData, MeshData | None]:
@@ -263,13 +262,9 @@ class ScanPreparation:
             self.close()
             raise InputError(f"preparing the scan took over {timeout_s:.0f} s",
                              self._mesh.source) from None
-        code = self._proc.returncode
-        if code != 0 or not self._out.is_file():
-            refused = [line.split(":", 1)[1].strip() for line in (err or "").splitlines()
-                       if line.startswith("skinpipe-prepare-error:")]
-            why = refused[-1] if refused else (
-                f"pymeshlab crashed (signal {-code})" if code < 0 else
-                f"the preparation failed (exit {code}): {(err or '').strip()[-300:]}")
+        if self._proc.returncode != 0 or not self._out.is_file():
+            why = child_failure("pymeshlab", self._proc.returncode, err,
+                                "skinpipe-prepare-error:")
             raise InputError(f"cannot prepare the scan: {why}", self._mesh.source)
         with np.load(self._out) as data:
             prepared = self._mesh_of(data["points"], data["faces"])

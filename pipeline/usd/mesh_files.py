@@ -11,9 +11,7 @@ with the line or element at fault), pymeshlab reads it in a child process
 
 from __future__ import annotations
 
-import re
 import subprocess
-import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..children import child_failure, python_command
 from ..errors import InputError
 
 MAX_MESH_BYTES = 2 * 1024**3
@@ -302,9 +301,6 @@ def _check_vertices(path: Path, xyz: np.ndarray, where: str) -> None:
                          f"({int(bad.sum())} such vertices)", path)
 
 
-_FAULT = re.compile(r"^skinpipe-meshlab-error: (.*)$", re.M)
-
-
 def load_in_child(path: Path, facts: MeshFileFacts, timeout_s: float = LOAD_TIMEOUT_S
                   ) -> dict[str, np.ndarray]:
     """pymeshlab's reader in a child process: points, triangles and (if any) per-vertex
@@ -314,17 +310,13 @@ def load_in_child(path: Path, facts: MeshFileFacts, timeout_s: float = LOAD_TIME
     with tempfile.TemporaryDirectory(prefix="skinpipe-mesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         try:
-            # -P: not the script's folder first on the path; the user's site-packages and
-            # PYTHONPATH stay (a --user install, a studio's package environment)
-            proc = subprocess.run([sys.executable, "-P", str(_CHILD), str(path), str(out)],
+            proc = subprocess.run(python_command(str(_CHILD), str(path), str(out)),
                                   capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:
             raise InputError(f"pymeshlab did not read it in {timeout_s:.0f} s", path) from None
-        fault = _FAULT.search(proc.stderr or "")
         if proc.returncode != 0 or not out.is_file():
-            why = fault.group(1) if fault else (
-                f"pymeshlab's reader crashed (signal {-proc.returncode})" if proc.returncode < 0
-                else f"pymeshlab's reader failed (exit {proc.returncode})")
+            why = child_failure("pymeshlab's reader", proc.returncode, proc.stderr,
+                                "skinpipe-meshlab-error:")
             raise InputError(f"cannot load mesh: {why}", path)
         with np.load(out) as npz:
             arrays = {k: npz[k] for k in npz.files}

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from contextlib import ExitStack
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -192,47 +192,6 @@ class ChainResult:
         return bool(self.report["valid"])
 
 
-def _ingest_fit_author(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
-                       prepare: bool, preparation: ScanPreparation | None,
-                       truth: dict[str, Any] | None, progress: Progress,
-                       loaded_mesh: MeshData | None, result: ChainResult, start: float
-                       ) -> AssetPaths:
-    """:func:`run_chain`'s ingest, fit and author stages, into ``result``'s report."""
-    report = result.report
-    progress(f"ingest {captures}")
-    ingest = ingest_capture_set(captures, out / "profiles", progress=progress)
-    report["stages"]["ingest"] = {"seconds": time.perf_counter() - start}
-    fit_s = 0.0
-    for name, entry in ingest["regions"].items():
-        prof = read_profile_csv(entry["csv"])
-        fit = fit_ingested_profile(prof, k)
-        write_fit_json(out / "fits" / f"{name}.json", fit)
-        fit_s += fit.seconds
-        row: dict[str, Any] = {"ingest_seconds": entry["seconds"], "fit_seconds": fit.seconds,
-                               "fit_error": fit.error.tolist(),
-                               "fit": str(out / "fits" / f"{name}.json")}
-        vs = None
-        if truth and name in truth:
-            # the shape: the render normalises each fit, so its scale (which carries
-            # the extrapolated tail's error) does not reach the image
-            err = truth[name].profile_error(prof.radius_mm, fit.evaluate(prof.radius_mm),
-                                            over="disk")
-            row["error_vs_truth"] = err.tolist()
-            vs = float(err.max())
-        report["regions"][name] = row
-        result.fit_rows.append(FitRow(name, len(fit.variances_mm2), float(fit.error.max()), vs,
-                                      fit.seconds))
-        progress(f"fit {name}: eq. 2c error {fit.error.max():.2e}")
-    report["stages"]["fit"] = {"seconds": fit_s}
-    t0 = time.perf_counter()
-    progress(f"author {out / 'asset'}")
-    paths = author_from_files([out / "fits"], mesh, out / "asset", landmarks=landmarks,
-                              profiles_dir=out / "profiles", prepare=prepare,
-                              progress=progress, loaded=loaded_mesh, prepared=preparation)
-    report["stages"]["author"] = {"seconds": time.perf_counter() - t0, "asset": str(paths.asset)}
-    return paths
-
-
 def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
               prepare: bool, paint: bool, options: RenderOptions, ocio: str,
               truth: dict[str, Any] | None = None, comparisons: bool = False,
@@ -247,18 +206,47 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
         # the painter's kernels are built (on PoCL, compiled) and MaterialX's libraries
         # loaded while the captures are ingested: 0.4-0.5 s of a 1 s paint stage otherwise
         start_prewarm([texture_kernels, push_pull_kernels, mtlx_library])
-    with ExitStack() as stack:
-        preparation = None
-        if prepare:
-            # the scan is cleaned and decimated in a child process while the captures are
-            # ingested and fitted: 4 s of the author stage otherwise
-            scan = loaded_mesh if loaded_mesh is not None else load_mesh(mesh)
-            progress(f"preparing the scan in a child process ({scan.n_faces} faces -> "
-                     f"{PREPARED_FACES})")
-            preparation = stack.enter_context(ScanPreparation(scan, PREPARED_FACES))
-            loaded_mesh = scan
-        paths = _ingest_fit_author(captures, mesh, landmarks, out, k, prepare, preparation,
-                                   truth, progress, loaded_mesh, result, start)
+    scan = None
+    if prepare:
+        scan = loaded_mesh = loaded_mesh if loaded_mesh is not None else load_mesh(mesh)
+        # the scan is cleaned and decimated in a child process while the captures are
+        # ingested and fitted: 4 s of the author stage otherwise
+        progress(f"preparing the scan in a child process ({scan.n_faces} faces -> "
+                 f"{PREPARED_FACES})")
+    with ScanPreparation(scan, PREPARED_FACES) if scan is not None else nullcontext() as \
+            preparation:
+        progress(f"ingest {captures}")
+        ingest = ingest_capture_set(captures, out / "profiles", progress=progress)
+        report["stages"]["ingest"] = {"seconds": time.perf_counter() - start}
+        fit_s = 0.0
+        for name, entry in ingest["regions"].items():
+            prof = read_profile_csv(entry["csv"])
+            fit = fit_ingested_profile(prof, k)
+            write_fit_json(out / "fits" / f"{name}.json", fit)
+            fit_s += fit.seconds
+            row: dict[str, Any] = {"ingest_seconds": entry["seconds"],
+                                   "fit_seconds": fit.seconds, "fit_error": fit.error.tolist(),
+                                   "fit": str(out / "fits" / f"{name}.json")}
+            vs = None
+            if truth and name in truth:
+                # the shape: the render normalises each fit, so its scale (which carries
+                # the extrapolated tail's error) does not reach the image
+                err = truth[name].profile_error(prof.radius_mm, fit.evaluate(prof.radius_mm),
+                                                over="disk")
+                row["error_vs_truth"] = err.tolist()
+                vs = float(err.max())
+            report["regions"][name] = row
+            result.fit_rows.append(FitRow(name, len(fit.variances_mm2),
+                                          float(fit.error.max()), vs, fit.seconds))
+            progress(f"fit {name}: eq. 2c error {fit.error.max():.2e}")
+        report["stages"]["fit"] = {"seconds": fit_s}
+        t0 = time.perf_counter()
+        progress(f"author {out / 'asset'}")
+        paths = author_from_files([out / "fits"], mesh, out / "asset", landmarks=landmarks,
+                                  profiles_dir=out / "profiles", prepare=prepare,
+                                  progress=progress, loaded=loaded_mesh, prepared=preparation)
+        report["stages"]["author"] = {"seconds": time.perf_counter() - t0,
+                                      "asset": str(paths.asset)}
     if paint:
         # the unwrap is its own stage: painting then finds the asset's UVs
         t0 = time.perf_counter()

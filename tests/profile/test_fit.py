@@ -447,7 +447,7 @@ def test_moves_refined_side_by_side_equal_moves_refined_in_turn(monkeypatch) -> 
     for seed in (0, 1, 2):
         fit_sum_of_gaussians(profile, k=6, seed=seed)  # this thread's solver, then theirs
     for _ in range(600):  # the threads build theirs in the background (0.25 s each)
-        if len(threads.ready(next(iter(threads._asked))[1])) == len(threads._queues):
+        if len(threads.ready(next(iter(threads._asked))[1])) == len(threads):
             break
         time.sleep(0.05)
     tries: dict[str, list] = {"side by side": [], "in turn": []}
