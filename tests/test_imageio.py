@@ -42,3 +42,20 @@ def test_texture_is_tiled_mipmapped_half(tmp_path: Path) -> None:
     back = read_image(path).pixels[..., :3]
     np.testing.assert_allclose(back, img, atol=1e-3)  # half float: 11 bits
     assert not list(tmp_path.glob(".*"))  # written through a temporary, renamed
+
+
+def test_ldr_images_read_back_as_their_code_values(tmp_path: Path) -> None:
+    """8-bit PNG (written at zlib's fastest level) and 16-bit TIFF: OpenImageIO reads back
+    every pixel's rounded code value; compression loses nothing. (Opaque: OpenImageIO
+    takes colour with alpha as premultiplied and stores it divided by alpha.)"""
+    from pipeline.imageio import write_ldr
+
+    pixels = np.random.default_rng(3).random((37, 61, 4))
+    pixels[..., 3] = 1.0
+    for suffix, bits, dtype in ((".png", 8, oiio.UINT8), (".tif", 16, oiio.UINT16)):
+        path = write_ldr(tmp_path / f"a{suffix}", pixels, bits)
+        got = oiio.ImageBuf(str(path)).get_pixels(dtype)
+        want = np.rint(pixels * ((1 << bits) - 1))
+        np.testing.assert_array_equal(got.astype(np.int64), want.astype(np.int64))
+    spec = oiio.ImageInput.open(str(tmp_path / "a.png")).spec()
+    assert (spec.width, spec.height, spec.nchannels) == (61, 37, 4)
