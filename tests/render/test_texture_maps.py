@@ -101,6 +101,12 @@ def test_unwrap_in_pieces_charts_no_triangle_across_them() -> None:
         assert np.all(owner[used] == -1), "a UV vertex shared by both pieces"
         owner[used] = piece
     assert np.all(np.isfinite(layout.uv)) and np.all((layout.uv >= 0) & (layout.uv <= 1))
+    # the texels cover the surface once: their areas add up to the sheet's (geometry)
+    maps = rasterize(pts, triangulate(mesh), layout.uv, uv_tris, 256, 0.001)
+    p = pts[tris]
+    area_mm2 = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+    texels_mm2 = float((maps.mm_per_texel_u * maps.mm_per_texel_v)[maps.triangle >= 0].sum())
+    assert abs(texels_mm2 / area_mm2 - 1) < 0.05
     whole = unwrap(mesh, resolution=256, timeout_s=60)
     assert layout.charts >= whole.charts >= 1
     with pytest.raises(InputError, match="one integer per triangle"):
