@@ -188,25 +188,33 @@ def _nearest_sources(covered_bytes: bytes, shape: tuple[int, int], ring: int
                      ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Flat indices of the ring's texels and of the chart texels they copy (one layout's
     coverage, cached: its irradiance, radiance and albedo share them). Grown one texel
-    a pass, each new texel taking a neighbour's source: memory stays a few bytes a
-    texel (scipy's distance transform needed 24)."""
+    a pass, each new texel taking the source of its first neighbour (in
+    :data:`_NEIGHBOURS` order) that has one: memory stays a few bytes a texel (scipy's
+    distance transform needed 24). Only a pass's new texels are looked at past the one
+    sweep that finds them (eight neighbours' sources over the whole texture took 1.4 s
+    a layout at texture 4096)."""
     h, w = shape
     source = np.full(h * w, -1, np.int32)  # a 16384^2 atlas still fits int32
-    covered = np.frombuffer(covered_bytes, dtype=bool)
-    source[covered] = np.flatnonzero(covered)
-    grid = source.reshape(h, w)
+    has = np.frombuffer(covered_bytes, dtype=bool).reshape(h, w).copy()
+    source[has.reshape(-1)] = np.flatnonzero(has)
     added: list[NDArray[np.int64]] = []
     for _ in range(ring):
-        new = np.full_like(grid, -1)
+        # the texels without a source beside one with: this pass's new texels, in order
+        padded = np.pad(has, 1)
+        near = np.zeros_like(has)
         for dy, dx in _NEIGHBOURS:
-            # the neighbour at (y + dy, x + dx) of every texel, where it exists
-            dst = new[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
-            src = grid[max(dy, 0):h - max(-dy, 0), max(dx, 0):w - max(-dx, 0)]
-            empty = grid[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)] < 0
-            take = empty & (dst < 0) & (src >= 0)
-            dst[take] = src[take]
-        grown = np.flatnonzero((new >= 0).ravel() & (grid < 0).ravel())
-        grid.reshape(-1)[grown] = new.reshape(-1)[grown]
+            near |= padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+        grown = np.flatnonzero(near & ~has)
+        gy, gx = np.divmod(grown, w)
+        new = np.full(grown.size, -1, np.int32)
+        for dy, dx in _NEIGHBOURS:
+            y, x = gy + dy, gx + dx
+            inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+            src = np.where(inside, np.take(source, np.where(inside, y * w + x, 0)), -1)
+            take = (new < 0) & (src >= 0)
+            new[take] = src[take]
+        source[grown] = new
+        has.reshape(-1)[grown] = True
         added.append(grown)
     dst_all = np.concatenate(added) if added else np.zeros(0, np.int64)
     return dst_all, source[dst_all].astype(np.int64)

@@ -73,3 +73,26 @@ def test_dilation_copies_the_adjacent_chart_into_a_two_texel_ring() -> None:
     big[5, 5] = 1
     far = dilate_charts(np.where(big > 0, 2.0, 9.0).astype(np.float32), big)
     assert far[5, 8] == 9 and far[5, 7] == 2  # three texels away: untouched
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_dilation_ring_is_scipys_chessboard_distance(seed: int) -> None:
+    """Against scipy's chessboard distance transform: the texels the dilation fills are
+    exactly those 1-2 steps (8-connected) from a chart, and each copies a chart texel
+    as many steps away as scipy says the nearest is (a step-by-step growth, pass after
+    pass, cannot skip ahead or fall behind)."""
+    from scipy.ndimage import distance_transform_cdt
+
+    from pipeline.render.push_pull import GUTTER_RING, _nearest_sources
+
+    rng = np.random.default_rng(seed)
+    covered = rng.random((37, 53)) < 0.03 * (seed + 1)
+    covered[5:9, 40:52] = True  # a chart touching the border
+    dst, src = _nearest_sources.__wrapped__(covered.tobytes(), covered.shape, GUTTER_RING)
+    steps = distance_transform_cdt(~covered, metric="chessboard")
+    ring = (steps > 0) & (steps <= GUTTER_RING)
+    np.testing.assert_array_equal(np.sort(dst), np.flatnonzero(ring))
+    assert covered.ravel()[src].all()
+    dy, dx = np.divmod(dst, covered.shape[1])
+    sy, sx = np.divmod(src, covered.shape[1])
+    np.testing.assert_array_equal(np.maximum(abs(dy - sy), abs(dx - sx)), steps.ravel()[dst])
