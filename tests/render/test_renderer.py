@@ -294,6 +294,39 @@ def test_a_render_without_scattering_keeps_the_seam_layout(lit_patch: Path) -> N
     assert "diffusion_layout" in third.cached and "diffusion" in third.seconds
 
 
+def test_the_layout_beside_the_irradiance_reports_errors_and_ends_with_the_frame(
+        lit_patch: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The seam layout runs on a thread beside the irradiance: an error of either side
+    reaches the caller as itself, and no layout thread outlives the frame (one still
+    working when the irradiance failed would hold the process at exit)."""
+    import threading
+    import time
+
+    import pipeline.render.renderer as renderer_module
+
+    def slow_layout(*args: object, **kwargs: object) -> object:
+        time.sleep(0.5)  # still working when the irradiance fails
+        raise InputError("chart layout: bad UVs")
+
+    monkeypatch.setattr(renderer_module, "chart_layout", slow_layout)
+    renderer = Renderer(open_stage_guarded(lit_patch), SMALL)
+    with pytest.raises(InputError, match="bad UVs"):
+        renderer.render()
+
+    def no_light(*args: object, **kwargs: object) -> object:
+        raise InputError("irradiance: no light")
+
+    monkeypatch.setattr(renderer_module, "irradiance_texture", no_light)
+    renderer.clear_cache()
+    with pytest.raises(InputError, match="no light"):
+        renderer.render()
+    renderer.close()
+    layout_threads = [t for t in threading.enumerate() if t.name.startswith("skinpipe-layout")]
+    for t in layout_threads:
+        t.join(0.2)  # a thread whose task is done ends at once; a working one would not
+    assert not [t for t in layout_threads if t.is_alive()]
+
+
 def test_each_aov_asked_alone_equals_it_among_all(lit_patch: Path) -> None:
     """Shading makes only the AOVs asked for; each is the same, bit for bit, as when
     every AOV is asked for (and beauty is still diffuse plus specular inside the patch)."""
