@@ -31,6 +31,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from .opencl import (
+    Kernel,
+    build,
+    cl_context,
+    device_cache,
+    device_choice,
+    host_buffer,
+    host_output,
+    read_output,
+)
 
 TILE_GAP = 2
 """Texels of nothing between two tiles' margins: the recursive blur's tail beyond the
@@ -132,6 +142,15 @@ class SeamGeometry:
                         np.stack([-jtj[:, 1, 0], jtj[:, 0, 0]], axis=1)], axis=1)
         inv /= np.where(np.abs(det) > 1e-300, det, np.inf)[:, None, None]
         return np.einsum("tij,tkj->tik", inv, j)
+
+    @cached_property
+    def device_buffers(self) -> dict[str, Any]:
+        """The per-triangle arrays the device's ``margin_hits`` reads (every level's):
+        the ray scene's owners, each triangle's UV corners, J^+ and chart."""
+        return {"owner": host_buffer(self.rays.owner.astype(np.int64)),
+                "corners": host_buffer(self.uv_corners.astype(np.float64)),
+                "inverse_jac": host_buffer(self.texels_per_scene_unit),
+                "tri_chart": host_buffer(self.tri_chart.astype(np.int32))}
 
 
 @dataclass(frozen=True)
@@ -526,27 +545,99 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
                   ) -> list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[Any]]]:
     """The reads of :func:`_margin_sources` for the margin texels ``m_all``: (texels,
     atlas positions, source charts) pieces, one read per texel and chart landed on,
-    then the fully covered texels a partly covered one's read reaches."""
+    then the fully covered texels a partly covered one's read reaches. Each point's
+    arithmetic on the device where it has doubles (:func:`_device_points`), else in
+    numpy (:func:`_numpy_points`): the same operations in the same order, so the same
+    reads bit for bit."""
     if m_all.size == 0:
         return []
-    scale = 1 << level
-    n = count.size
     empty = count[m_all] <= 1e-6
-    n_e, n_p = int(empty.sum()), int((~empty).sum())
-    m_idx = np.concatenate([m_all[empty], np.repeat(m_all[~empty], sub.shape[0])])
-    offset_px = np.concatenate([np.zeros((n_e, 2)), np.tile(sub, (n_p, 1))])
-    partial = np.concatenate([np.zeros(n_e, bool), np.ones(n_p * sub.shape[0], bool)])
-    # the start texels per margin texel, then per point (a sort of the points' 16x more)
+    # the points: one per texel no chart covers, then SEAM_SUBSAMPLES^2 per partly
+    # covered texel (its offsets ``sub``), each from its texel's start texel b
+    texels = _PointTexels(m_all[empty], m_all[~empty], sub)
     start, b_texel = np.unique(nearest[m_all], return_inverse=True)
-    b = np.concatenate([b_texel[empty], np.repeat(b_texel[~empty], sub.shape[0])])
+    texels.b = np.concatenate([b_texel[empty], b_texel[~empty]]).astype(np.int32)
     position, normal, jac_b = _cell_frames(g, level, shift, owner, start, w)
+    frames = (start, position, normal, jac_b, _norm_axis1(jac_b).max(axis=1))
+    points = _device_points if _device_has_doubles() else _numpy_points
+    kept, chart, level_xy, t_local = points(g, level, shift, owner, w, texels, frames)
+    m_read, xy_read, first = _mean_per_key(texels.texel_of(kept), chart, level_xy, key_of)
+    read = kept[first]
+    # the fully covered texels up to a read's reach from a partly covered one read that
+    # chart too, at their centres carried along the chart's parameterization: the other
+    # side's splat reaches a texel past its border, and a read as far again (without
+    # them a pencil at a seam lost 5-19% at levels 1 and 4)
+    src = np.flatnonzero(read >= texels.n_empty)
+    carry = np.einsum("mij,mjk->mik", np.take(g.texels_per_scene_unit, t_local[first[src]],
+                                              axis=0),
+                      np.take(jac_b, texels.b_of(read[src]), axis=0)) / (1 << level)
+    m_src, chart_src = m_read[src], chart[first[src]]
+    xy_src = np.take(xy_read, src, axis=0)
+    pieces = [(m_read, xy_read, chart[first])]
+    ring = range(-_read_reach(level), _read_reach(level) + 1)
+    n = count.size
+    for dy in ring:
+        for dx in ring:
+            m2 = np.clip(m_src + dy * w + dx, 0, n - 1)
+            keep = np.flatnonzero(full[m2] & (owner[m2] == owner[m_src]))
+            pieces.append((m2[keep], np.take(xy_src, keep, axis=0)
+                           + np.take(carry, keep, axis=0) @ np.array([dx, dy], float),
+                           chart_src[keep]))
+    return pieces
+
+
+class _PointTexels:
+    """The margin points of a chunk: point i < ``n_empty`` is texel ``empty[i]`` at its
+    centre; point n_empty + j is texel ``partial[j // S]`` at offset ``sub[j % S]``."""
+
+    def __init__(self, empty: NDArray[np.int64], partial: NDArray[np.int64],
+                 sub: NDArray[np.float64]) -> None:
+        self.empty, self.partial, self.sub = empty, partial, sub
+        self.n_empty = empty.size
+        self.count = empty.size + partial.size * sub.shape[0]
+        self.b = np.zeros(0, np.int32)
+        """Per texel (empty ones, then partial ones) its start texel's index."""
+
+    def _texel_index(self, points: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Per point its texel's index among the empty, then partial texels."""
+        return np.where(points < self.n_empty, points,
+                        self.n_empty + (points - self.n_empty) // self.sub.shape[0])
+
+    def texel_of(self, points: NDArray[np.int64]) -> NDArray[np.int64]:
+        return np.take(np.concatenate([self.empty, self.partial]), self._texel_index(points))
+
+    def b_of(self, points: NDArray[np.int64]) -> NDArray[np.int32]:
+        return np.take(self.b, self._texel_index(points))
+
+    def offsets(self) -> NDArray[np.float64]:
+        """(points, 2): every point's offset from its texel's centre."""
+        return np.concatenate([np.zeros((self.n_empty, 2)),
+                               np.tile(self.sub, (self.partial.size, 1))])
+
+
+def _numpy_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
+                  owner: NDArray[np.int32], w: int, texels: _PointTexels,
+                  frames: tuple[NDArray[Any], ...]
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64],
+                             NDArray[np.int64]]:
+    """Each margin point carried across the seam (:func:`_margin_sources`): the points
+    whose read counts (ascending), and per such point the chart it reads, its atlas
+    position there and the skin triangle it landed on. The reference of the device's
+    ``margin_rays`` and ``margin_hits``."""
+    scale = 1 << level
+    start, position, normal, jac_b, jac_norm = frames
+    point = np.arange(texels.count)
+    m_idx = texels.texel_of(point)
+    offset_px = texels.offsets()
+    partial = point >= texels.n_empty
+    b = texels.b_of(point)
     # rows gathered by np.take throughout (3-10x faster than fancy indexing of rows)
     jac = np.take(jac_b, b, axis=0)  # scene units per level texel
     normal = np.take(normal, b, axis=0)
     here = np.stack([m_idx % w, m_idx // w], axis=1) + offset_px  # atlas position
     step = here - np.take(np.stack([start % w, start // w], axis=1), b, axis=0)
     offset = _matvec(jac, step)
-    reach = 0.5 * _norm_axis1(offset) + 2.0 * np.take(_norm_axis1(jac_b).max(axis=1), b)
+    reach = 0.5 * _norm_axis1(offset) + 2.0 * np.take(jac_norm, b)
     target = np.take(position, b, axis=0) + offset
     prim, bu, bv, dist = g.rays.intersect(target + normal * reach[:, None], -normal)
     del target, normal, position
@@ -575,29 +666,185 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     own = src_chart == owner[m_idx]
     far = _norm_axis1(level_xy - (here - offset_px)) > 2.0
     ok = np.flatnonzero(~partial | ~own | far)
-    m_read, xy_read, first = _mean_per_key(m_idx[ok], src_chart[ok],
-                                           np.take(level_xy, ok, axis=0), key_of)
-    read = ok[first]
-    # the fully covered texels up to a read's reach from a partly covered one read that
-    # chart too, at their centres carried along the chart's parameterization: the other
-    # side's splat reaches a texel past its border, and a read as far again (without
-    # them a pencil at a seam lost 5-19% at levels 1 and 4)
-    src = np.flatnonzero(partial[read])
-    carry = np.einsum("mij,mjk->mik", np.take(g.texels_per_scene_unit, t_local[read[src]],
-                                              axis=0),
-                      np.take(jac, read[src], axis=0)) / scale
-    m_src, chart_src = m_read[src], src_chart[read[src]]
-    xy_src = np.take(xy_read, src, axis=0)
-    pieces = [(m_read, xy_read, src_chart[read])]
-    ring = range(-_read_reach(level), _read_reach(level) + 1)
-    for dy in ring:
-        for dx in ring:
-            m2 = np.clip(m_src + dy * w + dx, 0, n - 1)
-            keep = np.flatnonzero(full[m2] & (owner[m2] == owner[m_src]))
-            pieces.append((m2[keep], np.take(xy_src, keep, axis=0)
-                           + np.take(carry, keep, axis=0) @ np.array([dx, dy], float),
-                           chart_src[keep]))
-    return pieces
+    return sel[ok], src_chart[ok], np.take(level_xy, ok, axis=0), t_local[ok]
+
+
+_MARGIN_KERNEL = r"""
+// The margin points of _numpy_points on the device, in doubles, each operation as numpy
+// does it and in its order (no contraction into fused multiply-adds), so that every
+// point lands where numpy's lands, bit for bit. Point i: texel empty[i] at its centre
+// for i < n_empty, else texel partial[j / S] at offset sub[j % S] (j = i - n_empty);
+// b[texel index]: its start texel's frame (position, normal, J = dP / d level texel).
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+
+#define POINT_TEXEL                                                                   \
+    long m; int t; double ox = 0.0, oy = 0.0;                                         \
+    if (i < n_empty) { m = empty[i]; t = i; }                                          \
+    else {                                                                            \
+        const int j = i - n_empty;                                                    \
+        m = partial[j / S]; t = n_empty + j / S;                                      \
+        ox = sub[2 * (j % S)]; oy = sub[2 * (j % S) + 1];                             \
+    }                                                                                 \
+    const int b = bs[t];                                                              \
+    const double hx = (double)(m % w) + ox, hy = (double)(m / w) + oy;
+
+__kernel void margin_rays(__global const long *empty, __global const long *partial,
+                          __global const int *bs, __global const double *sub,
+                          __global const long *start, __global const double *position,
+                          __global const double *normal, __global const double *jac,
+                          __global const double *jac_norm, const long w,
+                          const int n_empty, const int n,
+                          __global float *origin, __global float *direction,
+                          __global double *reach_out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    POINT_TEXEL
+    const long s = start[b];
+    const double sx = hx - (double)(s % w), sy = hy - (double)(s / w);
+    __global const double *J = jac + 6 * (size_t)b;  // (3, 2)
+    double o[3];
+    for (int r = 0; r < 3; ++r) { o[r] = J[2 * r] * sx; o[r] = o[r] + J[2 * r + 1] * sy; }
+    const double len = sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+    const double reach = 0.5 * len + 2.0 * jac_norm[b];
+    for (int r = 0; r < 3; ++r) {
+        const double nr = normal[3 * (size_t)b + r];
+        const double target = position[3 * (size_t)b + r] + o[r];
+        origin[3 * (size_t)i + r] = (float)(target + nr * reach);
+        direction[3 * (size_t)i + r] = (float)(-nr);
+    }
+    reach_out[i] = reach;
+}
+
+__kernel void margin_hits(__global const long *empty, __global const long *partial,
+                          __global const int *bs, __global const double *sub,
+                          __global const double *jac, const long w, const int n_empty,
+                          const int n, __global const long *prim, __global const float *bu,
+                          __global const float *bv, __global const float *dist,
+                          __global const double *reach, __global const long *scene_owner,
+                          const long mesh_index, __global const double *corners,
+                          __global const double *inverse_jac, __global const int *tri_chart,
+                          __global const long *shift, __global const int *owner,
+                          const double scale, __global uchar *keep,
+                          __global int *chart_out, __global double *xy_out,
+                          __global long *t_out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    POINT_TEXEL
+    keep[i] = 0;
+    const long p = prim[i];
+    if (p < 0 || scene_owner[2 * p] != mesh_index || !((double)dist[i] <= 2.0 * reach[i]))
+        return;
+    const long tri = scene_owner[2 * p + 1];
+    const float u = bu[i], v = bv[i];
+    const float w0 = 1.0f - u - v;
+    __global const double *c = corners + 6 * (size_t)tri;  // (3, 2)
+    double xy[2];
+    for (int k = 0; k < 2; ++k) {
+        xy[k] = c[k] * (double)w0 + c[2 + k] * (double)u;
+        xy[k] = xy[k] + c[4 + k] * (double)v;
+    }
+    const int chart = tri_chart[tri];
+    const int is_partial = i >= n_empty;
+    if (is_partial) {  // the centre carried back: J^+ (J o), o the point's offset
+        __global const double *J = jac + 6 * (size_t)b;
+        double back[3];
+        for (int r = 0; r < 3; ++r) {
+            back[r] = J[2 * r] * ox; back[r] = back[r] + J[2 * r + 1] * oy;
+        }
+        __global const double *I = inverse_jac + 6 * (size_t)tri;  // (2, 3)
+        for (int k = 0; k < 2; ++k) {
+            double d = I[3 * k] * back[0];
+            d = d + I[3 * k + 1] * back[1];
+            d = d + I[3 * k + 2] * back[2];
+            xy[k] = xy[k] - d;
+        }
+    }
+    const double lx = (xy[0] + 0.5) / scale - 0.5 + (double)shift[2 * chart];
+    const double ly = (xy[1] + 0.5) / scale - 0.5 + (double)shift[2 * chart + 1];
+    const double dx = lx - (hx - ox), dy = ly - (hy - oy);
+    const int far = sqrt(dx * dx + dy * dy) > 2.0;
+    keep[i] = (!is_partial || chart != owner[m] || far) ? 1 : 0;
+    chart_out[i] = chart;
+    xy_out[2 * (size_t)i] = lx;
+    xy_out[2 * (size_t)i + 1] = ly;
+    t_out[i] = tri;
+}
+"""
+
+
+def _device_has_doubles() -> bool:
+    """Whether the chosen OpenCL device computes in doubles (``cl_khr_fp64``): the
+    margin points' arithmetic runs there, else in numpy."""
+    return "cl_khr_fp64" in device_choice().device.extensions
+
+
+@device_cache()
+def _margin_program() -> Any:
+    return build(_MARGIN_KERNEL, [f"-DS={SEAM_SUBSAMPLES ** 2}"])
+
+
+def margin_kernels() -> tuple[Any, ...]:
+    """The margin points' kernels, for a :class:`~.opencl.Prewarm` (none on a device
+    without doubles). Each chunk of margin points makes kernel objects of its own: the
+    chunks run on several threads, and a kernel object's arguments are shared."""
+    if not _device_has_doubles():
+        return ()
+    program = _margin_program()
+    return Kernel(program, "margin_rays", 1), Kernel(program, "margin_hits", 1)
+
+
+def _device_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
+                   owner: NDArray[np.int32], w: int, texels: _PointTexels,
+                   frames: tuple[NDArray[Any], ...]
+                   ) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64],
+                              NDArray[np.int64]]:
+    """:func:`_numpy_points` with each point's arithmetic in two device kernels around
+    the ray cast (numpy's steps over the points, each a pass over M x 3 doubles, were
+    30% of the layout's time)."""
+    _, queue = cl_context()
+    if texels.sub.shape[0] != SEAM_SUBSAMPLES ** 2:
+        raise InputError(f"margin points: {texels.sub.shape[0]} offsets a texel, the "
+                         f"kernels take {SEAM_SUBSAMPLES ** 2}")
+    rays_kernel, hits_kernel = margin_kernels()
+    start, position, normal, jac_b, jac_norm = frames
+    n = texels.count
+    common = [host_buffer(a) for a in (
+        texels.empty.astype(np.int64), texels.partial.astype(np.int64), texels.b,
+        np.ascontiguousarray(texels.sub, np.float64))]
+    origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    reach = np.empty(n, np.float64)
+    outputs = [host_output(a) for a in (origin, direction, reach)]
+    # every buffer held until the queue is done: one over a host array lets the array
+    # go with it, while the kernel may still read it
+    inputs = [host_buffer(a) for a in (start.astype(np.int64), position, normal, jac_b,
+                                       jac_norm)]
+    rays_kernel(
+        queue, (n,), None, *common, *inputs, np.int64(w), np.int32(texels.n_empty),
+        np.int32(n), *outputs)
+    for buffer, array in zip(outputs, (origin, direction, reach), strict=True):
+        read_output(queue, buffer, array)
+    prim, bu, bv, dist = g.rays.intersect(origin, direction)
+    del origin, direction
+    keep = np.empty(n, np.uint8)
+    chart, t_local = np.empty(n, np.int32), np.empty(n, np.int64)
+    level_xy = np.empty((n, 2), np.float64)
+    outputs = [host_output(a) for a in (keep, chart, level_xy, t_local)]
+    hits = [host_buffer(a) for a in (prim, bu, bv, dist, reach)]
+    atlas = [host_buffer(np.ascontiguousarray(shift, np.int64)), host_buffer(owner)]
+    device = g.device_buffers
+    hits_kernel(
+        queue, (n,), None, *common, inputs[3], np.int64(w), np.int32(texels.n_empty),
+        np.int32(n), *hits, device["owner"], np.int64(g.mesh_index), device["corners"],
+        device["inverse_jac"], device["tri_chart"], *atlas, np.float64(1 << level),
+        *outputs)
+    for buffer, array in zip(outputs, (keep, chart, level_xy, t_local), strict=True):
+        read_output(queue, buffer, array)
+    del common, inputs, hits, atlas  # the queue is done with them
+    kept = np.flatnonzero(keep)
+    return kept, np.take(chart, kept), np.take(level_xy, kept, axis=0), np.take(t_local, kept)
 
 
 def _norm_axis1(a: NDArray[np.float64]) -> NDArray[np.float64]:

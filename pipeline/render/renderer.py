@@ -466,6 +466,8 @@ class Renderer:
                                        sequence=opts.light_sequence),
             PlannedStep(render + "push_pull", "push_pull_kernels")]
         if opts.scattering and opts.blur == "recursive":
+            # the seam layout's (beside the irradiance)
+            steps.insert(2, PlannedStep(render + "chart_tiles", "margin_kernels"))
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
                               for m in scene.skin})
             steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))

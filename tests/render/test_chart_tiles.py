@@ -284,3 +284,31 @@ def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
         cl.enqueue_copy(queue, mine, got[k])
         assert want[..., 3].max() > 0.99 and np.abs(want).max() < 2, k
         np.testing.assert_allclose(mine, want, rtol=0, atol=2e-6, err_msg=f"level {k}")
+
+
+@pytest.mark.parametrize("bend", [0.0, 0.02], ids=["flat", "bent"])
+def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
+        bend: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The margin points' arithmetic on the device (doubles, no fused multiply-adds)
+    against numpy's, levels 0-3 of the two-chart patch, flat and bent into a trough
+    (z = bend x^2: points land on the other chart off their tangent plane, some miss):
+    the same reads bit for bit."""
+    import pipeline.render.chart_tiles as chart_tiles
+
+    if not chart_tiles._device_has_doubles():
+        pytest.skip("the device has no doubles: the margins are numpy's alone")
+    pts, tris, uv = seam_patch()
+    pts = pts + np.stack([0 * pts[:, 0], 0 * pts[:, 0], bend * pts[:, 0] ** 2], axis=1)
+    maps = rasterize(pts, tris, uv, tris, 256, 0.001)
+    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    tiles = {}
+    for device in (True, False):
+        monkeypatch.setattr(chart_tiles, "_device_has_doubles", lambda device=device: device)
+        layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                                 None, charts)
+        tiles[device] = [layout.grid(k, 6).tiles for k in range(4)]
+    for k, (mine, want) in enumerate(zip(tiles[True], tiles[False], strict=True)):
+        assert want.reads.nnz > 0, k
+        for name in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(mine.reads, name),
+                                          getattr(want.reads, name), err_msg=f"{k} {name}")

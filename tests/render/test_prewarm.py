@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from pipeline.render import (
+    chart_tiles,
     diffusion,
     direct_blur,
     lighting,
@@ -28,6 +29,7 @@ from pipeline.render.options import DEVICE_ENV
 from pipeline.render.scene import Light
 
 KERNEL_SOURCES = {
+    "chart_tiles": chart_tiles._MARGIN_KERNEL,
     "diffusion": diffusion._KERNEL + diffusion._PYRAMID_KERNEL,
     "direct_blur": direct_blur._KERNEL,
     "lighting": lighting._SAMPLE_KERNEL + lighting._INTERLEAVE_KERNEL,
