@@ -678,6 +678,26 @@ class Renderer:
             "mm_per_texel_median": texel_mm,
         }
 
+    def texture_space(self, log: TaskLog, scene: SceneData, mesh: SceneMesh, rays: RayScene,
+                      dome_textures: dict[str, NDArray[np.float32]] | None = None
+                      ) -> SkinTextures:
+        """A skin mesh's texture-space tasks for a frame of ``scene`` (the ray scene
+        ``rays`` holds every mesh of it): texture maps, albedo, irradiance and the
+        diffused radiance, the seam layout made beside the irradiance; each task's
+        seconds, cached tasks and measures go to ``log``."""
+        tex = self._textures(log, scene, mesh)
+        terms, texel_mm = self._terms(tex)
+        layout = self._layout_beside(log, tex, terms, rays, scene.meshes.index(mesh),
+                                     scene_geometry_key(scene))
+        try:
+            self._irradiance(log, scene, tex, rays, dome_textures or {})
+        except BaseException:
+            if layout is not None:  # no thread outlives its frame, not even on errors
+                wait([layout])
+            raise
+        self._diffusion(log, tex, terms, texel_mm, layout)
+        return tex
+
     # ---- per frame
     def render(self, time_code: Any = None) -> tuple[dict[str, NDArray[np.float32]], TaskLog]:
         """One frame: AOV images (H, W, 4 for beauty with alpha; H, W, 3 otherwise)."""
@@ -705,21 +725,9 @@ class Renderer:
             if light.kind == "dome" and light.texture:
                 domes[light.path] = self._cached(log, f"dome:{light.path}", str(light.texture),
                                                  lambda lt=light: read_image(lt.texture).pixels)
-        skins = []
-        for mesh in scene.skin:
-            tex = self._textures(log, scene, mesh)
-            terms, texel_mm = self._terms(tex)
-            layout = self._layout_beside(log, tex, terms, rays, scene.meshes.index(mesh),
-                                         scene_geometry_key(scene))
-            try:
-                self._irradiance(log, scene, tex, rays, domes)
-            except BaseException:
-                if layout is not None:  # no thread outlives its frame, not even on errors
-                    wait([layout])
-                raise
-            self._diffusion(log, tex, terms, texel_mm, layout)
-            skins.append(tex)
-        self.textures = skins  # the last frame's texture-space results, for outputs
+        # the last frame's texture-space results, for outputs
+        skins = self.textures = [self.texture_space(log, scene, mesh, rays, domes)
+                                 for mesh in scene.skin]
         seen = [i for i, m in enumerate(scene.meshes) if m.camera_visible]
         if not seen:
             raise InputError("every mesh on the stage is hidden from the camera")

@@ -20,7 +20,7 @@ from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.types import MeasuredProfile
 from ..render.options import SHADOW_SAMPLING
 from ..render.raytrace import RayScene
-from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear, scene_geometry_key
+from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear
 from ..render.unwrap import triangulate
 from ..usd.io import open_stage_guarded
 
@@ -221,13 +221,12 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                 log = TaskLog()
                 rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
                 mesh = sc.skin[0]
-                tex = renderer._textures(log, sc, mesh)
-                renderer._irradiance(log, sc, tex, rays, {})
                 t0 = time.perf_counter()
-                renderer._diffusion(log, tex, rays, sc.meshes.index(mesh),
-                                    scene_geometry_key(sc))
-                seconds = (log.seconds.get("texture_maps", 0) + log.seconds.get("irradiance", 0)
-                           + time.perf_counter() - t0)
+                tex = renderer.texture_space(log, sc, mesh, rays)
+                # the texture maps, irradiance and diffusion (its layout made beside the
+                # irradiance), without the UVs and the albedo
+                seconds = time.perf_counter() - t0 - sum(
+                    log.seconds.get(task, 0.0) for task in ("unwrap", "albedo"))
             finally:
                 renderer.close()
             if not finest:
