@@ -305,6 +305,34 @@ def _cubic_taps(xy: NDArray[np.float32], shape: tuple[int, int]
     return idx, (wy[:, None, :] * wx[None, :, :]).reshape(16, -1).astype(np.float32)
 
 
+def _taps_per_read(level: int) -> int:
+    return 4 if level == 0 else 16
+
+
+def _read_taps(xy: NDArray[np.float32], shape: tuple[int, int], level: int
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+    """The reads at atlas positions ``xy`` as CSR rows: per read its taps' weights and
+    flat indices side by side ((M K,), K = :func:`_taps_per_read`), bilinear at level 0,
+    Catmull-Rom above. On the device where it has doubles (``read_taps``: numpy's
+    operations in numpy's order, the same taps bit for bit), else numpy's."""
+    taps = _taps_per_read(level)
+    m = xy.shape[0]
+    if m == 0 or not _device_has_doubles():
+        index, weight = (_bilinear_taps if level == 0 else _cubic_taps)(xy, shape)
+        return np.ascontiguousarray(weight.T).ravel(), np.ascontiguousarray(index.T).ravel()
+    _, queue = cl_context()
+    data, indices = np.empty(m * taps, np.float32), np.empty(m * taps, np.int32)
+    outputs = [host_output(a) for a in (data, indices)]
+    source = host_buffer(np.ascontiguousarray(xy, np.float32))
+    Kernel(_margin_program(), "read_taps", 1)(
+        queue, (m,), None, source, np.int32(shape[0]), np.int32(shape[1]), np.int32(taps),
+        np.int32(m), *outputs)
+    for buffer, array in zip(outputs, (data, indices), strict=True):
+        read_output(queue, buffer, array)
+    del source  # the queue is done with it
+    return data, indices
+
+
 def _pack(sizes: NDArray[np.int64]) -> tuple[NDArray[np.int64], tuple[int, int]]:
     """Shelf packing of (C, 2) tile sizes (w, h), tallest first, TILE_GAP apart: each
     tile's (x, y) and the atlas (height, width)."""
@@ -445,13 +473,12 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     if geometry is not None and margin > 0:
         index, source = _margin_sources(geometry, level, shift, count, partial, full,
                                         nearest, owner, w)
-    taps, tap_weights = (_bilinear_taps if level == 0 else _cubic_taps)(source, shape)
+    data, indices = _read_taps(source, shape, level)
     # the reads come sorted by texel (_mean_per_key), each with its taps side by side:
     # the CSR arrays directly (scipy's COO conversion sorted 34 M entries again)
     indptr = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(index, minlength=n) * taps.shape[0], out=indptr[1:])
-    reads = csr_matrix((np.ascontiguousarray(tap_weights.T).ravel(),
-                        np.ascontiguousarray(taps.T).ravel(), indptr), shape=(n, n))
+    np.cumsum(np.bincount(index, minlength=n) * _taps_per_read(level), out=indptr[1:])
+    reads = csr_matrix((data, indices, indptr), shape=(n, n))
     return TileLevel(level, margin, shape, shift.astype(np.float32), owner, count, reads,
                      mm_u_out, mm_v_out)
 
@@ -778,6 +805,52 @@ __kernel void margin_hits(__global const long *empty, __global const long *parti
     xy_out[2 * (size_t)i + 1] = ly;
     t_out[i] = tri;
 }
+
+// Read i's taps at atlas position xy[i] (an atlas h x w), CSR order: 4 bilinear taps
+// (_bilinear_taps, level 0) or 16 Catmull-Rom ones (_cubic_taps), weights (float32 of
+// the doubles' products) and flat indices, each as numpy makes them.
+__kernel void read_taps(__global const float *xy, const int h, const int w,
+                        const int taps, const int m, __global float *weight,
+                        __global int *index)
+{
+    const int i = get_global_id(0);
+    if (i >= m) return;
+    const double x = (double)xy[2 * (size_t)i], y = (double)xy[2 * (size_t)i + 1];
+    __global float *wo = weight + (size_t)taps * i;
+    __global int *io = index + (size_t)taps * i;
+    if (taps == 4) {
+        int x0 = (int)floor(x), y0 = (int)floor(y);
+        x0 = x0 < 0 ? 0 : (x0 > w - 2 ? w - 2 : x0);
+        y0 = y0 < 0 ? 0 : (y0 > h - 2 ? h - 2 : y0);
+        double ax = x - (double)x0, ay = y - (double)y0;
+        ax = ax < 0.0 ? 0.0 : (ax > 1.0 ? 1.0 : ax);
+        ay = ay < 0.0 ? 0.0 : (ay > 1.0 ? 1.0 : ay);
+        const int at = y0 * w + x0;
+        io[0] = at; io[1] = at + 1; io[2] = at + w; io[3] = at + w + 1;
+        wo[0] = (float)((1.0 - ax) * (1.0 - ay)); wo[1] = (float)(ax * (1.0 - ay));
+        wo[2] = (float)((1.0 - ax) * ay); wo[3] = (float)(ax * ay);
+        return;
+    }
+    int x0 = (int)floor(x), y0 = (int)floor(y);
+    x0 = x0 < 1 ? 1 : (x0 > w - 3 ? w - 3 : x0);
+    y0 = y0 < 1 ? 1 : (y0 > h - 3 ? h - 3 : y0);
+    double wx[4], wy[4];
+    for (int axis = 0; axis < 2; ++axis) {
+        double t = axis == 0 ? x - (double)x0 : y - (double)y0;
+        t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
+        const double t2 = t * t, t3 = t * t * t;
+        double *c = axis == 0 ? wx : wy;
+        c[0] = (-t3 + 2.0 * t2 - t) / 2.0;
+        c[1] = (3.0 * t3 - 5.0 * t2 + 2.0) / 2.0;
+        c[2] = (-3.0 * t3 + 4.0 * t2 + t) / 2.0;
+        c[3] = (t3 - t2) / 2.0;
+    }
+    for (int dy = 0; dy < 4; ++dy)
+        for (int dx = 0; dx < 4; ++dx) {
+            io[4 * dy + dx] = (y0 + dy - 1) * w + x0 + dx - 1;
+            wo[4 * dy + dx] = (float)(wy[dy] * wx[dx]);
+        }
+}
 """
 
 
@@ -793,13 +866,15 @@ def _margin_program() -> Any:
 
 
 def margin_kernels() -> tuple[Any, ...]:
-    """The margin points' kernels, for a :class:`~.opencl.Prewarm` (none on a device
-    without doubles). Each chunk of margin points makes kernel objects of its own: the
-    chunks run on several threads, and a kernel object's arguments are shared."""
+    """The seam layout's kernels (margin points, read taps), for a
+    :class:`~.opencl.Prewarm` (none on a device without doubles). Each call of them
+    makes kernel objects of its own: levels and chunks run on several threads, and a
+    kernel object's arguments are shared."""
     if not _device_has_doubles():
         return ()
     program = _margin_program()
-    return Kernel(program, "margin_rays", 1), Kernel(program, "margin_hits", 1)
+    return tuple(Kernel(program, name, 1) for name in ("margin_rays", "margin_hits",
+                                                      "read_taps"))
 
 
 def _device_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
@@ -814,7 +889,7 @@ def _device_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     if texels.sub.shape[0] != SEAM_SUBSAMPLES ** 2:
         raise InputError(f"margin points: {texels.sub.shape[0]} offsets a texel, the "
                          f"kernels take {SEAM_SUBSAMPLES ** 2}")
-    rays_kernel, hits_kernel = margin_kernels()
+    rays_kernel, hits_kernel, _ = margin_kernels()
     start, position, normal, jac_b, jac_norm = frames
     n = texels.count
     common = [host_buffer(a) for a in (

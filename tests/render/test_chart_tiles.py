@@ -312,3 +312,22 @@ def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
         for name in ("indptr", "indices", "data"):
             np.testing.assert_array_equal(getattr(mine.reads, name),
                                           getattr(want.reads, name), err_msg=f"{k} {name}")
+
+
+@pytest.mark.parametrize("level", [0, 1])
+def test_the_device_makes_the_read_taps_as_numpy_does(
+        level: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reads' taps (bilinear at level 0, Catmull-Rom above) on the device against
+    numpy's, at random atlas positions including ones past every edge (the clamps):
+    the same indices and float32 weights bit for bit."""
+    import pipeline.render.chart_tiles as chart_tiles
+
+    if not chart_tiles._device_has_doubles():
+        pytest.skip("the device has no doubles: the taps are numpy's alone")
+    xy = (np.random.default_rng(level).random((5000, 2)) * [70, 50] - 3).astype(np.float32)
+    mine = chart_tiles._read_taps(xy, (45, 64), level)
+    monkeypatch.setattr(chart_tiles, "_device_has_doubles", lambda: False)
+    want = chart_tiles._read_taps(xy, (45, 64), level)
+    for got, expected in zip(mine, want, strict=True):
+        assert got.dtype == expected.dtype and got.shape == expected.shape
+        np.testing.assert_array_equal(got, expected)
