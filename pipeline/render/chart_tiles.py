@@ -216,10 +216,11 @@ class TileLevel:
     texels) reads once per other chart: its centre carried across the seam into that
     chart's tile, read there with :func:`_bilinear_taps` (level 0) or
     :func:`_cubic_taps`."""
-    mm_u: NDArray[np.float32]
-    mm_v: NDArray[np.float32]
+    mm_u: NDArray[np.float32] | None
+    mm_v: NDArray[np.float32] | None
     """(H, W): mm of surface per atlas texel along u and v (a margin texel: its
-    nearest tile texel's)."""
+    nearest tile texel's); None once a diffusion layout's level holds them as log2
+    steps (``LevelGrid``)."""
 
     def fill(self, values: NDArray[np.float32], chart: NDArray[np.int32],
              coverage: NDArray[np.float32] | None) -> NDArray[np.float32]:

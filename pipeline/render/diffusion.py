@@ -597,6 +597,9 @@ class LevelGrid:
         self.typical = [float(np.median(m)) for m in on]
         self.uniform = all(float(m.max() - m.min()) <= 1e-6 * float(m.max()) for m in on)
         self._q = tuple(quantized_log2(m) for m in mm)
+        # the sizes live on as their log2 steps: the float copies go (8 bytes an atlas
+        # texel, 0.23 GB over the levels at texture 4096, alive through the diffusion)
+        tiles.mm_u = tiles.mm_v = None
         self._inner = inner
         self._index: tuple[int, int, int, int, Any, Any] | None = None
         self._texel: TexelSteps | bool | None = False
