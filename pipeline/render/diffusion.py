@@ -201,7 +201,14 @@ def _region_presence(region_weights: NDArray[np.float32] | None) -> NDArray[np.b
     if region_weights is None:
         return None
     n = region_weights.shape[-1]
-    return region_weights.reshape(-1, n).max(axis=0) > 0
+    flat = region_weights.reshape(-1, n)
+    # 64 texels a row: numpy's reduction over rows of only R values took 0.88 s at
+    # texture 4096 (the maximum is the same whatever the grouping)
+    whole = flat.shape[0] - flat.shape[0] % 64
+    parts = [flat[whole:]]
+    if whole:
+        parts.append(flat[:whole].reshape(-1, 64 * n).max(axis=0).reshape(64, n))
+    return np.concatenate(parts).max(axis=0, initial=0.0) > 0
 
 
 def _check_terms(
