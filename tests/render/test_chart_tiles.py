@@ -331,3 +331,28 @@ def test_the_device_makes_the_read_taps_as_numpy_does(
     for got, expected in zip(mine, want, strict=True):
         assert got.dtype == expected.dtype and got.shape == expected.shape
         np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("bend", [0.0, 0.02], ids=["flat", "bent"])
+def test_the_device_finds_the_texel_coverage_as_numpy_does(
+        bend: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each texel's covered share on the device (a work item per texel, doubles)
+    against numpy's over the border texels, on the two-chart patch flat and bent, its
+    UV layout turned 0.3 rad (its borders cross the texels at every phase): the same
+    shares bit for bit (test_texel_coverage_is_the_share_of_the_square_on_its_chart
+    holds the device's to the exact overlap)."""
+    import pipeline.render.chart_tiles as chart_tiles
+
+    if not chart_tiles._device_has_doubles():
+        pytest.skip("the device has no doubles: the coverage is numpy's alone")
+    pts, tris, uv = seam_patch()
+    pts = pts + np.stack([0 * pts[:, 0], 0 * pts[:, 0], bend * pts[:, 0] ** 2], axis=1)
+    turn = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    uv = (uv - 0.5) @ turn.T * 0.7 + 0.5
+    maps = rasterize(pts, tris, uv, tris, 512, 0.001)
+    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    monkeypatch.setattr(chart_tiles, "_device_has_doubles", lambda: False)
+    again = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    partial = charts.coverage[(charts.coverage > 0) & (charts.coverage < 1)]
+    assert partial.size > 500 and np.unique(partial).size > 8
+    np.testing.assert_array_equal(charts.coverage, again.coverage)
