@@ -258,6 +258,35 @@ class TileLevel:
         return splatted
 
 
+_SEAM_READ_KERNEL = r"""
+// TileLevel.read_across_seams on the device: atlas texel i's RGBA plus what it reads
+// across the seams (row i of the reads, CSR), each row's products added in turn from
+// zero in float32 as scipy's csr_matvecs adds them (no fused multiply-adds), so the
+// same texels bit for bit.
+#pragma OPENCL FP_CONTRACT OFF
+__kernel void read_seams(__global const int *indptr, __global const int *indices,
+                         __global const float *data, __global const float *src,
+                         const int n, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    float y[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    for (int jj = indptr[i]; jj < indptr[i + 1]; ++jj) {
+        const float a = data[jj];
+        __global const float *x = src + 4 * (size_t)indices[jj];
+        for (int k = 0; k < 4; ++k) y[k] = y[k] + a * x[k];
+    }
+    for (int k = 0; k < 4; ++k) out[4 * (size_t)i + k] = src[4 * (size_t)i + k] + y[k];
+}
+"""
+
+
+@device_cache()
+def seam_read_kernel() -> Any:
+    """:data:`_SEAM_READ_KERNEL`'s kernel (one caller at a time: the diffusion's fill)."""
+    return Kernel(build(_SEAM_READ_KERNEL), "read_seams", 1)
+
+
 def _read_reach(level: int) -> int:
     """Texels either side of a read at ``level`` that its kernel reaches."""
     return 1 if level == 0 else 2

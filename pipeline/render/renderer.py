@@ -477,7 +477,8 @@ class Renderer:
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
                               for m in scene.skin})
             steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))
-                      for r in regions]
+                      for r in regions] + [PlannedStep(render + "chart_tiles",
+                                                       "seam_read_kernel")]
             stream = streams(opts.texture_size ** 2 * 16)
             # a cold cache (no program built yet: asking the switch's cache would probe
             # the device here): the blurs' kernels, needed last, on the compile worker

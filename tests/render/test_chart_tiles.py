@@ -356,3 +356,30 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
     partial = charts.coverage[(charts.coverage > 0) & (charts.coverage < 1)]
     assert partial.size > 500 and np.unique(partial).size > 8
     np.testing.assert_array_equal(charts.coverage, again.coverage)
+
+
+def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
+    """The reads across the seams on the device (``read_seams``: each row's products in
+    turn, float32) against TileLevel.read_across_seams (scipy's sparse product), levels
+    0-3 of the two-chart patch with random light: the same texels bit for bit."""
+    import pipeline.render.chart_tiles as chart_tiles
+    from pipeline.render.opencl import host_output, read_output
+
+    maps, charts = _layout(256)
+    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                             None, charts)
+    _, queue = cl_context()
+    kernel = chart_tiles.seam_read_kernel()
+    for k in range(4):
+        grid = layout.grid(k, 4)
+        reads = grid.seam_buffers()
+        assert reads is not None and grid.tiles.reads.nnz > 0, k
+        n = grid.shape[0] * grid.shape[1]
+        src = np.random.default_rng(k).random((n, 4)).astype(np.float32)
+        got = np.empty_like(src)
+        out = host_output(got)
+        source = host_buffer(src)
+        kernel(queue, (n,), None, *reads, source, np.int32(n), out)
+        read_output(queue, out, got)
+        np.testing.assert_array_equal(got, grid.tiles.read_across_seams(src.copy()),
+                                      err_msg=f"level {k}")

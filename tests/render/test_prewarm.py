@@ -29,7 +29,7 @@ from pipeline.render.options import DEVICE_ENV
 from pipeline.render.scene import Light
 
 KERNEL_SOURCES = {
-    "chart_tiles": chart_tiles._MARGIN_KERNEL,
+    "chart_tiles": chart_tiles._MARGIN_KERNEL + chart_tiles._SEAM_READ_KERNEL,
     "diffusion": diffusion._KERNEL + diffusion._PYRAMID_KERNEL,
     "direct_blur": direct_blur._KERNEL,
     "lighting": lighting._SAMPLE_KERNEL + lighting._INTERLEAVE_KERNEL,
