@@ -38,8 +38,7 @@ from .opencl import (
     device_cache,
     device_choice,
     host_buffer,
-    host_output,
-    read_output,
+    run_on_host_arrays,
 )
 
 TILE_GAP = 2
@@ -354,14 +353,9 @@ def _read_taps(xy: NDArray[np.float32], shape: tuple[int, int], level: int
         return np.ascontiguousarray(weight.T).ravel(), np.ascontiguousarray(index.T).ravel()
     _, queue = cl_context()
     data, indices = np.empty(m * taps, np.float32), np.empty(m * taps, np.int32)
-    outputs = [host_output(a) for a in (data, indices)]
-    source = host_buffer(np.ascontiguousarray(xy, np.float32))
-    Kernel(_margin_program(), "read_taps", 1)(
-        queue, (m,), None, source, np.int32(shape[0]), np.int32(shape[1]), np.int32(taps),
-        np.int32(m), *outputs)
-    for buffer, array in zip(outputs, (data, indices), strict=True):
-        read_output(queue, buffer, array)
-    del source  # the queue is done with it
+    run_on_host_arrays(Kernel(_margin_program(), "read_taps", 1), queue, (m,), (
+        np.asarray(xy, np.float32), np.int32(shape[0]), np.int32(shape[1]),
+        np.int32(taps), np.int32(m)), (data, indices))
     return data, indices
 
 
@@ -619,9 +613,9 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     empty = count[m_all] <= 1e-6
     # the points: one per texel no chart covers, then SEAM_SUBSAMPLES^2 per partly
     # covered texel (its offsets ``sub``), each from its texel's start texel b
-    texels = _PointTexels(m_all[empty], m_all[~empty], sub)
     start, b_texel = np.unique(nearest[m_all], return_inverse=True)
-    texels.b = np.concatenate([b_texel[empty], b_texel[~empty]]).astype(np.int32)
+    texels = _PointTexels(m_all[empty], m_all[~empty], sub,
+                          np.concatenate([b_texel[empty], b_texel[~empty]]).astype(np.int32))
     position, normal, jac_b = _cell_frames(g, level, shift, owner, start, w)
     frames = (start, position, normal, jac_b, _norm_axis1(jac_b).max(axis=1))
     points = _device_points if _device_has_doubles() else _numpy_points
@@ -656,12 +650,12 @@ class _PointTexels:
     centre; point n_empty + j is texel ``partial[j // S]`` at offset ``sub[j % S]``."""
 
     def __init__(self, empty: NDArray[np.int64], partial: NDArray[np.int64],
-                 sub: NDArray[np.float64]) -> None:
+                 sub: NDArray[np.float64], b: NDArray[np.int32]) -> None:
         self.empty, self.partial, self.sub = empty, partial, sub
+        self.b = b
+        """Per texel (empty ones, then partial ones) its start texel's index."""
         self.n_empty = empty.size
         self.count = empty.size + partial.size * sub.shape[0]
-        self.b = np.zeros(0, np.int32)
-        """Per texel (empty ones, then partial ones) its start texel's index."""
 
     def _texel_index(self, points: NDArray[np.int64]) -> NDArray[np.int64]:
         """Per point its texel's index among the empty, then partial texels."""
@@ -938,14 +932,9 @@ def _device_coverage(chart: NDArray[np.int32], triangle: NDArray[np.int32],
     h, w = chart.shape
     _, queue = cl_context()
     out = np.empty((h, w), np.float32)
-    output = host_output(out)
-    inputs = [host_buffer(np.ascontiguousarray(a, dtype)) for a, dtype in (
-        (chart, np.int32), (triangle, np.int32), (tri_chart, np.int32),
-        (uv_corners, np.float64))]
-    Kernel(_margin_program(), "texel_coverage", 2)(
-        queue, (w, h), None, *inputs, np.int32(h), np.int32(w), output)
-    read_output(queue, output, out)
-    del inputs  # the queue is done with them
+    run_on_host_arrays(Kernel(_margin_program(), "texel_coverage", 2), queue, (w, h), (
+        *(np.asarray(a, np.int32) for a in (chart, triangle, tri_chart)),
+        np.asarray(uv_corners, np.float64), np.int32(h), np.int32(w)), (out,))
     return out
 
 
@@ -988,38 +977,24 @@ def _device_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     rays_kernel, hits_kernel = margin_kernels()[:2]
     start, position, normal, jac_b, jac_norm = frames
     n = texels.count
-    common = [host_buffer(a) for a in (
-        texels.empty.astype(np.int64), texels.partial.astype(np.int64), texels.b,
-        np.ascontiguousarray(texels.sub, np.float64))]
+    points = (texels.empty.astype(np.int64), texels.partial.astype(np.int64), texels.b,
+              np.asarray(texels.sub, np.float64))
     origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
     reach = np.empty(n, np.float64)
-    outputs = [host_output(a) for a in (origin, direction, reach)]
-    # every buffer held until the queue is done: one over a host array lets the array
-    # go with it, while the kernel may still read it
-    inputs = [host_buffer(a) for a in (start.astype(np.int64), position, normal, jac_b,
-                                       jac_norm)]
-    rays_kernel(
-        queue, (n,), None, *common, *inputs, np.int64(w), np.int32(texels.n_empty),
-        np.int32(n), *outputs)
-    for buffer, array in zip(outputs, (origin, direction, reach), strict=True):
-        read_output(queue, buffer, array)
+    run_on_host_arrays(rays_kernel, queue, (n,), (
+        *points, start.astype(np.int64), position, normal, jac_b, jac_norm, np.int64(w),
+        np.int32(texels.n_empty), np.int32(n)), (origin, direction, reach))
     prim, bu, bv, dist = g.rays.intersect(origin, direction)
     del origin, direction
     keep = np.empty(n, np.uint8)
     chart, t_local = np.empty(n, np.int32), np.empty(n, np.int64)
     level_xy = np.empty((n, 2), np.float64)
-    outputs = [host_output(a) for a in (keep, chart, level_xy, t_local)]
-    hits = [host_buffer(a) for a in (prim, bu, bv, dist, reach)]
-    atlas = [host_buffer(np.ascontiguousarray(shift, np.int64)), host_buffer(owner)]
     device = g.device_buffers
-    hits_kernel(
-        queue, (n,), None, *common, inputs[3], np.int64(w), np.int32(texels.n_empty),
-        np.int32(n), *hits, device["owner"], np.int64(g.mesh_index), device["corners"],
-        device["inverse_jac"], device["tri_chart"], *atlas, np.float64(1 << level),
-        *outputs)
-    for buffer, array in zip(outputs, (keep, chart, level_xy, t_local), strict=True):
-        read_output(queue, buffer, array)
-    del common, inputs, hits, atlas  # the queue is done with them
+    run_on_host_arrays(hits_kernel, queue, (n,), (
+        *points, jac_b, np.int64(w), np.int32(texels.n_empty), np.int32(n), prim, bu, bv,
+        dist, reach, device["owner"], np.int64(g.mesh_index), device["corners"],
+        device["inverse_jac"], device["tri_chart"], np.asarray(shift, np.int64), owner,
+        np.float64(1 << level)), (keep, chart, level_xy, t_local))
     kept = np.flatnonzero(keep)
     return kept, np.take(chart, kept), np.take(level_xy, kept, axis=0), np.take(t_local, kept)
 

@@ -710,6 +710,21 @@ def host_output(array: NDArray[Any]) -> Any:
     return _over_host(array, cl.mem_flags.READ_WRITE)
 
 
+def run_on_host_arrays(kernel: Any, queue: Any, global_size: tuple[int, ...],
+                       args: Sequence[Any], outputs: Sequence[NDArray[Any]]) -> None:
+    """Launch ``kernel`` over ``global_size`` with ``args`` and then ``outputs`` as its
+    arguments, and wait for it. Each numpy array among ``args`` is read through
+    :func:`host_buffer` (in place on a CPU device) and each of ``outputs`` written
+    through :func:`host_output`, current on return. The buffers are held until the
+    kernel is done: a buffer over a host array lets the array go with it, while the
+    kernel may still read it."""
+    held = [host_buffer(a) if isinstance(a, np.ndarray) else a for a in args]
+    written = [host_output(a) for a in outputs]
+    kernel(queue, global_size, None, *held, *written)
+    for buffer, array in zip(written, outputs, strict=True):
+        read_output(queue, buffer, array)
+
+
 def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:
     """Bring ``array`` up to date with the :func:`host_output` buffer over it: a map and
     unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue)."""
