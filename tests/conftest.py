@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import io
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -13,12 +16,18 @@ from pipeline.profile.fit import MeasuredProfile
 from pipeline.render import opencl
 from pipeline.render.blur_switch import SWITCH_ENV
 from pipeline.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
+from pipeline.render.options import LAYOUT_CACHE_ENV
 
 from .reference_profiles import deon_profile
 
 # Which blur runs is measured per device (pipeline.render.blur_switch); tests that count blur
 # passes pin it to the values measured on PoCL. tests/render/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
+# The CLI keeps seam layouts between renders (pipeline.render.tile_store): the test run's
+# go to a folder of its own, not the user's cache, and go with it.
+_LAYOUTS = tempfile.mkdtemp(prefix="skinpipe-test-layouts-")
+atexit.register(shutil.rmtree, _LAYOUTS, ignore_errors=True)
+os.environ[LAYOUT_CACHE_ENV] = _LAYOUTS
 
 
 def _working_devices() -> list[opencl.Candidate]:

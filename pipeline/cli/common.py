@@ -110,6 +110,7 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
         AOVS,
         BLURS,
         DATA_AOVS,
+        LAYOUT_CACHE_HELP,
         LIGHT_SEQUENCES,
         SHADOW_SAMPLING,
         TEXTURE_OUTPUTS,
@@ -163,6 +164,7 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--half-float", action="store_true",
                    help="write the EXR's AOVs as half float (16 bit; the usual beauty "
                         "format) instead of 32-bit float")
+    p.add_argument("--layout-cache", default=None, metavar="DIR|off", help=LAYOUT_CACHE_HELP)
     add_device_option(p)
 
 
@@ -184,7 +186,17 @@ def render_options(args: argparse.Namespace) -> Any:
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,
         texture_outputs=args.texture_outputs,
-        half_float=args.half_float)
+        half_float=args.half_float, layout_cache=_layout_cache(args.layout_cache))
+
+
+def _layout_cache(value: str | None) -> str | None:
+    """--layout-cache as a folder (None: off): the value, else the default folder."""
+    from ..render.tile_store import default_folder
+
+    if value is not None:
+        return None if value.strip().lower() == "off" else value
+    folder = default_folder()
+    return None if folder is None else str(folder)
 
 
 def ocio_source(args: argparse.Namespace) -> str:

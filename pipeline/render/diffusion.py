@@ -55,6 +55,7 @@ from .opencl import (
 )
 from .recursive_blur import QUANT_STEPS_PER_OCTAVE, TABLE_MIN_SIGMA, iir_kernels, quantized_log2
 from .texture_maps import triangle_jacobians
+from .tile_store import TileStore
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -683,12 +684,14 @@ class DiffusionLayout:
     (:class:`LevelGrid`, :mod:`.chart_tiles`). It depends on the UV layout and the
     texture size only, so a renderer makes it once and reuses it for every frame and
     light (:func:`diffuse_prepared`), and it keeps the work buffers: first touching
-    fresh device memory costs PoCL about as much as a blur.
+    fresh device memory costs PoCL about as much as a blur. With a ``store``
+    (:class:`~.tile_store.TileStore`) the tiles are read from disk where another
+    process made them, and written there where this one makes them.
     """
 
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None,
-                 charts: ChartLayout | None = None) -> None:
+                 charts: ChartLayout | None = None, store: TileStore | None = None) -> None:
         cov = np.asarray(coverage, dtype=np.float32)
         if cov.ndim != 2:
             raise InputError(f"coverage must be (H, W), got {cov.shape}")
@@ -711,6 +714,7 @@ class DiffusionLayout:
         elif charts.chart.shape != (h, w) or not np.array_equal(charts.chart >= 0, covered):
             raise InputError("the chart map must have a chart exactly where coverage is")
         self.charts = charts
+        self.store = store
         self.levels = _max_level(h, w) + 1
         self._grids: dict[tuple[int, int], LevelGrid] = {}
         self._buffers: dict[str, Any] = {}
@@ -773,6 +777,7 @@ class DiffusionLayout:
         (a renderer's layout task does, so that the frames' diffusion finds them)."""
         wanted = [km for km in sorted(self.level_margins(variances_mm2).items())
                   if self._made(*km) is None] if self.any_covered else []
+        wanted = [km for km in wanted if not self._load(*km)]
         if wanted:
             # two levels at once: each level's single-threaded parts (splats, distance
             # transforms, read taps) run beside the other's ray casts (the layout alone
@@ -792,12 +797,25 @@ class DiffusionLayout:
         on first use (:func:`~.chart_tiles.tile_level`; ``finest``: the layout's
         :class:`~.chart_tiles.FinestTexels`, when the caller has them)."""
         key = self._made(level, margin) or (level, margin)
+        if key not in self._grids and self._load(level, margin):
+            key = self._made(level, margin) or key
         if key not in self._grids:
             c = self.charts
-            self._grids[key] = LevelGrid(tile_level(c.chart, c.n_charts, self._mm[0],
-                                                    self._mm[1], level, margin, c.geometry,
-                                                    c.coverage, finest), self.iir.ctx)
+            tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
+                               c.geometry, c.coverage, finest)
+            if self.store is not None:
+                self.store.save(tiles)  # before LevelGrid drops the texel sizes
+            self._grids[key] = LevelGrid(tiles, self.iir.ctx)
         return self._grids[key]
+
+    def _load(self, level: int, margin: int) -> bool:
+        """Whether the store (if any) held tiles for (``level``, ``margin``), now made a
+        level of this layout."""
+        tiles = None if self.store is None else self.store.load(level, margin)
+        if tiles is None:
+            return False
+        self._grids[(level, tiles.margin)] = LevelGrid(tiles, self.iir.ctx)
+        return True
 
     def _made(self, level: int, margin: int) -> tuple[int, int] | None:
         """The key of tiles already made that serve (``level``, ``margin``), if any: a

@@ -67,6 +67,7 @@ from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, texel_rows, vertex_normals
+from .tile_store import TileStore
 from .unwrap import triangulate, unwrap
 
 EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
@@ -601,15 +602,18 @@ class Renderer:
                 f"diffusion:{self._diffusion_key(tex, terms)}" in self._cache:
             return None  # a gather blur needs none; a cached diffusion needs none now
 
+        key = content_hash(tex.keys["maps"], geometry_key, mesh_index)
+
         def layout() -> DiffusionLayout:
+            store = None if opts.layout_cache is None else \
+                TileStore(Path(opts.layout_cache), key)
             return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                                    maps.region_weights,
                                    chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
-                                                tex.uv_tris, rays, mesh_index))
+                                                tex.uv_tris, rays, mesh_index), store)
 
         def make() -> DiffusionLayout:
-            prepared = self._cached(log, "diffusion_layout", content_hash(
-                tex.keys["maps"], geometry_key), layout, report=False)
+            prepared = self._cached(log, "diffusion_layout", key, layout, report=False)
             # other terms (one profile for every region) add the tiles they lack
             start = time.perf_counter()
             prepared.prepare(terms.variances_mm2)
@@ -703,6 +707,10 @@ class Renderer:
                 wait([layout])
             raise
         self._diffusion(log, tex, terms, texel_mm, layout)
+        store = None if layout is None else layout.result().store
+        if store is not None:  # its writes ran beside the diffusion
+            store.flush()
+            log.measures["tile_store"] = store.summary()
         return tex
 
     # ---- per frame

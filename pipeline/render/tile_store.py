@@ -1,0 +1,281 @@
+"""The seam layout's chart tiles kept on disk between renders.
+
+A skin mesh's chart tiles (:class:`~.chart_tiles.TileLevel`, one per pyramid level and
+margin) depend on its geometry, UVs and texture size only, never on the lights, the
+camera or the fits' weights; they are most of a first render's work at large textures
+(the demo face at texture 4096: 32-34 s of a 46-48 s render, against 1.4 GB on disk).
+A look-development loop renders the same asset again and again under other lights, and
+a farm renders its frames in separate processes, so the tiles are kept on disk as one
+uncompressed ``.npz`` per level and margin, under a key of everything they are made
+from: the mesh and texture maps' key, the scene's geometry, the skin mesh's place in it,
+the source of the modules that make them, the libraries whose arithmetic they use and
+the OpenCL device that computed their margin points.
+
+Every file is written to a temporary name and renamed (processes may write the same key
+at once); a file that does not read back (zip CRC, shapes) is removed and the tiles are
+made again; a folder that cannot be written is reported and the render goes on. The
+least recently used entries go when the folder passes its limit
+(:data:`LIMIT_ENV`, default :data:`DEFAULT_LIMIT_GB`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import tempfile
+import threading
+import time
+import zipfile
+from concurrent.futures import Future, ThreadPoolExecutor
+from functools import lru_cache
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .chart_tiles import TileLevel
+from .options import LAYOUT_CACHE_ENV
+
+LIMIT_ENV = "SKINPIPE_LAYOUT_CACHE_GB"
+"""Environment variable: the most the store's folder may hold, in GB (10^9 bytes)."""
+DEFAULT_LIMIT_GB = 8.0
+"""The demo face's tiles take 0.21 GB at texture 1024, 0.48 GB at 2048, 1.4 GB at 4096."""
+_SOURCES = ("chart_tiles.py", "diffusion.py", "texture_maps.py", "raytrace.py",
+            "opencl.py", "tile_store.py")
+"""The modules whose code decides the tiles' content (a changed line is a new key)."""
+_LIBRARIES = ("numpy", "scipy", "embreex")
+_FILE = re.compile(r"^L(\d+)_M(\d+)\.npz$")
+_ARRAYS = ("shape", "shift", "owner", "count", "mm_u", "mm_v", "indptr", "indices", "data")
+_STALE_TMP_S = 3600.0
+
+
+def default_folder() -> Path | None:
+    """``$SKINPIPE_LAYOUT_CACHE`` (None where it says ``off``), else ``layouts`` in
+    skinpipe's cache folder."""
+    from .opencl_runtimes import cache_root
+
+    env = os.environ.get(LAYOUT_CACHE_ENV, "").strip()
+    if env.lower() == "off":
+        return None
+    return Path(env) if env else cache_root() / "layouts"
+
+
+def limit_bytes() -> int:
+    """The store's size limit from :data:`LIMIT_ENV` (a positive number of GB)."""
+    raw = os.environ.get(LIMIT_ENV)
+    try:
+        gb = float(raw) if raw else DEFAULT_LIMIT_GB
+    except ValueError:
+        gb = -1.0
+    if not gb > 0:
+        from ..errors import InputError
+
+        raise InputError(f"${LIMIT_ENV} must be a positive number of GB, got {raw!r}")
+    return int(gb * 1e9)
+
+
+@lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """A hash of the source of the modules that make the tiles and the versions of the
+    libraries whose arithmetic they use."""
+    h = hashlib.blake2b(digest_size=16)
+    here = Path(__file__).parent
+    for name in _SOURCES:
+        h.update(name.encode())
+        h.update((here / name).read_bytes())
+    for lib in _LIBRARIES:
+        try:
+            h.update(f"{lib}={version(lib)}".encode())
+        except PackageNotFoundError:
+            h.update(f"{lib}=?".encode())
+    return h.hexdigest()
+
+
+def device_identity() -> str:
+    """The OpenCL device that computes the margin points (platform, device, driver)."""
+    from .opencl import cl_context
+
+    dev = cl_context()[1].device
+    return f"{dev.platform.name}|{dev.name}|{dev.driver_version}"
+
+
+class TileStore:
+    """One layout's tiles in ``folder/<key>/L<level>_M<margin>.npz``. ``notes`` says what
+    was read, written, removed or could not be (for the render's log)."""
+
+    def __init__(self, folder: Path, layout_key: str, limit: int | None = None) -> None:
+        self.root = Path(folder)
+        self.key = hashlib.blake2b(
+            f"{layout_key}|{code_fingerprint()}|{device_identity()}".encode(),
+            digest_size=16).hexdigest()
+        self.entry = self.root / self.key
+        self.limit = limit_bytes() if limit is None else limit
+        self.notes: list[str] = []
+        self.loaded: list[tuple[int, int]] = []
+        self.saved: list[tuple[int, int]] = []
+        self.read_s = self.write_s = 0.0
+        self._lock = threading.Lock()
+        self._unwritable = False
+        self._writer: ThreadPoolExecutor | None = None
+        self._pending: list[Future[None]] = []
+
+    def _note(self, text: str) -> None:
+        with self._lock:
+            if text not in self.notes:
+                self.notes.append(text)
+
+    def stored(self) -> list[tuple[int, int]]:
+        """The (level, margin) pairs this layout has on disk."""
+        try:
+            names = [p.name for p in self.entry.iterdir()]
+        except OSError:
+            return []
+        return sorted((int(m[1]), int(m[2])) for m in map(_FILE.match, names) if m)
+
+    def load(self, level: int, margin: int) -> TileLevel | None:
+        """Level ``level``'s stored tiles with the narrowest margin of at least ``margin``
+        (a wider one holds what a narrower would), or None. A file that does not read back
+        whole is removed."""
+        fits = [m for (k, m) in self.stored() if k == level and m >= margin]
+        if not fits:
+            return None
+        path = self.entry / f"L{level}_M{min(fits)}.npz"
+        start = time.perf_counter()
+        try:
+            tiles = _read_tiles(path, level, min(fits))
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            self._note(f"tile store: {path} did not read back ({exc}); removed, tiles made "
+                       "again")
+            path.unlink(missing_ok=True)
+            return None
+        with self._lock:
+            self.read_s += time.perf_counter() - start
+            self.loaded.append((level, tiles.margin))
+        try:
+            os.utime(self.entry)  # most recently used: the last to go
+        except OSError:
+            pass
+        return tiles
+
+    def save(self, tiles: TileLevel) -> None:
+        """Write ``tiles`` on the store's writer thread (their arrays taken now, before a
+        ``LevelGrid`` drops their texel sizes), off the layout's path: a first render at
+        texture 4096 writes 1.4 GB in 3-4 s. :meth:`flush` waits for the writes."""
+        if self._unwritable:
+            return
+        arrays = _tile_arrays(tiles)
+        with self._lock:
+            if self._writer is None:
+                self._writer = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-tiles")
+            self._pending.append(self._writer.submit(self._write, tiles.level,
+                                                     tiles.margin, arrays))
+
+    def flush(self) -> None:
+        """Wait for every write :meth:`save` started (a failed write is a note); the
+        writer's thread ends with them."""
+        with self._lock:
+            writer, self._writer = self._writer, None
+            pending, self._pending = self._pending, []
+        if writer is not None:
+            writer.shutdown(wait=True)
+        for done in pending:
+            if done.exception() is not None:
+                self._note(f"tile store: a write failed ({done.exception()!r})")
+
+    def _write(self, level: int, margin: int, arrays: dict[str, Any]) -> None:
+        """``arrays`` to a temporary name, renamed; then the folder kept under its limit."""
+        if self._unwritable:
+            return
+        path = self.entry / f"L{level}_M{margin}.npz"
+        start = time.perf_counter()
+        tmp: Path | None = None
+        try:
+            self.entry.mkdir(parents=True, exist_ok=True)
+            fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.entry)
+            tmp = Path(name)
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **arrays)
+            os.replace(tmp, path)
+            tmp = None
+        except OSError as exc:
+            self._unwritable = True
+            self._note(f"tile store: cannot write {path} ({exc}); the tiles are made again "
+                       "next time")
+            return
+        finally:
+            if tmp is not None:
+                tmp.unlink(missing_ok=True)
+        with self._lock:
+            self.write_s += time.perf_counter() - start
+            self.saved.append((level, margin))
+            self._evict()
+
+    def _evict(self) -> None:
+        """Remove the least recently used other layouts (and stale temporary files)
+        while the folder holds more than the limit."""
+        entries = []
+        now = time.time()
+        try:
+            folders = [p for p in self.root.iterdir() if p.is_dir()]
+        except OSError:
+            return
+        for folder in folders:
+            size = 0
+            try:
+                for f in folder.iterdir():
+                    st = f.stat()
+                    if f.name.endswith(".tmp") and now - st.st_mtime > _STALE_TMP_S:
+                        f.unlink(missing_ok=True)  # left by a killed process
+                        continue
+                    size += st.st_size
+                entries.append((folder.stat().st_mtime, size, folder))
+            except OSError:
+                continue
+        total = sum(size for _, size, _ in entries)
+        for _, size, folder in sorted(entries, key=lambda e: e[0]):
+            if total <= self.limit:
+                break
+            if folder == self.entry:
+                continue
+            shutil.rmtree(folder, ignore_errors=True)
+            total -= size
+            self.notes.append(f"tile store: removed {folder.name} ({size / 1e9:.2f} GB, "
+                              f"least recently used) to stay under {self.limit / 1e9:.1f} GB")
+
+    def summary(self) -> dict[str, Any]:
+        """What this render did with the store, for render.json."""
+        return {"folder": str(self.entry), "loaded": [list(km) for km in self.loaded],
+                "saved": [list(km) for km in self.saved],
+                "read_s": round(self.read_s, 3), "write_s": round(self.write_s, 3),
+                "notes": list(self.notes)}
+
+
+def _tile_arrays(tiles: TileLevel) -> dict[str, Any]:
+    if tiles.mm_u is None or tiles.mm_v is None:
+        raise ValueError("the tiles' texel sizes were dropped (save before LevelGrid)")
+    r = tiles.reads
+    return {"shape": np.asarray(tiles.shape, np.int64), "shift": tiles.shift,
+            "owner": tiles.owner, "count": tiles.count, "mm_u": tiles.mm_u,
+            "mm_v": tiles.mm_v, "indptr": r.indptr, "indices": r.indices, "data": r.data}
+
+
+def _read_tiles(path: Path, level: int, margin: int) -> TileLevel:
+    """A stored level, its arrays checked against each other (the zip's CRC checks the
+    bytes as numpy reads them)."""
+    from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
+
+    with np.load(path, allow_pickle=False) as z:
+        a = {name: z[name] for name in _ARRAYS}
+    h, w = (int(x) for x in a["shape"])
+    n = h * w
+    flat = ("owner", "count", "mm_u", "mm_v")
+    if any(a[name].shape not in ((n,), (h, w)) for name in flat) or a["shift"].ndim != 2 \
+            or a["indptr"].shape != (n + 1,) or a["indices"].shape != a["data"].shape \
+            or int(a["indptr"][0]) != 0 or int(a["indptr"][-1]) != a["data"].size:
+        raise ValueError("arrays of inconsistent shapes")
+    reads = csr_matrix((a["data"], a["indices"], a["indptr"]), shape=(n, n), copy=False)
+    return TileLevel(level, margin, (h, w), a["shift"], a["owner"], a["count"], reads,
+                     a["mm_u"], a["mm_v"])

@@ -1,0 +1,183 @@
+"""The seam layout's tiles kept on disk (pipeline.render.tile_store): read back they give
+the diffusion the tiles made in the process gave, bit for bit; a damaged file, a folder
+that cannot be written and a full folder each cost a remake, never a render."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from pipeline.profile.reference_data import DEON_2007_SKIN
+from pipeline.render import tile_store
+from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
+from pipeline.render.renderer import Renderer, RenderOptions
+from pipeline.render.tile_store import TileStore
+from pipeline.usd.io import open_stage_guarded
+
+from .test_chart_tiles import _layout
+from .test_renderer import SMALL, lit_patch  # noqa: F401 (a fixture)
+
+SIZE = 256
+
+
+@pytest.fixture(scope="module")
+def patch_layout():
+    """The two-chart patch's maps and charts at texture 256 (a seam with real margins)."""
+    return _layout(SIZE)
+
+
+def _diffused(patch_layout, store: TileStore | None) -> tuple[np.ndarray, DiffusionLayout]:
+    maps, charts = patch_layout
+    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                             None, charts, store)
+    rng = np.random.default_rng(3)
+    light = (rng.random((SIZE, SIZE, 3)) * (maps.coverage > 0)[..., None]).astype(np.float32)
+    out, _ = diffuse_prepared(layout, light, DEON_2007_SKIN.variances_mm2,
+                              DEON_2007_SKIN.weights)
+    if store is not None:
+        store.flush()
+    return out, layout
+
+
+def test_stored_tiles_read_back_give_the_same_diffusion(patch_layout, tmp_path: Path) -> None:
+    """Made and saved by one layout, read by a second (another process's): the same
+    tiles, arrays and reads, and the same diffused light bit for bit."""
+    reference, made = _diffused(patch_layout, None)
+    first = TileStore(tmp_path, "patch")
+    out1, _ = _diffused(patch_layout, first)
+    second = TileStore(tmp_path, "patch")
+    out2, layout2 = _diffused(patch_layout, second)
+    assert first.saved and not first.loaded
+    assert sorted(second.loaded) == sorted(first.saved) and not second.saved
+    np.testing.assert_array_equal(out1, reference)
+    np.testing.assert_array_equal(out2, reference)
+    for key, grid in made._grids.items():
+        a, b = grid.tiles, layout2._grids[key].tiles
+        assert a.shape == b.shape
+        for name in ("shift", "owner", "count"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert (a.reads != b.reads).nnz == 0
+        for qa, qb in zip(grid._q, layout2._grids[key]._q, strict=True):
+            np.testing.assert_array_equal(qa, qb)
+
+
+def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Path) -> None:
+    _, layout = _diffused(patch_layout, None)
+    store = TileStore(tmp_path, "patch")
+    level, margin = next(iter(layout._grids))
+    # LevelGrid dropped the texel sizes: the store takes tiles straight from tile_level
+    from pipeline.render.chart_tiles import tile_level
+
+    maps, charts = patch_layout
+    tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
+                       maps.mm_per_texel_v, level, margin + 2, charts.geometry,
+                       charts.coverage)
+    store.save(tiles)
+    store.flush()
+    assert store.load(level, margin).margin == margin + 2
+    assert store.load(level, margin + 3) is None
+    assert store.load(level + 1, margin) is None
+
+
+def test_a_damaged_file_is_removed_and_the_tiles_made_again(patch_layout,
+                                                            tmp_path: Path) -> None:
+    reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch"))
+    files = sorted((tmp_path / TileStore(tmp_path, "patch").key).glob("*.npz"))
+    damaged = files[0]
+    data = bytearray(damaged.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte inside an array: the zip's CRC
+    damaged.write_bytes(bytes(data))
+    files[1].write_bytes(files[1].read_bytes()[:1000])  # a truncated one
+    store = TileStore(tmp_path, "patch")
+    out, _ = _diffused(patch_layout, store)
+    np.testing.assert_array_equal(out, reference)
+    assert sum("did not read back" in n for n in store.notes) == 2, store.notes
+    assert len(store.saved) == 2  # both made again and written again
+
+
+def test_a_folder_that_cannot_be_written_costs_only_the_store(patch_layout,
+                                                               tmp_path: Path) -> None:
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the store's folder should be")
+    store = TileStore(blocker, "patch")
+    reference, _ = _diffused(patch_layout, None)
+    out, _ = _diffused(patch_layout, store)
+    np.testing.assert_array_equal(out, reference)
+    assert not store.saved and any("cannot write" in n for n in store.notes)
+    assert blocker.read_text().startswith("a file")  # nothing of the user's touched
+
+
+def test_the_least_recently_used_layouts_go_past_the_limit(patch_layout,
+                                                           tmp_path: Path) -> None:
+    old = tmp_path / ("0" * 32)
+    old.mkdir()
+    (old / "L0_M5.npz").write_bytes(b"x" * 5000)
+    stale = tmp_path / ("1" * 32)
+    stale.mkdir()
+    tmp = stale / ".L0_M5.npz.abc.tmp"
+    tmp.write_bytes(b"x" * 10)
+    os.utime(old, (1.0, 1.0))  # long unused
+    os.utime(tmp, (1.0, 1.0))  # a killed writer's
+    store = TileStore(tmp_path, "patch", limit=1)  # smaller than anything: evict all else
+    _diffused(patch_layout, store)
+    assert not old.exists() and not tmp.exists()
+    assert store.entry.is_dir() and any(store.entry.glob("*.npz"))  # its own entry stays
+    assert any("least recently used" in n for n in store.notes)
+
+
+def test_the_key_holds_the_layout_and_the_code(tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    a, b = TileStore(tmp_path, "mesh a"), TileStore(tmp_path, "mesh b")
+    assert a.key != b.key
+    monkeypatch.setattr(tile_store, "code_fingerprint", lambda: "another build")
+    assert TileStore(tmp_path, "mesh a").key != a.key
+
+
+def test_a_second_renderer_reads_the_first_ones_tiles(lit_patch: Path,  # noqa: F811
+                                                      tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    options = replace(SMALL, layout_cache=str(tmp_path / "layouts"))
+    images = []
+    for expect in ("saved", "loaded"):
+        renderer = Renderer(open_stage_guarded(lit_patch), options)
+        frame, log = renderer.render()
+        renderer.close()
+        images.append(frame)
+        assert log.measures["tile_store"][expect], log.measures["tile_store"]
+    for aov, image in images[0].items():
+        np.testing.assert_array_equal(images[1][aov], image, err_msg=aov)
+
+
+def test_the_cli_keeps_the_tiles_where_asked_or_nowhere(lit_patch: Path,  # noqa: F811
+                                                        tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch
+                                                        ) -> None:
+    args = ["render", str(lit_patch), "--resolution", "32x32", "--texture-size", "64",
+            "--light-samples", "1"]
+    monkeypatch.setenv("SKINPIPE_LAYOUT_CACHE", str(tmp_path / "env"))
+    assert main([*args, "-o", str(tmp_path / "a")]) == 0
+    assert any((tmp_path / "env").glob("*/*.npz"))
+    assert main([*args, "-o", str(tmp_path / "b"), "--layout-cache", "off"]) == 0
+    doc = json.loads((tmp_path / "b" / "render.json").read_text())
+    assert "tile_store" not in doc["frames"][0]["measures"]
+    monkeypatch.setenv("SKINPIPE_LAYOUT_CACHE", "off")
+    assert main([*args, "-o", str(tmp_path / "c")]) == 0
+    assert "tile_store" not in json.loads(
+        (tmp_path / "c" / "render.json").read_text())["frames"][0]["measures"]
+    assert main([*args, "-o", str(tmp_path / "d"), "--layout-cache", str(tmp_path / "x")]) == 0
+    assert any((tmp_path / "x").glob("*/*.npz"))
+
+
+def test_a_bad_size_limit_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline.errors import InputError
+
+    monkeypatch.setenv(tile_store.LIMIT_ENV, "lots")
+    with pytest.raises(InputError, match=r"SKINPIPE_LAYOUT_CACHE_GB.*lots"):
+        tile_store.limit_bytes()
+    assert RenderOptions().layout_cache is None  # the library writes nothing unasked
