@@ -60,6 +60,9 @@ def main() -> None:
     summary: dict[str, Any] = {"machine": {"platform": platform.platform(),
                                            "cores": os.cpu_count()}, "quick": args.quick}
     with tempfile.TemporaryDirectory(prefix="skinpipe-bench-") as tmp:
+        # the renders make their seam layout as a first render does (an empty folder of
+        # kept layouts; benchmarks/bench_layout_store.py measures reading one back)
+        os.environ["SKINPIPE_LAYOUT_CACHE"] = str(Path(tmp) / "layouts")
         demo = Path(tmp) / "demo"
         summary["demo"] = run_measured([py, "-m", "pipeline", "demo", "-o", str(demo)])
         summary["demo"]["stages"] = json.loads((demo / "report.json").read_text())["stages"]
