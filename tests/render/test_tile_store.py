@@ -181,3 +181,24 @@ def test_a_bad_size_limit_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
     with pytest.raises(InputError, match=r"SKINPIPE_LAYOUT_CACHE_GB.*lots"):
         tile_store.limit_bytes()
     assert RenderOptions().layout_cache is None  # the library writes nothing unasked
+
+
+def test_prepare_makes_the_blurs_device_buffers_beside_the_irradiance(patch_layout) -> None:
+    """The layout's task (beside the irradiance) makes every buffer the diffusion's fills
+    and blurs read, so the diffusion after the irradiance does not; the light is the same
+    as a layout that makes them on first use."""
+    maps, charts = patch_layout
+    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                             None, charts)
+    layout.prepare(DEON_2007_SKIN.variances_mm2)
+    assert layout._grids
+    for grid in layout._grids.values():
+        assert grid._splat is not None and grid._seams is not None
+        if not grid.uniform:
+            assert grid._index is not None and grid._texel is not False
+    reference, _ = _diffused(patch_layout, None)
+    rng = np.random.default_rng(3)
+    light = (rng.random((SIZE, SIZE, 3)) * (maps.coverage > 0)[..., None]).astype(np.float32)
+    out, _ = diffuse_prepared(layout, light, DEON_2007_SKIN.variances_mm2,
+                              DEON_2007_SKIN.weights)
+    np.testing.assert_array_equal(out, reference)
