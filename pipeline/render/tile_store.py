@@ -23,8 +23,8 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import secrets
 import shutil
-import tempfile
 import threading
 import time
 import zipfile
@@ -147,9 +147,13 @@ class TileStore:
         try:
             tiles = _read_tiles(path, level, min(fits))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-            self._note(f"tile store: {path} did not read back ({exc}); removed, tiles made "
+            try:
+                path.unlink(missing_ok=True)
+                gone = "removed"
+            except OSError:  # another user's file in a shared folder
+                gone = "left"
+            self._note(f"tile store: {path} did not read back ({exc}); {gone}, tiles made "
                        "again")
-            path.unlink(missing_ok=True)
             return None
         with self._lock:
             self.read_s += time.perf_counter() - start
@@ -194,8 +198,10 @@ class TileStore:
         tmp: Path | None = None
         try:
             self.entry.mkdir(parents=True, exist_ok=True)
-            fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.entry)
-            tmp = Path(name)
+            # the umask's mode (mkstemp's 0600 would keep the file from a farm's other
+            # users sharing the folder), a name of its own per writer
+            tmp = self.entry / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
             with os.fdopen(fd, "wb") as f:
                 np.savez(f, **arrays)
             os.replace(tmp, path)

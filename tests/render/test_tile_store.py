@@ -202,3 +202,28 @@ def test_prepare_makes_the_blurs_device_buffers_beside_the_irradiance(patch_layo
     out, _ = diffuse_prepared(layout, light, DEON_2007_SKIN.variances_mm2,
                               DEON_2007_SKIN.weights)
     np.testing.assert_array_equal(out, reference)
+
+
+def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: Path) -> None:
+    """Farm nodes rendering the same asset at once write the same key: each renames a
+    whole file into place, the last one stays, nothing temporary is left behind."""
+    from pipeline.render.chart_tiles import tile_level
+
+    maps, charts = patch_layout
+    tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
+                       maps.mm_per_texel_v, 0, 6, charts.geometry, charts.coverage)
+    stores = [TileStore(tmp_path, "patch") for _ in range(4)]
+    for store in stores:
+        store.save(tiles)  # each on its own writer thread, all at once
+    for store in stores:
+        store.flush()
+        assert store.saved == [(0, 6)] and not store.notes
+    entry = stores[0].entry
+    assert [p.name for p in entry.iterdir()] == ["L0_M6.npz"]
+    umask = os.umask(0)
+    os.umask(umask)
+    # readable as the umask allows (mkstemp's 0600 would shut out a farm's other users)
+    assert (entry / "L0_M6.npz").stat().st_mode & 0o777 == 0o666 & ~umask
+    back = TileStore(tmp_path, "patch").load(0, 6)
+    np.testing.assert_array_equal(back.owner, tiles.owner)
+    assert (back.reads != tiles.reads).nnz == 0
