@@ -609,7 +609,9 @@ class Renderer:
         every frame, light and set of terms (a task of its own, cached); the charts'
         tiles cross the UV seams (chart_tiles), each set of terms adds the tiles and
         margins it reaches (prepare). A cached layout that holds the terms' tiles is
-        back at once."""
+        back at once. With ``options.layout_cache`` the tiles come from disk where an
+        earlier process made them (:mod:`.tile_store`), and go there where this one
+        makes them; ``render.json``'s ``tile_store`` says which."""
         opts, maps = self.options, tex.maps
         if not (opts.scattering and opts.blur == "recursive") or \
                 f"diffusion:{self._diffusion_key(tex, terms)}" in self._cache:
