@@ -1,6 +1,7 @@
 """The seam layout's tiles kept on disk (pipeline.render.tile_store): read back they give
-the diffusion the tiles made in the process gave, bit for bit; a damaged file, a folder
-that cannot be written and a full folder each cost a remake, never a render."""
+the diffusion the tiles made in the process gave, bit for bit; a damaged file or a folder
+that cannot be written costs a remake, a full folder its least recently used layouts,
+never a render."""
 
 from __future__ import annotations
 
