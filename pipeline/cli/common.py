@@ -190,12 +190,10 @@ def render_options(args: argparse.Namespace) -> Any:
 
 
 def _layout_cache(value: str | None) -> str | None:
-    """--layout-cache as a folder (None: off): the value, else the default folder."""
-    from ..render.tile_store import default_folder
+    """--layout-cache as the folder it names (None: off)."""
+    from ..render.tile_store import layout_folder
 
-    if value is not None:
-        return None if value.strip().lower() == "off" else value
-    folder = default_folder()
+    folder = layout_folder(value)
     return None if folder is None else str(folder)
 
 

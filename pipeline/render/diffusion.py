@@ -785,9 +785,9 @@ class DiffusionLayout:
     def prepare(self, variances_mm2: NDArray[Any]) -> None:
         """Make the chart tiles the terms of ``variances_mm2`` need ahead of a diffusion
         (a renderer's layout task does, so that the frames' diffusion finds them)."""
-        wanted = [km for km in sorted(self.level_margins(variances_mm2).items())
-                  if self._made(*km) is None] if self.any_covered else []
-        wanted = [km for km in wanted if not self._load(*km)]
+        needed = sorted(self.level_margins(variances_mm2).items()) if self.any_covered \
+            else []
+        wanted = [km for km in needed if self._made(*km) is None and not self._load(*km)]
         if wanted:
             # two levels at once: each level's single-threaded parts (splats, distance
             # transforms, read taps) run beside the other's ray casts (the layout alone
@@ -801,24 +801,25 @@ class DiffusionLayout:
 
             with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
                 list(pool.map(lambda km: make(*km), wanted))
-        for km in self.level_margins(variances_mm2).items() if self.any_covered else ():
+        for km in needed:
             # the blurs' device buffers too, here beside the irradiance rather than in
             # the diffusion after it (texture 4096: 1.1 s of a 9 s diffusion)
-            self._grids[self._made(*km) or km].device_buffers()
+            self.grid(*km).device_buffers()
 
     def grid(self, level: int, margin: int, finest: FinestTexels | None = None) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
         on first use (:func:`~.chart_tiles.tile_level`; ``finest``: the layout's
         :class:`~.chart_tiles.FinestTexels`, when the caller has them)."""
-        key = self._made(level, margin) or (level, margin)
-        if key not in self._grids and self._load(level, margin):
-            key = self._made(level, margin) or key
-        if key not in self._grids:
+        key = self._made(level, margin)
+        if key is None and self._load(level, margin):
+            key = self._made(level, margin)
+        if key is None:
             c = self.charts
             tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
                                c.geometry, c.coverage, finest)
             if self.store is not None:
                 self.store.save(tiles)  # before LevelGrid drops the texel sizes
+            key = (level, margin)
             self._grids[key] = LevelGrid(tiles, self.iir.ctx)
         return self._grids[key]
 

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
 from .chart_tiles import TileLevel
 from .options import LAYOUT_CACHE_ENV
 
@@ -52,15 +53,18 @@ _ARRAYS = ("shape", "shift", "owner", "count", "mm_u", "mm_v", "indptr", "indice
 _STALE_TMP_S = 3600.0
 
 
-def default_folder() -> Path | None:
-    """``$SKINPIPE_LAYOUT_CACHE`` (None where it says ``off``), else ``layouts`` in
-    skinpipe's cache folder."""
+def layout_folder(value: str | None = None) -> Path | None:
+    """The folder a CLI render keeps layouts in: ``value`` (``--layout-cache``), else
+    ``$SKINPIPE_LAYOUT_CACHE``, else ``layouts`` in skinpipe's cache folder; None where
+    the one that decides says ``off``. The size limit (:func:`limit_bytes`) is checked
+    here too, so that a bad one stops the command before it renders."""
     from .opencl_runtimes import cache_root
 
-    env = os.environ.get(LAYOUT_CACHE_ENV, "").strip()
-    if env.lower() == "off":
+    chosen = (value if value is not None else os.environ.get(LAYOUT_CACHE_ENV, "")).strip()
+    if chosen.lower() == "off":
         return None
-    return Path(env) if env else cache_root() / "layouts"
+    limit_bytes()
+    return Path(chosen) if chosen else cache_root() / "layouts"
 
 
 def limit_bytes() -> int:
@@ -71,8 +75,6 @@ def limit_bytes() -> int:
     except ValueError:
         gb = -1.0
     if not gb > 0:
-        from ..errors import InputError
-
         raise InputError(f"${LIMIT_ENV} must be a positive number of GB, got {raw!r}")
     return int(gb * 1e9)
 

@@ -224,17 +224,6 @@ def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
 # ----------------------------------------------------------------- scenes through USD
 
 
-@pytest.fixture
-def lit_patch(tmp_path: Path) -> Path:
-    asset = patch_asset(tmp_path / "asset", [deon_fit()])
-
-    def build(stage) -> None:
-        top_camera(stage)
-        distant_down(stage, intensity=2.0)
-
-    return scene_over(asset, tmp_path / "scene.usda", build)
-
-
 SMALL = RenderOptions(resolution=(48, 48), texture_size=128, light_samples=1)
 
 

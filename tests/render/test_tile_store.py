@@ -21,7 +21,7 @@ from pipeline.render.tile_store import TileStore
 from pipeline.usd.io import open_stage_guarded
 
 from .test_chart_tiles import _layout
-from .test_renderer import SMALL, lit_patch  # noqa: F401 (a fixture)
+from .test_renderer import SMALL
 
 SIZE = 256
 
@@ -139,7 +139,7 @@ def test_the_key_holds_the_layout_and_the_code(tmp_path: Path,
     assert TileStore(tmp_path, "mesh a").key != a.key
 
 
-def test_a_second_renderer_reads_the_first_ones_tiles(lit_patch: Path,  # noqa: F811
+def test_a_second_renderer_reads_the_first_ones_tiles(lit_patch: Path,
                                                       tmp_path: Path) -> None:
     from dataclasses import replace
 
@@ -155,7 +155,7 @@ def test_a_second_renderer_reads_the_first_ones_tiles(lit_patch: Path,  # noqa: 
         np.testing.assert_array_equal(images[1][aov], image, err_msg=aov)
 
 
-def test_the_cli_keeps_the_tiles_where_asked_or_nowhere(lit_patch: Path,  # noqa: F811
+def test_the_cli_keeps_the_tiles_where_asked_or_nowhere(lit_patch: Path,
                                                         tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch
                                                         ) -> None:
@@ -175,12 +175,30 @@ def test_the_cli_keeps_the_tiles_where_asked_or_nowhere(lit_patch: Path,  # noqa
     assert any((tmp_path / "x").glob("*/*.npz"))
 
 
-def test_a_bad_size_limit_is_named(monkeypatch: pytest.MonkeyPatch) -> None:
-    from pipeline.errors import InputError
+def test_a_bad_size_limit_is_named(lit_patch: Path, tmp_path: Path,
+                                   monkeypatch: pytest.MonkeyPatch,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """A bad limit stops the command before it renders (exit 2, the variable named, no
+    output), not on the layout's thread after the shadow rays; with the store off it
+    does not matter."""
+    from pipeline.errors import EXIT_BAD_INPUT, InputError
 
     monkeypatch.setenv(tile_store.LIMIT_ENV, "lots")
     with pytest.raises(InputError, match=r"SKINPIPE_LAYOUT_CACHE_GB.*lots"):
         tile_store.limit_bytes()
+    args = ["render", str(lit_patch), "--resolution", "32x32", "--texture-size", "64",
+            "--light-samples", "1"]
+    from pipeline.render import renderer
+
+    def no_render(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("rendered before the limit was checked")
+
+    with monkeypatch.context() as m:
+        m.setattr(renderer.Renderer, "render", no_render)
+        assert main([*args, "-o", str(tmp_path / "bad")]) == EXIT_BAD_INPUT
+    assert "SKINPIPE_LAYOUT_CACHE_GB" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    assert main([*args, "-o", str(tmp_path / "off"), "--layout-cache", "off"]) == 0
     assert RenderOptions().layout_cache is None  # the library writes nothing unasked
 
 
