@@ -162,6 +162,16 @@ def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0
 # ------------------------------------------------------------------------ helpers
 
 
+def interleave_classes(shape: tuple[int, int]) -> NDArray[np.uint8]:
+    """Each texel's interleaving class, 2 (y mod 2) + (x mod 2), flat in row order: one
+    byte a texel, from the two parities (the texels' flat indices' divisions and
+    remainders in int64 took 0.21-0.23 s at texture 4096, this 0.02 s)."""
+    h, w = shape
+    rows = (np.arange(h) % 2 * 2).astype(np.uint8)
+    columns = (np.arange(w) % 2).astype(np.uint8)
+    return (rows[:, None] + columns[None, :]).ravel()
+
+
 def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
                            texel: NDArray[np.intp] | None = None
                            ) -> dict[str, NDArray[np.float32]]:
@@ -539,7 +549,7 @@ class Renderer:
             # covered texels by flat index and np.take / np.put: a boolean mask over
             # (H, W, 3) maps gathers and scatters rows several times slower
             texel = np.flatnonzero(covered)
-            interleave = (texel // covered.shape[1] % 2) * 2 + texel % covered.shape[1] % 2 \
+            interleave = np.take(interleave_classes(covered.shape), texel) \
                 if opts.shadow_sampling != "full" else None
             positions, normals = texel_rows(maps.position, texel), texel_rows(maps.normal, texel)
             res = irradiance_texture(positions, normals, scene.lights, rays,

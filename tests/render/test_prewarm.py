@@ -102,7 +102,7 @@ def test_sample_plan_is_what_the_sampler_traces(kind: str, samples: int,
     sampler = LightSampler(light, pts, nrm, samples, np.random.default_rng(0),
                            interleave=classes, device=False)
     count, inter = sample_plan(light, samples, interleaved)
-    assert (count, inter) == (sampler.count, sampler.strata is not None)
+    assert (count, inter) == (sampler.count, sampler.sets is not None)
 
 
 def _pocl_kernels(cache: Path) -> set[str]:

@@ -23,6 +23,7 @@ from pipeline.render.renderer import (
     RenderOptions,
     bilinear,
     diffusion_terms,
+    interleave_classes,
     render_files,
     resample_bilinear,
 )
@@ -207,6 +208,14 @@ def test_shared_variance_grid_reports_its_error() -> None:
     assert same.variances_mm2.size == 6 and "merged" in same.notes[0]
     with pytest.raises(InputError, match="single profile"):
         diffusion_terms(fits, single="nose")
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (3, 5), (1, 7), (7, 1)])
+def test_interleave_classes_are_the_texels_parities(shape: tuple[int, int]) -> None:
+    y, x = np.indices(shape)
+    classes = interleave_classes(shape)
+    assert classes.dtype == np.uint8
+    np.testing.assert_array_equal(classes, (2 * (y % 2) + x % 2).ravel())
 
 
 def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
