@@ -705,6 +705,7 @@ def irradiance_texture(
     samples: int = 16, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     interleave: NDArray[Any] | None = None, sequence: str = "stratified",
+    coherent: bool = False,
 ) -> IrradianceResult:
     """Irradiance entering the skin at surface points (N, 3) with unit normals, summed
     over ``lights`` with ``samples`` shadow rays per light and point (the points of
@@ -713,19 +714,31 @@ def irradiance_texture(
     per-point visibility is then noisy until ``filter_interleaved`` has run).
 
     Ray origins are pushed off the surface along the normal by what their floating-point
-    error needs (:func:`~.raytrace.offset_ray_origin`) and sorted along a Morton curve;
-    rays whose cosine is <= 0 are not cast.
+    error needs (:func:`~.raytrace.offset_ray_origin`); rays whose cosine is <= 0 are
+    not cast. The rays go to Embree sorted along a Morton curve of their origins, or in
+    the points' own order if they are ``coherent`` (neighbours on the surface next to
+    each other, as a texture's texels in :func:`~.texture_maps.texels_in_blocks`). Each
+    point's result does not depend on the order.
     """
     start = time.perf_counter()
     pos = np.asarray(positions, dtype=np.float32)
     nrm = np.asarray(normals, dtype=np.float32)
-    order = morton_order(pos)
-    # rows gathered by np.take (fancy indexing of (N, 3) rows took 5x as long: 19 ms
-    # against 4 at texture 1024), and back by the inverse order's take, not a scatter
-    pos, nrm = np.take(pos, order, axis=0), np.take(nrm, order, axis=0)
-    back_order = np.empty_like(order)
-    back_order[order] = np.arange(order.size)
-    classes = None if interleave is None else np.asarray(interleave)[order]
+    classes = None if interleave is None else np.asarray(interleave)
+    back_order = None
+    if not coherent:
+        order = morton_order(pos)
+        # rows gathered by np.take (fancy indexing of (N, 3) rows took 5x as long: 19
+        # ms against 4 at texture 1024), and back by the inverse order's take, not a
+        # scatter
+        pos, nrm = np.take(pos, order, axis=0), np.take(nrm, order, axis=0)
+        back_order = np.empty_like(order)
+        back_order[order] = np.arange(order.size)
+        classes = None if classes is None else classes[order]
+
+    def back(a: NDArray[Any]) -> NDArray[Any]:
+        """``a`` (per sorted point) in the points' own order."""
+        return a if back_order is None else np.take(a, back_order, axis=0)
+
     origins = offset_ray_origin(pos, nrm)
     n = pos.shape[0]
     entering = np.zeros((n, 3), np.float32)
@@ -778,12 +791,12 @@ def irradiance_texture(
         lit_s = lit if lit.ndim == 1 else lit.sum(axis=1)
         un_s = unshadowed if unshadowed.ndim == 1 else unshadowed.sum(axis=1)
         vis = np.where(un_s > 0, lit_s / np.maximum(un_s, 1e-30), 0.0)
-        visibility[light.path] = np.take(vis, back_order).astype(np.float32, copy=False)
+        visibility[light.path] = back(vis).astype(np.float32, copy=False)
         # back to the points' order before the colour: a third of the gathered bytes
-        un = np.take(unshadowed, back_order, axis=0)
+        un = back(unshadowed)
         unshadowed_by_light[light.path] = un[:, None] * colour if un.ndim == 1 else \
             un * colour
-    result = np.take(entering, back_order, axis=0)
+    result = back(entering)
     return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
                             time.perf_counter() - start, frozenset(interleaved))
 
@@ -806,33 +819,38 @@ def refine_penumbrae(
     normals: NDArray[Any], interleave: NDArray[Any], lights: list[Light], rays: RayScene,
     samples: int, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
-    sequence: str = "stratified",
+    sequence: str = "stratified", texel: NDArray[np.intp] | None = None,
+    coherent: bool = False,
 ) -> tuple[IrradianceResult, dict[str, NDArray[np.int64]]]:
     """Adaptive shadow rays: after an interleaved pass (``result``: every covered texel of
-    ``covered``, row-major, traced the quarter of the strata its ``interleave`` class
-    names), the texels of :func:`penumbra_texels` trace the other three quarters (the
-    same strata: :func:`light_rng`), so that their visibility is their own estimate from
-    all ``samples``. Every other texel's neighbourhood agreed, so the interleaved
+    ``covered`` traced the quarter of the strata its ``interleave`` class names; the
+    points are the texels at flat indices ``texel``, by default in row order), the
+    texels of :func:`penumbra_texels` trace the other three quarters (the same strata:
+    :func:`light_rng`), so that their visibility is their own estimate from all
+    ``samples``. Every other texel's neighbourhood agreed, so the interleaved
     reconstruction there is its own value: nothing is filtered. The error target is
     full sampling's (each texel's visibility from all ``samples`` strata) at a fraction
-    of its rays. Returns the result (visibility final, ``interleaved`` empty) and the
-    refined points (indices into ``positions``) per light."""
+    of its rays (cast as :func:`irradiance_texture` casts them, ``coherent`` or not).
+    Returns the result (visibility final, ``interleaved`` empty) and the refined points
+    (indices into ``positions``) per light."""
     start = time.perf_counter()
     visibility = dict(result.visibility)
     unshadowed = dict(result.unshadowed)
     refined: dict[str, NDArray[np.int64]] = {}
     n_rays = result.rays
     classes = np.asarray(interleave)
+    if texel is None:
+        texel = np.flatnonzero(covered)
     for light in lights:
         path = light.path
         if path not in result.interleaved:
             continue
         vis1 = np.zeros(covered.shape, np.float32)
-        vis1[covered] = result.visibility[path]
+        np.put(vis1, texel, result.visibility[path])
         un1 = result.unshadowed[path]
         traced = np.zeros(covered.shape, bool)
-        traced[covered] = un1.sum(axis=1) > 0
-        where = np.flatnonzero(penumbra_texels(vis1, traced)[covered])
+        np.put(traced, texel, un1.sum(axis=1) > 0)
+        where = np.flatnonzero(np.take(penumbra_texels(vis1, traced), texel))
         refined[path] = where
         if not where.size:
             continue
@@ -841,7 +859,7 @@ def refine_penumbrae(
         more = irradiance_texture(np.repeat(positions[where], 3, axis=0),
                                   np.repeat(normals[where], 3, axis=0), [light], rays, samples,
                                   roughness, rho_s, seed, dome_textures, others.ravel(),
-                                  sequence)
+                                  sequence, coherent)
         n_rays += more.rays
         un2 = more.unshadowed.get(path, np.zeros((3 * where.size, 3), np.float32))
         vis2 = more.visibility.get(path, np.zeros(3 * where.size, np.float32))

@@ -66,7 +66,7 @@ from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import TextureMaps, rasterize, texel_rows, vertex_normals
+from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
 from .tile_store import TileStore
 from .unwrap import triangulate, unwrap
 
@@ -547,20 +547,22 @@ class Renderer:
 
         def compute() -> Any:
             # covered texels by flat index and np.take / np.put: a boolean mask over
-            # (H, W, 3) maps gathers and scatters rows several times slower
-            texel = np.flatnonzero(covered)
+            # (H, W, 3) maps gathers and scatters rows several times slower. In blocks,
+            # so that their rays go to Embree in a coherent order as they are
+            texel = texels_in_blocks(covered)
             interleave = np.take(interleave_classes(covered.shape), texel) \
                 if opts.shadow_sampling != "full" else None
             positions, normals = texel_rows(maps.position, texel), texel_rows(maps.normal, texel)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
-                                     opts.seed, dome_textures, interleave, opts.light_sequence)
+                                     opts.seed, dome_textures, interleave, opts.light_sequence,
+                                     coherent=True)
             penumbra: dict[str, int] = {}  # texels refined per light (adaptive)
             if opts.shadow_sampling == "adaptive" and res.interleaved:
                 res, refined = refine_penumbrae(
                     res, covered, positions, normals, interleave, scene.lights, rays,
                     opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
-                    opts.light_sequence)
+                    opts.light_sequence, texel, coherent=True)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
             visibility, entering = res.visibility, res.entering
             if interleave is not None and res.interleaved and visibility:

@@ -25,6 +25,7 @@ from pipeline.render.lighting import (
 )
 from pipeline.render.raytrace import RayScene, morton_order
 from pipeline.render.scene import Light
+from pipeline.render.texture_maps import texels_in_blocks
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -261,6 +262,30 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays(sequence: str)
     calm = ~penumbra_texels(vis1, covered)
     np.testing.assert_array_equal(key[calm], key[calm].round())
     assert calm.sum() == n * n - refined["/Key"].size
+
+
+def test_points_in_blocks_cast_as_they_come_give_each_point_the_same_light() -> None:
+    """The renderer passes the texels in blocks (texels_in_blocks) and casts their rays
+    in that order (``coherent``): each point's light, interleaved and refined, is what
+    the same point gets in row order sorted along a Morton curve, bit for bit."""
+    rays, key, pos, nrm, classes = _plate_over_floor()
+    lights = [key, Light("/Fill", "dome", np.full(3, 0.2), np.eye(4))]
+    n = PENUMBRA_TEXELS
+    covered = np.ones((n, n), bool)
+    texel = texels_in_blocks(covered, block=4)
+    assert not np.array_equal(texel, np.arange(n * n))
+    rows = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
+    rows, rows_refined = refine_penumbrae(rows, covered, pos, nrm, classes, lights, rays, 16)
+    blocks = irradiance_texture(pos[texel], nrm[texel], lights, rays, samples=16,
+                                interleave=classes[texel], coherent=True)
+    blocks, refined = refine_penumbrae(blocks, covered, pos[texel], nrm[texel],
+                                       classes[texel], lights, rays, 16, texel=texel,
+                                       coherent=True)
+    assert blocks.rays == rows.rays
+    np.testing.assert_array_equal(blocks.entering, rows.entering[texel])
+    for path in ("/Key", "/Fill"):
+        np.testing.assert_array_equal(blocks.visibility[path], rows.visibility[path][texel])
+        np.testing.assert_array_equal(np.sort(texel[refined[path]]), rows_refined[path])
 
 
 def _visible_fraction(point: np.ndarray, samples: int = 400) -> float:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError, SkinpipeError
-from pipeline.render.texture_maps import rasterize, rasterize_reference
+from pipeline.render.texture_maps import rasterize, rasterize_reference, texels_in_blocks
 from pipeline.render.unwrap import triangulate, unwrap
 from pipeline.usd.mesh import MeshData
 
@@ -25,6 +25,19 @@ def _grid(n: int, size_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             a = r * (n + 1) + c
             tris += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
     return pts, np.array(tris, np.int32), uv
+
+
+@pytest.mark.parametrize(("shape", "block"), [((8, 8), 4), ((5, 7), 2), ((33, 65), 32),
+                                               ((1, 3), 32)])
+def test_texels_in_blocks_is_every_covered_texel_block_by_block(
+        shape: tuple[int, int], block: int) -> None:
+    covered = np.random.default_rng(3).random(shape) < 0.6
+    texel = texels_in_blocks(covered, block)
+    np.testing.assert_array_equal(np.sort(texel), np.flatnonzero(covered))
+    # by block row, block column, then row and column in the block
+    y, x = np.divmod(texel, shape[1])
+    key = np.stack([y // block, x // block, y % block, x % block])
+    assert np.all(np.diff(np.ravel_multi_index(key, (shape[0], shape[1], block, block))) > 0)
 
 
 @pytest.mark.parametrize(("su", "sv"), [(1.0, 1.0), (0.5, 1.0), (0.25, 0.8)])
