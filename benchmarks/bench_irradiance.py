@@ -12,7 +12,8 @@ three each:
   threads as the renderer uses, nothing else (the peer);
 - RayScene.occluded: the renderer's own call on the same rays;
 - irradiance, full / interleaved / adaptive: the renderer's whole irradiance task at
-  16 light samples (sampling, rays, reconstruction), rays cast over its seconds.
+  16 light samples (sampling, rays in its own order, texel block by texel block), rays
+  cast over its seconds.
 
 Prints each rate and its ratio to embreex's and writes JSON. Without --scene the demo
 is run first to make one.
