@@ -193,8 +193,8 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
         # the light each texel's rays could carry, >= 0 per channel: a sum as a product
         # with ones (numpy's sum over the short axis took 0.47 s at texture 4096)
         np.put(traced[i], texel, res.unshadowed[p] @ np.ones(3, np.float32) > 0)
-    filtered = filter_interleaved(vis, traced, maps.normal)
-    return {**res.visibility, **{p: np.take(filtered[i], texel) for i, p in enumerate(paths)}}
+    filtered = filter_interleaved(vis, traced, maps.normal, at=texel)
+    return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
 
 def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:

@@ -171,6 +171,13 @@ def test_filter_interleaved_matches_its_definition() -> None:
     got = filter_interleaved(vis, traced, nrm)
     np.testing.assert_allclose(got, _filter_by_definition(vis, traced, nrm), atol=1e-6)
     np.testing.assert_array_equal(got[:, 0, 0], vis[:, 0, 0])
+    # at some texels only (any order), the same values bit for bit
+    at = rng.permutation(15 * 11)[:70]
+    np.testing.assert_array_equal(filter_interleaved(vis, traced, nrm, at=at),
+                                  got.reshape(6, -1)[:, at])
+    assert filter_interleaved(vis, traced, nrm, at=at[:0]).shape == (6, 0)
+    with pytest.raises(InputError, match="flat texel indices"):
+        filter_interleaved(vis, traced, nrm, at=np.array([15 * 11]))
 
 
 PENUMBRA_TEXELS = 64
