@@ -678,7 +678,7 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
         vis_buf = host_buffer(vis[part])
         traced_buf = host_buffer((np.asarray(traced[part]) > 0).astype(np.float32))
         out_buf = host_output(out_part)
-        grid = (w, h) if points is None else (max(points.size, 1),)
+        grid = (w, h) if points is None else (points.size,)
         _interleave_kernel(part.stop - start, points is not None)(
             queue, grid, None, vis_buf, traced_buf, nrm_buf, out_buf, np.int32(h),
             np.int32(w), np.float32(min_cos), *at_args)
