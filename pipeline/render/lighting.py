@@ -812,8 +812,8 @@ def irradiance_texture(
             continue
         colour = sampler.colour
         entering += lit[:, None] * colour if lit.ndim == 1 else lit * colour
-        lit_s = lit if lit.ndim == 1 else lit.sum(axis=1)
-        un_s = unshadowed if unshadowed.ndim == 1 else unshadowed.sum(axis=1)
+        lit_s = lit if lit.ndim == 1 else sum_axis1(lit)
+        un_s = unshadowed if unshadowed.ndim == 1 else sum_axis1(unshadowed)
         vis = np.where(un_s > 0, lit_s / np.maximum(un_s, 1e-30), 0.0)
         visibility[light.path] = back(vis).astype(np.float32, copy=False)
         # back to the points' order before the colour: a third of the gathered bytes
@@ -823,6 +823,16 @@ def irradiance_texture(
     result = back(entering)
     return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
                             time.perf_counter() - start, frozenset(interleaved))
+
+
+def sum_axis1(a: NDArray[Any]) -> NDArray[Any]:
+    """``a.sum(axis=1)`` over a short axis 1, its entries added in turn: the same sums
+    in the same order, where numpy's reduction over the short axis took 3-6x as long
+    (12 against 2-4 ms on the 481k rows of three of the demo face at texture 1024)."""
+    out = a[:, 0].copy()
+    for k in range(1, a.shape[1]):
+        out += a[:, k]
+    return out
 
 
 def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any]) -> NDArray[np.bool_]:
@@ -873,7 +883,7 @@ def refine_penumbrae(
         np.put(vis1, texel, result.visibility[path])
         un1 = result.unshadowed[path]
         traced = np.zeros(covered.shape, bool)
-        np.put(traced, texel, un1.sum(axis=1) > 0)
+        np.put(traced, texel, sum_axis1(un1) > 0)
         where = np.flatnonzero(np.take(penumbra_texels(vis1, traced), texel))
         refined[path] = where
         if not where.size:
@@ -889,10 +899,10 @@ def refine_penumbrae(
         vis2 = more.visibility.get(path, np.zeros(3 * where.size, np.float32))
         # each class is the same number of strata: the texel's estimate from all of them
         # sums lit and unshadowed light over its four classes
-        un_all = un1[where] + un2.reshape(-1, 3, 3).sum(axis=1)
-        lit_all = result.visibility[path][where] * un1[where].sum(axis=1) + \
-            (vis2 * un2.sum(axis=1)).reshape(-1, 3).sum(axis=1)
-        un_sum = un_all.sum(axis=1)
+        un_all = un1[where] + sum_axis1(un2.reshape(-1, 3, 3))
+        lit_all = result.visibility[path][where] * sum_axis1(un1[where]) + \
+            sum_axis1((vis2 * sum_axis1(un2)).reshape(-1, 3))
+        un_sum = sum_axis1(un_all)
         vis = visibility[path] = visibility[path].copy()
         vis[where] = np.where(un_sum > 0, lit_all / np.maximum(un_sum, 1e-30), 0.0)
         un = unshadowed[path] = un1.copy()

@@ -22,6 +22,7 @@ from pipeline.render.lighting import (
     refine_penumbrae,
     sobol_points,
     specular_albedo,
+    sum_axis1,
 )
 from pipeline.render.raytrace import RayScene, morton_order
 from pipeline.render.scene import Light
@@ -158,6 +159,15 @@ def test_sobol_sets_are_nets_and_each_interleaved_quarter_is_one() -> None:
     np.testing.assert_array_equal(grid, again)
     with pytest.raises(InputError, match="unknown light sample sequence"):
         light_sample_set(16, rng, False, "halton")
+
+
+@pytest.mark.parametrize("shape", [(1000, 3), (500, 3, 3), (7, 1)])
+def test_sum_axis1_is_numpys_sum_bit_for_bit(shape: tuple[int, ...]) -> None:
+    rng = np.random.default_rng(5)
+    a = (rng.random(shape) * 10.0 ** rng.uniform(-8, 8, shape)).astype(np.float32)
+    got = sum_axis1(a)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, a.sum(axis=1))
 
 
 def test_filter_interleaved_matches_its_definition() -> None:
