@@ -50,6 +50,7 @@ from .lighting import (
     light_direction,
     refine_penumbrae,
     specular_albedo,
+    sum_axis1,
     torrance_sparrow,
 )
 from .opencl import (
@@ -177,7 +178,7 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
                            ) -> dict[str, NDArray[np.float32]]:
     """Each light's per-texel visibility from interleaved shadow rays, reconstructed in
     texture space (``filter_interleaved``) and returned per covered texel (``texel``:
-    their flat indices, row order, when the caller has them)."""
+    the points' flat indices, in their order; by default row order)."""
     covered = maps.triangle >= 0
     if texel is None:
         texel = np.flatnonzero(covered)
@@ -187,12 +188,11 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     # by flat index (np.put / np.take): a boolean mask's scatter and gather took 2-4x
     # as long at texture 4096
     vis = np.zeros((len(paths), *covered.shape), np.float32)
-    traced = np.zeros_like(vis)
+    traced = np.zeros(vis.shape, bool)
     for i, p in enumerate(paths):
         np.put(vis[i], texel, res.visibility[p])
-        # the light each texel's rays could carry, >= 0 per channel: a sum as a product
-        # with ones (numpy's sum over the short axis took 0.47 s at texture 4096)
-        np.put(traced[i], texel, res.unshadowed[p] @ np.ones(3, np.float32) > 0)
+        # the light each texel's rays could carry, >= 0 per channel
+        np.put(traced[i], texel, sum_axis1(res.unshadowed[p]) > 0)
     filtered = filter_interleaved(vis, traced, maps.normal, at=texel)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
