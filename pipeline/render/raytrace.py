@@ -150,8 +150,8 @@ class RayScene:
     def occluded(self, origins: NDArray[Any], directions: NDArray[Any],
                  max_distance: NDArray[Any] | float | None = None) -> NDArray[np.bool_]:
         """True where a ray from ``origins`` along unit ``directions`` hits anything before
-        ``max_distance`` (scene units; default: beyond the scene). A ray of distance 0 is
-        not traced (False, and not counted)."""
+        ``max_distance`` (scene units; default: beyond the scene). A ray of distance 0 or
+        less is not traced (False, and not counted)."""
         n = origins.shape[0]
         out = np.zeros(n, dtype=bool)
         if n == 0:
@@ -168,13 +168,23 @@ class RayScene:
             if far.shape != (n,):
                 raise InputError(f"max_distance must be ({n},), got {far.shape}")
 
-        def run(s: slice) -> None:
-            hit = self.scene.run(o[s], d[s], query="OCCLUDED", dists=far[s])
-            out[s] = np.asarray(hit) >= 0
+        def run(s: slice) -> int:
+            f = far[s]
+            idle = ~(f > 0)
+            if not idle.any():
+                out[s] = np.asarray(self.scene.run(o[s], d[s], query="OCCLUDED", dists=f)) >= 0
+                return f.size
+            # Embree traverses a ray of length 0 like any other (its interval [0, 0] holds
+            # the origin, which lies in the boxes around it: 89 against 80 ms for the
+            # sphere light's sample at texture 1024, where 15% of the texels face away);
+            # a ray whose far end is negative it takes as occluded already and skips
+            f = np.where(idle, np.float32(-1), f)
+            hit = np.asarray(self.scene.run(o[s], d[s], query="OCCLUDED", dists=f)) >= 0
+            out[s] = hit & ~idle
+            return f.size - int(np.count_nonzero(idle))
 
         with ThreadPoolExecutor(self.threads) as pool:
-            list(pool.map(run, self._chunks(n)))
-        traced = n if max_distance is None else int(np.count_nonzero(far > 0))
+            traced = sum(pool.map(run, self._chunks(n)))
         self.stats.add("occlusion", traced, time.perf_counter() - start)
         return out
 
