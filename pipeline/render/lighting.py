@@ -34,6 +34,7 @@ from .opencl import (
     host_output,
     jit_at_first_launch,
     read_output,
+    run_on_host_arrays,
 )
 from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS
 from .raytrace import RayScene, morton_order, offset_ray_origin
@@ -149,6 +150,13 @@ def sobol_points(n: int) -> int:
     """The scrambled Sobol points :func:`light_sample_set` uses for ``n`` samples: n
     rounded up to a power of two (a Sobol set's balance holds for those)."""
     return 1 << max(0, math.ceil(math.log2(max(n, 1))))
+
+
+def complement_sets(sets: NDArray[Any]) -> NDArray[Any]:
+    """The strata each interleaving class does not trace (4, 3 x count): for class c the
+    sets of classes c + 1, c + 2 and c + 3 (mod 4), in that order."""
+    return np.stack([np.concatenate([sets[(c + j) % 4] for j in (1, 2, 3)])
+                     for c in range(4)])
 
 
 def light_sample_set(samples: int, rng: np.random.Generator, interleaved: bool,
@@ -392,7 +400,9 @@ class LightSampler:
     of the rays, the rest borrowed from its neighbours by ``filter_interleaved``.
     ``point_buffers`` (a dict, empty at first) lets the samplers of several lights over
     the same points share one device buffer each of the origins, normals and classes.
-    ``sequence``: the sample points, :func:`light_sample_set`."""
+    ``sequence``: the sample points, :func:`light_sample_set`. With ``complement`` as well,
+    each point traces the strata its class does not, the other three classes' sets in
+    turn (:func:`refine_penumbrae`: with its first quarter, all of them)."""
 
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
@@ -400,7 +410,7 @@ class LightSampler:
                  interleave: NDArray[Any] | None = None, roughness: float = DEFAULT_ROUGHNESS,
                  rho_s: float = DEFAULT_RHO_S, device: bool = True,
                  point_buffers: dict[str, Any] | None = None,
-                 sequence: str = "stratified") -> None:
+                 sequence: str = "stratified", complement: bool = False) -> None:
         self.light = light
         self.roughness, self.rho_s = float(roughness), float(rho_s)
         self.origins = origins
@@ -413,6 +423,8 @@ class LightSampler:
         if is_delta_light(light):
             samples = 1
         self.grid, sets = light_sample_set(samples, rng, interleave is not None, sequence)
+        if sets is not None and complement:
+            sets = complement_sets(sets)
         if sets is not None:
             # a byte per point for its class, not its strata (count int32 per point, 123
             # MB a light at texture 4096, gathered and then copied to the device)
@@ -481,8 +493,8 @@ class LightSampler:
 
     def entering_sample(self, k: int) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
         """:meth:`sample` with the weight times the fraction entering the skin,
-        1 - rho_dt(n . d), and the shadow ray's length 0 where the weight is (Embree
-        drops such a ray at the first box): on the device for
+        1 - rho_dt(n . d), and the shadow ray's length 0 where the weight is
+        (:meth:`~.raytrace.RayScene.occluded` does not trace it): on the device for
         :data:`DEVICE_SAMPLED_KINDS` (a dome only untextured), else in numpy. Safe to
         call from several threads."""
         if self.device is None:
@@ -607,6 +619,40 @@ def _interleave_kernel(lights: int, at: bool = False) -> Any:
     return Kernel(program, "filter_interleaved", 1 if at else 2)
 
 
+_PENUMBRA_KERNEL = r"""
+// penumbra_texels at the texels of the list at (flat indices): the 3 x 3 maximum and
+// minimum of the visibility over traced texels, where an untraced texel or one beyond
+// the texture's edge counts 0 for the maximum and 1 for the minimum (the numpy
+// definition's constant edges); comparisons only, so the same booleans
+__kernel void penumbra_at(__global const float *vis, __global const uchar *traced,
+                          __global const int *at, const int h, const int w, const int n,
+                          __global uchar *out)
+{
+    const int o = get_global_id(0);
+    if (o >= n) return;
+    const int i = at[o], x = i % w, y = i / w;
+    float hi = -INFINITY, lo = INFINITY;
+    for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = x + dx, yy = y + dy;
+            const int j = yy * w + xx;
+            const int in = xx >= 0 && xx < w && yy >= 0 && yy < h && traced[j];
+            const float up = in ? vis[j] : 0.0f, down = in ? vis[j] : 1.0f;
+            hi = up > hi ? up : hi;
+            lo = down < lo ? down : lo;
+        }
+    }
+    const float v = vis[i];
+    out[o] = traced[i] && (hi > lo || (v > 0.0f && v < 1.0f));
+}
+"""
+
+
+@device_cache(maxsize=1)
+def _penumbra_kernel() -> Any:
+    return Kernel(build(_PENUMBRA_KERNEL), "penumbra_at", 1)
+
+
 def sample_plan(light: Light, samples: int, interleaved: bool,
                 sequence: str = "stratified") -> tuple[int, bool]:
     """(samples each point traces, whether they are interleaved) for ``light`` at
@@ -619,10 +665,11 @@ def sample_plan(light: Light, samples: int, interleaved: bool,
 
 def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
                        textured_domes: Collection[str] = (), filtered: bool = True,
-                       sequence: str = "stratified") -> list[Any]:
+                       sequence: str = "stratified", refined: bool = False) -> list[Any]:
     """The device kernels :func:`irradiance_texture` and (if ``filtered``)
     :func:`filter_interleaved` at the covered texels (``at``, as the renderer runs it)
-    will launch for these lights (for :class:`~.opencl.Prewarm`)."""
+    or (if ``refined``) :func:`refine_penumbrae`'s :func:`penumbra_at` will launch for
+    these lights (for :class:`~.opencl.Prewarm`)."""
     kernels, interleaved_lights = [], 0
     for light in lights:
         if not np.any(light.radiance > 0):
@@ -631,10 +678,14 @@ def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
         interleaved_lights += inter
         if light.kind in DEVICE_SAMPLED_KINDS and light.path not in textured_domes:
             kernels.append(_sample_kernel(light.kind, count, inter))
+            if refined and inter:  # the penumbrae's other three quarters
+                kernels.append(_sample_kernel(light.kind, 3 * count, inter))
     if filtered:
         for start in range(0, interleaved_lights, MAX_FILTER_LIGHTS):
             kernels.append(_interleave_kernel(min(MAX_FILTER_LIGHTS,
                                                   interleaved_lights - start), at=True))
+    if refined and interleaved_lights:
+        kernels.append(_penumbra_kernel())
     return kernels
 
 
@@ -729,13 +780,14 @@ def irradiance_texture(
     samples: int = 16, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     interleave: NDArray[Any] | None = None, sequence: str = "stratified",
-    coherent: bool = False,
+    coherent: bool = False, complement: bool = False,
 ) -> IrradianceResult:
     """Irradiance entering the skin at surface points (N, 3) with unit normals, summed
     over ``lights`` with ``samples`` shadow rays per light and point (the points of
     :func:`light_sample_set` for ``sequence``; with
     ``interleave``, a class 0-3 per point: a quarter of them, see ``LightSampler``; the
-    per-point visibility is then noisy until ``filter_interleaved`` has run).
+    per-point visibility is then noisy until ``filter_interleaved`` has run; with
+    ``complement`` too, the other three quarters).
 
     Ray origins are pushed off the surface along the normal by what their floating-point
     error needs (:func:`~.raytrace.offset_ray_origin`); rays whose cosine is <= 0 are
@@ -772,54 +824,68 @@ def irradiance_texture(
     interleaved: set[str] = set()
     n_rays = 0
     point_buffers: dict[str, Any] = {}  # origins and normals on the device, for every light
+    samplers: list[LightSampler] = []
     for light in lights:
         if not np.any(light.radiance > 0):
             skipped.append(f"light {light.path}: zero radiance")
             continue
-        sampler = LightSampler(light, origins, nrm, samples, light_rng(seed, light),
-                               (dome_textures or {}).get(light.path), classes, roughness, rho_s,
-                               point_buffers=point_buffers, sequence=sequence)
+        samplers.append(LightSampler(light, origins, nrm, samples, light_rng(seed, light),
+                                     (dome_textures or {}).get(light.path), classes,
+                                     roughness, rho_s, point_buffers=point_buffers,
+                                     sequence=sequence, complement=complement))
 
-        def one(k: int, sampler: LightSampler = sampler) -> tuple[Any, Any, int]:
-            # light the specular lobe reflects does not enter the skin; rays of points
-            # the sample does not light end where they start (length 0): Embree drops
-            # them at the first box, where gathering the others and scattering their
-            # answers back took 25 ms a sample at texture 1024
-            d, dist, w = sampler.entering_sample(k)
-            cast = int(np.count_nonzero((w if w.ndim == 1 else w.max(axis=1)) > 0))
-            if cast == 0:
-                return None, None, 0
-            open_ = ~rays.occluded(origins, d, dist)
-            # a product, not np.where (2.5 ms a sample on a random mask, 0.3 ms): the
-            # weights are finite
-            return w * (open_ if w.ndim == 1 else open_[:, None]), w, cast
+    def one(job: tuple[LightSampler, int]) -> tuple[Any, Any, int]:
+        # light the specular lobe reflects does not enter the skin; rays of points
+        # the sample does not light end where they start (length 0) and are not
+        # traced, where gathering the others and scattering their answers back took
+        # 25 ms a sample at texture 1024
+        sampler, k = job
+        d, dist, w = sampler.entering_sample(k)
+        cast = int(np.count_nonzero((w if w.ndim == 1 else w.max(axis=1)) > 0))
+        if cast == 0:
+            return None, None, 0
+        open_ = ~rays.occluded(origins, d, dist)
+        # a product, not np.where (2.5 ms a sample on a random mask, 0.3 ms): the
+        # weights are finite
+        return w * (open_ if w.ndim == 1 else open_[:, None]), w, cast
 
-        lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
-        unshadowed = np.zeros_like(lit)
-        # sample k+1's directions are computed while sample k's rays are in Embree
-        with ThreadPoolExecutor(2) as pool:
-            for got, full, cast in pool.map(one, range(sampler.count)):
+    # one queue of every light's samples: sample k+1's directions are computed while
+    # sample k's rays are in Embree, and a light's sums are made while the next
+    # light's rays are (the gaps between lights, a tenth of the demo face's interleaved
+    # pass at texture 1024, had idle cores)
+    jobs = [(sampler, k) for sampler in samplers for k in range(sampler.count)]
+    with ThreadPoolExecutor(2) as pool:
+        results = pool.map(one, jobs)
+        for sampler in samplers:
+            light = sampler.light
+            lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
+            unshadowed = np.zeros_like(lit)
+            for _ in range(sampler.count):
+                got, full, cast = next(results)
                 if got is not None:
                     lit += got
                     unshadowed += full
                     n_rays += cast
-        sampler.close()
-        if sampler.sets is not None:
-            interleaved.add(light.path)
-        if not lit.any():
-            skipped.append(f"light {light.path}: adds nothing (all samples below the horizon "
-                           "or shadowed)")
-            continue
-        colour = sampler.colour
-        entering += lit[:, None] * colour if lit.ndim == 1 else lit * colour
-        lit_s = lit if lit.ndim == 1 else sum_axis1(lit)
-        un_s = unshadowed if unshadowed.ndim == 1 else sum_axis1(unshadowed)
-        vis = np.where(un_s > 0, lit_s / np.maximum(un_s, 1e-30), 0.0)
-        visibility[light.path] = back(vis).astype(np.float32, copy=False)
-        # back to the points' order before the colour: a third of the gathered bytes
-        un = back(unshadowed)
-        unshadowed_by_light[light.path] = un[:, None] * colour if un.ndim == 1 else \
-            un * colour
+            sampler.close()
+            if not unshadowed.any():
+                skipped.append(f"light {light.path}: adds nothing (all samples below the "
+                               "horizon)")
+                continue
+            if not lit.any():  # its visibility, 0, is still the specular lobe's and the
+                # adaptive pass's (which refines a light's penumbrae from it)
+                skipped.append(f"light {light.path}: adds nothing (shadowed everywhere)")
+            if sampler.sets is not None:
+                interleaved.add(light.path)
+            colour = sampler.colour
+            entering += lit[:, None] * colour if lit.ndim == 1 else lit * colour
+            lit_s = lit if lit.ndim == 1 else sum_axis1(lit)
+            un_s = unshadowed if unshadowed.ndim == 1 else sum_axis1(unshadowed)
+            vis = np.where(un_s > 0, lit_s / np.maximum(un_s, 1e-30), 0.0)
+            visibility[light.path] = back(vis).astype(np.float32, copy=False)
+            # back to the points' order before the colour: a third of the gathered bytes
+            un = back(unshadowed)
+            unshadowed_by_light[light.path] = un[:, None] * colour if un.ndim == 1 else \
+                un * colour
     result = back(entering)
     return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
                             time.perf_counter() - start, frozenset(interleaved))
@@ -846,6 +912,30 @@ def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any]) -> NDArray[n
     hi = maximum_filter(np.where(traced, vis, 0.0), size=3, mode="constant", cval=0.0)
     lo = minimum_filter(np.where(traced, vis, 1.0), size=3, mode="constant", cval=1.0)
     return traced & ((hi > lo) | ((vis > 0) & (vis < 1)))
+
+
+def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
+                at: NDArray[Any]) -> NDArray[np.bool_]:
+    """:func:`penumbra_texels` at the texels of ``at`` (flat indices into the (H, W)
+    planes), on the OpenCL device: one work-item per listed texel, not two 3 x 3
+    filters over the whole texture and a gather (54 ms for the demo face's two lights
+    at texture 1024, 46% of whose texels are covered)."""
+    vis = np.ascontiguousarray(visibility, np.float32)
+    if vis.ndim != 2 or np.shape(traced) != vis.shape:
+        raise InputError(f"visibility and traced must be (H, W) planes of one shape; got "
+                         f"{vis.shape} and {np.shape(traced)}")
+    h, w = vis.shape
+    points = np.asarray(at)
+    if points.ndim != 1 or (points.size and (points.min() < 0 or points.max() >= h * w)):
+        raise InputError(f"at: flat texel indices below {h * w} expected")
+    out = np.zeros(points.size, np.uint8)
+    if points.size:
+        _, queue = cl_context()
+        run_on_host_arrays(_penumbra_kernel(), queue, (points.size,),
+                           [vis, np.ascontiguousarray(traced, np.bool_).view(np.uint8),
+                            points.astype(np.int32, copy=False), np.int32(h), np.int32(w),
+                            np.int32(points.size)], [out])
+    return out.view(np.bool_)
 
 
 def refine_penumbrae(
@@ -875,6 +965,7 @@ def refine_penumbrae(
     classes = np.asarray(interleave)
     if texel is None:
         texel = np.flatnonzero(covered)
+    texel32 = np.asarray(texel).astype(np.int32)  # once for every light's penumbra
     for light in lights:
         path = light.path
         if path not in result.interleaved:
@@ -884,29 +975,29 @@ def refine_penumbrae(
         un1 = result.unshadowed[path]
         traced = np.zeros(covered.shape, bool)
         np.put(traced, texel, sum_axis1(un1) > 0)
-        where = np.flatnonzero(np.take(penumbra_texels(vis1, traced), texel))
+        where = np.flatnonzero(penumbra_at(vis1, traced, texel32))
         refined[path] = where
         if not where.size:
             continue
-        # each penumbra texel three times, once per interleaved class it has not traced
-        others = (classes[where][:, None] + np.arange(1, 4)) % 4
-        more = irradiance_texture(np.repeat(positions[where], 3, axis=0),
-                                  np.repeat(normals[where], 3, axis=0), [light], rays, samples,
-                                  roughness, rho_s, seed, dome_textures, others.ravel(),
-                                  sequence, coherent)
+        # each penumbra texel the strata of the three interleaved classes it has not
+        # traced (three quarters of them, once each)
+        more = irradiance_texture(positions[where], normals[where], [light], rays, samples,
+                                  roughness, rho_s, seed, dome_textures, classes[where],
+                                  sequence, coherent, complement=True)
         n_rays += more.rays
-        un2 = more.unshadowed.get(path, np.zeros((3 * where.size, 3), np.float32))
-        vis2 = more.visibility.get(path, np.zeros(3 * where.size, np.float32))
-        # each class is the same number of strata: the texel's estimate from all of them
-        # sums lit and unshadowed light over its four classes
-        un_all = un1[where] + sum_axis1(un2.reshape(-1, 3, 3))
-        lit_all = result.visibility[path][where] * sum_axis1(un1[where]) + \
-            sum_axis1((vis2 * sum_axis1(un2)).reshape(-1, 3))
-        un_sum = sum_axis1(un_all)
+        un2 = more.unshadowed.get(path, np.zeros((where.size, 3), np.float32))
+        vis2 = more.visibility.get(path, np.zeros(where.size, np.float32))
+        # each pass's weights average over its own strata, a quarter and three quarters
+        # of them: the texel's estimate from all of them weights the passes so
+        un_all = np.float32(0.25) * un1[where] + np.float32(0.75) * un2
+        un1_sum, un2_sum = sum_axis1(un1[where]), sum_axis1(un2)
+        lit_all = np.float32(0.25) * result.visibility[path][where] * un1_sum + \
+            np.float32(0.75) * vis2 * un2_sum
+        un_sum = np.float32(0.25) * un1_sum + np.float32(0.75) * un2_sum
         vis = visibility[path] = visibility[path].copy()
         vis[where] = np.where(un_sum > 0, lit_all / np.maximum(un_sum, 1e-30), 0.0)
         un = unshadowed[path] = un1.copy()
-        un[where] = un_all / 4
+        un[where] = un_all
     out = replace(result, visibility=visibility, unshadowed=unshadowed, rays=n_rays,
                   seconds=result.seconds + time.perf_counter() - start,
                   interleaved=frozenset())

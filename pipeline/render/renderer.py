@@ -493,7 +493,8 @@ class Renderer:
             lambda: irradiance_kernels(scene.lights, opts.light_samples,
                                        opts.shadow_sampling != "full", domes,
                                        filtered=opts.shadow_sampling == "interleaved",
-                                       sequence=opts.light_sequence),
+                                       sequence=opts.light_sequence,
+                                       refined=opts.shadow_sampling == "adaptive"),
             PlannedStep(render + "push_pull", "push_pull_kernels")]
         if opts.scattering and opts.blur == "recursive":
             # the seam layout's (beside the irradiance)

@@ -12,12 +12,14 @@ from pipeline.errors import InputError
 from pipeline.render.lighting import (
     LightSampler,
     beckmann_ndf,
+    complement_sets,
     filter_interleaved,
     fresnel_schlick,
     grid_shape,
     interleaved_strata,
     irradiance_texture,
     light_sample_set,
+    penumbra_at,
     penumbra_texels,
     refine_penumbrae,
     sobol_points,
@@ -188,6 +190,69 @@ def test_filter_interleaved_matches_its_definition() -> None:
     assert filter_interleaved(vis, traced, nrm, at=at[:0]).shape == (6, 0)
     with pytest.raises(InputError, match="flat texel indices"):
         filter_interleaved(vis, traced, nrm, at=np.array([15 * 11]))
+
+
+@pytest.mark.parametrize("sequence", ["stratified", "sobol"])
+def test_complement_sets_and_each_class_make_up_every_stratum_once(sequence: str) -> None:
+    _, sets = light_sample_set(16, np.random.default_rng(0), True, sequence)
+    assert sets is not None
+    others = complement_sets(sets)
+    assert others.shape == (4, 12)
+    for c in range(4):
+        np.testing.assert_array_equal(np.sort(np.concatenate([sets[c], others[c]])),
+                                      np.arange(16))
+        # the other classes' sets in turn from the next, as refine_penumbrae adds them
+        np.testing.assert_array_equal(others[c, :4], sets[(c + 1) % 4])
+
+
+def test_penumbra_at_is_penumbra_texels_at_those_texels() -> None:
+    """The device's penumbra test at listed texels against the numpy definition (two
+    3 x 3 filters over the plane) at the same texels: visibility exactly 0 or 1 in
+    patches (where only the neighbourhood decides), in between elsewhere, values below
+    0 and above 1 too (the edges' constants), texels along every border."""
+    rng = np.random.default_rng(11)
+    h, w = 37, 29
+    vis = rng.choice(np.array([0.0, 1.0], np.float32), (h, w))
+    vis[rng.random((h, w)) < 0.1] = rng.random() * 0.9 + 0.05
+    vis[rng.random((h, w)) < 0.02] = 1.5
+    vis[rng.random((h, w)) < 0.02] = -0.5
+    vis[:10, :10] = 1.0  # a calm patch
+    traced = rng.random((h, w)) > 0.25
+    want = penumbra_texels(vis, traced).ravel()
+    assert 0 < want.sum() < want.size
+    at = rng.permutation(h * w)
+    np.testing.assert_array_equal(penumbra_at(vis, traced, at), want[at])
+    # untraced everywhere but one texel: only its own visibility can say
+    one = np.zeros((h, w), bool)
+    one[0, 0] = True
+    np.testing.assert_array_equal(penumbra_at(vis, one, at), penumbra_texels(vis, one).ravel()[at])
+    assert penumbra_at(vis, traced, at[:0]).shape == (0,)
+    with pytest.raises(InputError, match="flat texel indices"):
+        penumbra_at(vis, traced, np.array([h * w]))
+    with pytest.raises(InputError, match="planes of one shape"):
+        penumbra_at(vis, traced[:, 1:], at)
+
+
+def test_a_light_shadowed_everywhere_is_refined_to_no_light() -> None:
+    """A plate over the whole floor: the key's interleaved pass sees it nowhere; its
+    visibility is 0 (kept, for the specular lobe and the adaptive pass, and the light
+    reported as adding nothing), and the adaptive pass leaves it so."""
+    floor = np.array([[-50.0, -50.0, 0.0], [50.0, -50.0, 0.0], [50.0, 50.0, 0.0],
+                      [-50.0, 50.0, 0.0]])
+    quads = np.array([[0, 1, 2], [0, 2, 3]])
+    rays = RayScene([(floor, quads), (floor * [20.0, 20.0, 0.0] + [0.0, 0.0, 10.0], quads)])
+    _, key, pos, nrm, classes = _plate_over_floor()
+    n = PENUMBRA_TEXELS
+    first = irradiance_texture(pos, nrm, [key], rays, samples=16, rho_s=0.0,
+                               interleave=classes)
+    assert any("adds nothing (shadowed everywhere)" in s for s in first.skipped)
+    np.testing.assert_array_equal(first.visibility["/Key"], 0.0)
+    assert first.unshadowed["/Key"].min() > 0
+    got, refined = refine_penumbrae(first, np.ones((n, n), bool), pos, nrm, classes, [key],
+                                    rays, 16, rho_s=0.0)
+    assert refined["/Key"].size == 0
+    np.testing.assert_array_equal(got.visibility["/Key"], 0.0)
+    np.testing.assert_array_equal(got.entering, 0.0)
 
 
 PENUMBRA_TEXELS = 64
@@ -361,8 +426,8 @@ def test_adaptive_visibility_against_an_independent_quadrature(sequence: str,
 
 
 @pytest.mark.parametrize("kind", ["sphere", "dome"])
-@pytest.mark.parametrize("interleaved", [False, True])
-def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool) -> None:
+@pytest.mark.parametrize("interleaved", [False, True, "complement"])
+def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | str) -> None:
     # the OpenCL sampler (sphere lights, untextured domes) computes what LightSampler.sample
     # and specular_albedo compute in numpy, from the same strata
     rng = np.random.default_rng(5)
@@ -376,8 +441,11 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool) ->
         Light("/L", kind, np.full(3, 0.5), np.eye(4))
     classes = rng.integers(0, 4, n) if interleaved else None
     sampler, numpy = (LightSampler(light, pts, nrm, 16, np.random.default_rng(1), None,
-                                   classes, 0.3, 0.3, device=dev) for dev in (True, False))
+                                   classes, 0.3, 0.3, device=dev,
+                                   complement=interleaved == "complement")
+                      for dev in (True, False))
     assert sampler.device is not None and numpy.device is None
+    assert sampler.count == {False: 16, True: 4, "complement": 12}[interleaved]
     for k in range(sampler.count):
         d, dist, w = sampler.entering_sample(k)
         d_ref, dist_ref, w_ref = numpy.sample(k)
