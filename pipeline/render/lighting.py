@@ -491,12 +491,15 @@ class LightSampler:
         """Let the device buffers go (a light's sampler is done once its rays are)."""
         self.device = None
 
-    def entering_sample(self, k: int) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
+    def entering_sample(self, k: int, rays_into: tuple[NDArray[np.float32], NDArray[np.float32]]
+                        | None = None) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
         """:meth:`sample` with the weight times the fraction entering the skin,
         1 - rho_dt(n . d), and the shadow ray's length 0 where the weight is
         (:meth:`~.raytrace.RayScene.occluded` does not trace it): on the device for
         :data:`DEVICE_SAMPLED_KINDS` (a dome only untextured), else in numpy. Safe to
-        call from several threads."""
+        call from several threads. ``rays_into``: (N, 3) and (N,) float32 arrays the
+        device writes the directions and lengths into (a caller's own from sample to
+        sample), else new ones."""
         if self.device is None:
             d, dist, w = self.sample(k)
             enters = 1 - specular_albedo(np.einsum("ij,ij->i", self.normals, d),
@@ -506,7 +509,9 @@ class LightSampler:
                                np.float32(0)), w
         _, queue = cl_context()
         dev, n = self.device, self.origins.shape[0]
-        out = (np.empty((n, 3), np.float32), np.empty(n, np.float32), np.empty(n, np.float32))
+        d_into, far_into = rays_into if rays_into is not None else (
+            np.empty((n, 3), np.float32), np.empty(n, np.float32))
+        out = (d_into, np.empty(n, np.float32), far_into)
         # each sample's own arrays, written in place on a CPU device (a copy out of
         # device buffers took 1.3-2.9 ms of a sample's 4-7 at texture 1024)
         buffers = [host_output(a) for a in out]
@@ -834,13 +839,19 @@ def irradiance_texture(
                                      roughness, rho_s, point_buffers=point_buffers,
                                      sequence=sequence, complement=complement))
 
+    worker = threading.local()
+
     def one(job: tuple[LightSampler, int]) -> tuple[Any, Any, int]:
         # light the specular lobe reflects does not enter the skin; rays of points
         # the sample does not light end where they start (length 0) and are not
         # traced, where gathering the others and scattering their answers back took
         # 25 ms a sample at texture 1024
         sampler, k = job
-        d, dist, w = sampler.entering_sample(k)
+        if not hasattr(worker, "rays"):
+            # each worker's rays from sample to sample in the same arrays: fresh ones
+            # were 0.12 GB of new pages a sample at texture 4096 (zeroed by the kernel)
+            worker.rays = (np.empty((n, 3), np.float32), np.empty(n, np.float32))
+        d, dist, w = sampler.entering_sample(k, worker.rays)
         cast = int(np.count_nonzero((w if w.ndim == 1 else w.max(axis=1)) > 0))
         if cast == 0:
             return None, None, 0

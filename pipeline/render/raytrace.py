@@ -55,6 +55,12 @@ OFFSET_FLOAT_SCALE = 1.0 / 65536.0
 OFFSET_INT_SCALE = 256.0
 
 
+OFFSET_ROWS = 16384
+"""Points offset at a time: the temporaries stay in cache and are reused. Whole arrays'
+took 0.85-0.9 s for the 7.7 M texels of the demo face at texture 4096 (their fresh pages
+zeroed by the kernel, 0.3-0.65 s of it system time), these 0.25 s, bit for bit the same."""
+
+
 def offset_ray_origin(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np.float32]:
     """Ray origins pushed off the surface along the normal by what the floating-point
     error of a float32 hit point needs (Wächter & Binder, "A Fast and Robust Method for
@@ -63,11 +69,20 @@ def offset_ray_origin(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np
     follows the point's own magnitude, not the scene's size, so adding a far object
     moves no shadow."""
     p = np.ascontiguousarray(points, dtype=np.float32)
-    n = np.asarray(normals, dtype=np.float32)
-    of_i = (OFFSET_INT_SCALE * n).astype(np.int32)
-    p_i = (p.view(np.int32) + np.where(p < 0, -of_i, of_i)).view(np.float32)
-    return np.where(np.abs(p) < OFFSET_ORIGIN, p + np.float32(OFFSET_FLOAT_SCALE) * n,
-                    p_i).astype(np.float32)
+    n = np.ascontiguousarray(normals, dtype=np.float32)
+    if n.shape != p.shape:
+        raise InputError(f"points and normals must agree; got {p.shape} and {n.shape}")
+    out = np.empty_like(p)
+    near = np.float32(OFFSET_FLOAT_SCALE)
+    for s in range(0, p.shape[0], OFFSET_ROWS):
+        pc, nc, oc = p[s:s + OFFSET_ROWS], n[s:s + OFFSET_ROWS], out[s:s + OFFSET_ROWS]
+        # the integer offset, away from zero: against the point's sign where it is < 0
+        of_i = (OFFSET_INT_SCALE * nc).astype(np.int32)
+        np.negative(of_i, out=of_i, where=pc < 0)
+        of_i += pc.view(np.int32)
+        np.copyto(oc, of_i.view(np.float32))
+        np.copyto(oc, pc + near * nc, where=np.abs(pc) < OFFSET_ORIGIN)
+    return out
 
 
 def morton_order(points: NDArray[Any], bits: int = 10) -> NDArray[np.int64]:

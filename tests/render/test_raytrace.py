@@ -1,11 +1,13 @@
-"""Ray queries against closed-form answers: a plate across rays of given lengths."""
+"""Ray queries against closed-form answers (a plate across rays of given lengths), ray
+origins against the published listing."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.render.raytrace import CHUNK_RAYS, RayScene
+from pipeline.errors import InputError
+from pipeline.render.raytrace import CHUNK_RAYS, OFFSET_ROWS, RayScene, offset_ray_origin
 
 
 def test_rays_end_where_asked_and_rays_of_no_length_are_not_traced() -> None:
@@ -42,3 +44,24 @@ def test_one_length_for_all_rays(far: float | None) -> None:
     up = np.tile(np.float32([0.0, 0.0, 1.0]), (4, 1))
     np.testing.assert_array_equal(rays.occluded(origins, up, far), np.full(4, far is None))
     assert rays.stats.rays.get("occlusion", 0) == (0 if far == 0.0 else 4)
+
+
+def _offset_by_listing(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Wächter & Binder's listing 6-1, written out per coordinate over whole arrays."""
+    of_i = (np.float32(256.0) * n).astype(np.int32)
+    p_i = (p.view(np.int32) + np.where(p < 0, -of_i, of_i)).view(np.float32)
+    return np.where(np.abs(p) < np.float32(1 / 32), p + np.float32(1 / 65536) * n, p_i)
+
+
+def test_ray_origins_in_chunks_equal_the_listing_bit_for_bit() -> None:
+    rng = np.random.default_rng(4)
+    n = 2 * OFFSET_ROWS + 123  # chunk borders and a short last chunk
+    p = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-4, 5, (n, 1))).astype(np.float32)
+    p[::11, 1] = 0.0
+    p[::13, 2] = -0.0
+    nrm = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    np.testing.assert_array_equal(offset_ray_origin(p, nrm).view(np.int32),
+                                  _offset_by_listing(p, nrm).view(np.int32))
+    with pytest.raises(InputError, match="points and normals must agree"):
+        offset_ray_origin(p, nrm[:-1])
