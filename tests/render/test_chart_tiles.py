@@ -263,6 +263,50 @@ def test_texel_coverage_is_the_share_of_the_square_on_its_chart() -> None:
         assert np.abs(got[edge] - want[edge]).max() <= 0.125 + 1e-6, side
 
 
+@pytest.mark.parametrize("level", range(6))
+def test_splat_geometry_and_sums_by_their_definition(level: int) -> None:
+    """splat_geometry's cells, in integers and in chunks, against the float formula
+    floor((x + 0.5) / 2^k - 0.5) over whole arrays, texels at the edges (x, y = 0, where
+    the first cell is -1 above level 0) and across chunk borders; and _splat's sums
+    against numpy's add.at of the same weighted values (float32 products, float64 sums)."""
+    from pipeline.render.chart_tiles import (
+        SPLAT_ROWS,
+        FinestTexels,
+        _splat,
+        _splat_table,
+        splat_geometry,
+    )
+
+    rng = np.random.default_rng(level)
+    n = SPLAT_ROWS + 777
+    ys, xs = rng.integers(0, 300, n), rng.integers(0, 300, n)
+    ys[:9], xs[:9] = 0, np.arange(9)
+    chart = rng.integers(0, 5, n)
+    share = rng.random(n).astype(np.float32)
+    finest = FinestTexels(ys, xs, chart, share, None, [])
+    shift = rng.integers(1, 40, (5, 2))
+    w = 400
+    base, phase, got_share = splat_geometry(finest, shift, level, w)
+    scale = 1 << level
+    gx = np.floor((xs + 0.5) / scale - 0.5).astype(np.int64)
+    gy = np.floor((ys + 0.5) / scale - 0.5).astype(np.int64)
+    np.testing.assert_array_equal(base, (gy + shift[chart, 1]) * w + gx + shift[chart, 0])
+    np.testing.assert_array_equal(phase, (ys % scale) * scale + xs % scale)
+    assert base.dtype == np.int32 and phase.dtype == np.uint16 and got_share is share
+    values = rng.random((base.size, 2)).astype(np.float32)
+    shape = (400, w)
+    got = _splat(base, phase, share, level, shape, values)
+    want = np.zeros((shape[0] * shape[1], 2))
+    corners = [(0, share)] if level == 0 else [
+        (off, _splat_table(level)[:, j][phase] * share)
+        for j, off in enumerate((0, 1, w, w + 1))]
+    for off, weight in corners:
+        for d in range(2):
+            np.add.at(want[:, d], base.astype(np.intp) + off,
+                      (weight * values[:, d]).astype(np.float64))
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+
+
 def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
     """The tiles' fill on the device (a gather per atlas texel, float32) against
     TileLevel.fill (numpy's scatter of the same splat, float64 sums), levels 0-3 of the
