@@ -694,6 +694,25 @@ def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
     return kernels
 
 
+def flat_texels(at: NDArray[Any], h: int, w: int) -> NDArray[np.int32]:
+    """``at`` as the int32 flat indices of texels of an (h, w) texture the device
+    kernels read (a 1-D list, each below h w), or InputError."""
+    points = np.asarray(at)
+    if points.ndim != 1 or (points.size and (points.min() < 0 or points.max() >= h * w)):
+        raise InputError(f"at: flat texel indices below {h * w} expected")
+    return points.astype(np.int32, copy=False)
+
+
+def light_planes(visibility: NDArray[Any], unshadowed: NDArray[Any], texel: NDArray[Any],
+                 vis_plane: NDArray[np.float32], traced_plane: NDArray[np.bool_]) -> None:
+    """One light's visibility per point and whether its rays could carry any light
+    (unshadowed irradiance (N, 3) > 0) put into (H, W) planes at the points' flat texel
+    indices ``texel`` (by flat index: a boolean mask's scatter took 2-4x as long at
+    texture 4096)."""
+    np.put(vis_plane, texel, visibility)
+    np.put(traced_plane, texel, sum_axis1(unshadowed) > 0)
+
+
 def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
                        normal: NDArray[Any], min_cos: float = 0.9,
                        at: NDArray[Any] | None = None) -> NDArray[np.float32]:
@@ -712,14 +731,9 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
         raise InputError(f"visibility (L, H, W), traced (L, H, W) and normal (H, W, 3) must "
                          f"agree; got {vis.shape}, {np.shape(traced)}, {np.shape(normal)}")
     lights, h, w = vis.shape
-    points = None
-    if at is not None:
-        points = np.asarray(at, np.int64)
-        if points.ndim != 1 or (points.size and (points.min() < 0 or points.max() >= h * w)):
-            raise InputError(f"at: flat texel indices below {h * w} expected")
-        points = points.astype(np.int32)
-        if not points.size:
-            return np.zeros((lights, 0), np.float32)
+    points = None if at is None else flat_texels(at, h, w)
+    if points is not None and not points.size:
+        return np.zeros((lights, 0), np.float32)
     _, queue = cl_context()
     # over the arrays' own memory on a CPU device (copies of 0.3 GB took 0.5 s at
     # texture 4096)
@@ -936,16 +950,13 @@ def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
         raise InputError(f"visibility and traced must be (H, W) planes of one shape; got "
                          f"{vis.shape} and {np.shape(traced)}")
     h, w = vis.shape
-    points = np.asarray(at)
-    if points.ndim != 1 or (points.size and (points.min() < 0 or points.max() >= h * w)):
-        raise InputError(f"at: flat texel indices below {h * w} expected")
+    points = flat_texels(at, h, w)
     out = np.zeros(points.size, np.uint8)
     if points.size:
         _, queue = cl_context()
         run_on_host_arrays(_penumbra_kernel(), queue, (points.size,),
                            [vis, np.ascontiguousarray(traced, np.bool_).view(np.uint8),
-                            points.astype(np.int32, copy=False), np.int32(h), np.int32(w),
-                            np.int32(points.size)], [out])
+                            points, np.int32(h), np.int32(w), np.int32(points.size)], [out])
     return out.view(np.bool_)
 
 
@@ -976,16 +987,14 @@ def refine_penumbrae(
     classes = np.asarray(interleave)
     if texel is None:
         texel = np.flatnonzero(covered)
-    texel32 = np.asarray(texel).astype(np.int32)  # once for every light's penumbra
+    texel32 = flat_texels(texel, *covered.shape)  # once for every light's penumbra
     for light in lights:
         path = light.path
         if path not in result.interleaved:
             continue
-        vis1 = np.zeros(covered.shape, np.float32)
-        np.put(vis1, texel, result.visibility[path])
         un1 = result.unshadowed[path]
-        traced = np.zeros(covered.shape, bool)
-        np.put(traced, texel, sum_axis1(un1) > 0)
+        vis1, traced = np.zeros(covered.shape, np.float32), np.zeros(covered.shape, bool)
+        light_planes(result.visibility[path], un1, texel32, vis1, traced)
         where = np.flatnonzero(penumbra_at(vis1, traced, texel32))
         refined[path] = where
         if not where.size:
@@ -1000,8 +1009,9 @@ def refine_penumbrae(
         vis2 = more.visibility.get(path, np.zeros(where.size, np.float32))
         # each pass's weights average over its own strata, a quarter and three quarters
         # of them: the texel's estimate from all of them weights the passes so
-        un_all = np.float32(0.25) * un1[where] + np.float32(0.75) * un2
-        un1_sum, un2_sum = sum_axis1(un1[where]), sum_axis1(un2)
+        un1_where = un1[where]
+        un_all = np.float32(0.25) * un1_where + np.float32(0.75) * un2
+        un1_sum, un2_sum = sum_axis1(un1_where), sum_axis1(un2)
         lit_all = np.float32(0.25) * result.visibility[path][where] * un1_sum + \
             np.float32(0.75) * vis2 * un2_sum
         un_sum = np.float32(0.25) * un1_sum + np.float32(0.75) * un2_sum

@@ -48,9 +48,9 @@ from .lighting import (
     irradiance_kernels,
     irradiance_texture,
     light_direction,
+    light_planes,
     refine_penumbrae,
     specular_albedo,
-    sum_axis1,
     torrance_sparrow,
 )
 from .opencl import (
@@ -185,14 +185,10 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     paths = [p for p in res.visibility if p in res.interleaved]
     if not paths:  # no light was interleaved: nothing to reconstruct
         return dict(res.visibility)
-    # by flat index (np.put / np.take): a boolean mask's scatter and gather took 2-4x
-    # as long at texture 4096
     vis = np.zeros((len(paths), *covered.shape), np.float32)
     traced = np.zeros(vis.shape, bool)
     for i, p in enumerate(paths):
-        np.put(vis[i], texel, res.visibility[p])
-        # the light each texel's rays could carry, >= 0 per channel
-        np.put(traced[i], texel, sum_axis1(res.unshadowed[p]) > 0)
+        light_planes(res.visibility[p], res.unshadowed[p], texel, vis[i], traced[i])
     filtered = filter_interleaved(vis, traced, maps.normal, at=texel)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
