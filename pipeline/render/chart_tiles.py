@@ -190,6 +190,39 @@ def finest_texels(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any] | 
                         find_objects(chart + 1, max_label=n_charts))
 
 
+@dataclass(frozen=True)
+class SeamReads:
+    """The reads across the seams of one level's tile atlas (:attr:`TileLevel.reads`):
+    atlas texel t's reads are ``xy[rows[t]:rows[t + 1]]``, each the atlas position in
+    another chart's tile that it reads with :func:`_bilinear_taps` (level 0) or
+    :func:`_cubic_taps` (above). A read's taps and weights follow from its position, so
+    a read is kept as its position: 8 bytes against a sparse matrix's 32 (4 taps) or
+    128 (16), which held 0.96 GB of a 4096 render's 6.8 GB peak on the demo face."""
+
+    shape: tuple[int, int]
+    level: int
+    rows: NDArray[np.int32]
+    """(H W + 1,) each atlas texel's first read; its last read's end at the end."""
+    xy: NDArray[np.float32]
+    """(M, 2) the reads' atlas positions, texel by texel."""
+
+    @property
+    def count(self) -> int:
+        return int(self.xy.shape[0])
+
+    def matrix(self) -> Any:
+        """The reads as a sparse (H W, H W) matrix (scipy CSR): row t the weights with
+        which atlas texel t reads the tiles' texels, each read's taps side by side."""
+        from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
+
+        n = self.shape[0] * self.shape[1]
+        index, weight = (_bilinear_taps if self.level == 0 else _cubic_taps)(
+            self.xy, self.shape)
+        indptr = self.rows.astype(np.int64) * _taps_per_read(self.level)
+        return csr_matrix((np.ascontiguousarray(weight.T).ravel(),
+                           np.ascontiguousarray(index.T).ravel(), indptr), shape=(n, n))
+
+
 @dataclass
 class TileLevel:
     """Pyramid level ``level`` as an atlas of chart tiles with ``margin`` texels around.
@@ -211,13 +244,11 @@ class TileLevel:
     count: NDArray[np.float32]
     """Per atlas texel: the finest texels of its chart splatted to it, in texels (its
     coverage x 4^k; 0 outside the charts)."""
-    reads: Any
-    """The surface across the seams as a sparse (H W, H W) matrix (scipy CSR): row t
-    the weights with which atlas texel t reads the tiles' own texels. Every tile texel
-    its own chart does not cover in full (the margin's, and the chart's own border
-    texels) reads once per other chart: its centre carried across the seam into that
-    chart's tile, read there with :func:`_bilinear_taps` (level 0) or
-    :func:`_cubic_taps`."""
+    reads: SeamReads
+    """The surface across the seams: every tile texel its own chart does not cover in
+    full (the margin's, and the chart's own border texels) reads once per other chart:
+    its centre carried across the seam into that chart's tile, read there with
+    :func:`_bilinear_taps` (level 0) or :func:`_cubic_taps`."""
     mm_u: NDArray[np.float32] | None
     mm_v: NDArray[np.float32] | None
     """(H, W): mm of surface per atlas texel along u and v (a margin texel: its
@@ -254,27 +285,67 @@ class TileLevel:
         in full reads across the seams added, in place (:attr:`reads`)."""
         # read among the tiles' own texels only, before any margin is filled (16 taps a
         # read at 1.6 M reads: 0.9 s a fill as numpy gathers, 0.1 s as one product)
-        splatted += self.reads @ splatted
+        splatted += self.reads.matrix() @ splatted
         return splatted
 
 
 _SEAM_READ_KERNEL = r"""
 // TileLevel.read_across_seams on the device: atlas texel i's RGBA plus what it reads
-// across the seams (row i of the reads, CSR), each row's products added in turn from
-// zero in float32 as scipy's csr_matvecs adds them (no fused multiply-adds), so the
-// same texels bit for bit.
+// across the seams (SeamReads: reads rows[i] .. rows[i + 1] - 1, each at its atlas
+// position xy), each read's taps made as _bilinear_taps (level 0) or _cubic_taps make
+// them (doubles in numpy's order, weights rounded to float32) and their products added
+// in turn from zero in float32 as scipy's csr_matvecs adds the matrix's rows (no fused
+// multiply-adds): the same texels bit for bit as SeamReads.matrix()'s product.
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
-__kernel void read_seams(__global const int *indptr, __global const int *indices,
-                         __global const float *data, __global const float *src,
+
+#define ADD_TAP(at, weight)                                                            \
+    {                                                                                  \
+        const float a = (float)(weight);                                               \
+        __global const float *x = src + 4 * (size_t)(at);                              \
+        for (int k = 0; k < 4; ++k) y[k] = y[k] + a * x[k];                            \
+    }
+
+__kernel void read_seams(__global const int *rows, __global const float *xy, const int h,
+                         const int w, const int cubic, __global const float *src,
                          const int n, __global float *out)
 {
     const int i = get_global_id(0);
     if (i >= n) return;
     float y[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-    for (int jj = indptr[i]; jj < indptr[i + 1]; ++jj) {
-        const float a = data[jj];
-        __global const float *x = src + 4 * (size_t)indices[jj];
-        for (int k = 0; k < 4; ++k) y[k] = y[k] + a * x[k];
+    for (int r = rows[i]; r < rows[i + 1]; ++r) {
+        const double px = (double)xy[2 * (size_t)r], py = (double)xy[2 * (size_t)r + 1];
+        if (!cubic) {
+            int x0 = (int)floor(px), y0 = (int)floor(py);
+            x0 = x0 < 0 ? 0 : (x0 > w - 2 ? w - 2 : x0);
+            y0 = y0 < 0 ? 0 : (y0 > h - 2 ? h - 2 : y0);
+            double ax = px - (double)x0, ay = py - (double)y0;
+            ax = ax < 0.0 ? 0.0 : (ax > 1.0 ? 1.0 : ax);
+            ay = ay < 0.0 ? 0.0 : (ay > 1.0 ? 1.0 : ay);
+            const int at = y0 * w + x0;
+            ADD_TAP(at, (1.0 - ax) * (1.0 - ay));
+            ADD_TAP(at + 1, ax * (1.0 - ay));
+            ADD_TAP(at + w, (1.0 - ax) * ay);
+            ADD_TAP(at + w + 1, ax * ay);
+            continue;
+        }
+        int x0 = (int)floor(px), y0 = (int)floor(py);
+        x0 = x0 < 1 ? 1 : (x0 > w - 3 ? w - 3 : x0);
+        y0 = y0 < 1 ? 1 : (y0 > h - 3 ? h - 3 : y0);
+        double wx[4], wy[4];
+        for (int axis = 0; axis < 2; ++axis) {  // _cubic_weights
+            double t = axis == 0 ? px - (double)x0 : py - (double)y0;
+            t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
+            const double t2 = t * t, t3 = t * t * t;
+            double *c = axis == 0 ? wx : wy;
+            c[0] = (-t3 + 2.0 * t2 - t) / 2.0;
+            c[1] = (3.0 * t3 - 5.0 * t2 + 2.0) / 2.0;
+            c[2] = (-3.0 * t3 + 4.0 * t2 + t) / 2.0;
+            c[3] = (t3 - t2) / 2.0;
+        }
+        for (int dy = 0; dy < 4; ++dy)
+            for (int dx = 0; dx < 4; ++dx)
+                ADD_TAP((y0 + dy - 1) * w + x0 + dx - 1, wy[dy] * wx[dx]);
     }
     for (int k = 0; k < 4; ++k) out[4 * (size_t)i + k] = src[4 * (size_t)i + k] + y[k];
 }
@@ -283,7 +354,10 @@ __kernel void read_seams(__global const int *indptr, __global const int *indices
 
 @device_cache()
 def seam_read_kernel() -> Any:
-    """:data:`_SEAM_READ_KERNEL`'s kernel (one caller at a time: the diffusion's fill)."""
+    """:data:`_SEAM_READ_KERNEL`'s kernel (one caller at a time: the diffusion's fill);
+    None on a device without doubles (the host reads across the seams there)."""
+    if not _device_has_doubles():
+        return None
     return Kernel(build(_SEAM_READ_KERNEL), "read_seams", 1)
 
 
@@ -339,25 +413,6 @@ def _cubic_taps(xy: NDArray[np.float32], shape: tuple[int, int]
 
 def _taps_per_read(level: int) -> int:
     return 4 if level == 0 else 16
-
-
-def _read_taps(xy: NDArray[np.float32], shape: tuple[int, int], level: int
-               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
-    """The reads at atlas positions ``xy`` as CSR rows: per read its taps' weights and
-    flat indices side by side ((M K,), K = :func:`_taps_per_read`), bilinear at level 0,
-    Catmull-Rom above. On the device where it has doubles (``read_taps``: numpy's
-    operations in numpy's order, the same taps bit for bit), else numpy's."""
-    taps = _taps_per_read(level)
-    m = xy.shape[0]
-    if m == 0 or not _device_has_doubles():
-        index, weight = (_bilinear_taps if level == 0 else _cubic_taps)(xy, shape)
-        return np.ascontiguousarray(weight.T).ravel(), np.ascontiguousarray(index.T).ravel()
-    _, queue = cl_context()
-    data, indices = np.empty(m * taps, np.float32), np.empty(m * taps, np.int32)
-    run_on_host_arrays(Kernel(_margin_program(), "read_taps", 1), queue, (m,), (
-        np.asarray(xy, np.float32), np.int32(shape[0]), np.int32(shape[1]),
-        np.int32(taps), np.int32(m)), (data, indices))
-    return data, indices
 
 
 def _pack(sizes: NDArray[np.int64]) -> tuple[NDArray[np.int64], tuple[int, int]]:
@@ -470,7 +525,6 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     filled with the surface across each chart's border (module docstring); without,
     they stay empty (each chart blurred alone)."""
     from scipy.ndimage import distance_transform_edt  # lazy: 0.25 s to import
-    from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
 
     scale = 1 << level
     if finest is None:
@@ -523,12 +577,13 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     if geometry is not None and margin > 0:
         index, source = _margin_sources(geometry, level, shift, count, partial, full,
                                         nearest, owner, w)
-    data, indices = _read_taps(source, shape, level)
-    # the reads come sorted by texel (_mean_per_key), each with its taps side by side:
-    # the CSR arrays directly (scipy's COO conversion sorted 34 M entries again)
-    indptr = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(index, minlength=n) * _taps_per_read(level), out=indptr[1:])
-    reads = csr_matrix((data, indices, indptr), shape=(n, n))
+    if source.shape[0] >= 2**31:
+        raise InputError(f"{source.shape[0]} reads across the seams at level {level} are "
+                         "beyond 2^31")
+    # the reads come sorted by texel (_mean_per_key)
+    rows = np.zeros(n + 1, np.int32)
+    rows[1:] = np.cumsum(np.bincount(index, minlength=n))
+    reads = SeamReads(shape, level, rows, source)
     return TileLevel(level, margin, shape, shift.astype(np.float32), owner, count, reads,
                      mm_u_out, mm_v_out)
 
@@ -900,52 +955,6 @@ __kernel void texel_coverage(__global const int *chart, __global const int *tria
         }
     out[y * w + x] = (float)(max(popcount(inside), 1)) / 16.0f;
 }
-
-// Read i's taps at atlas position xy[i] (an atlas h x w), CSR order: 4 bilinear taps
-// (_bilinear_taps, level 0) or 16 Catmull-Rom ones (_cubic_taps), weights (float32 of
-// the doubles' products) and flat indices, each as numpy makes them.
-__kernel void read_taps(__global const float *xy, const int h, const int w,
-                        const int taps, const int m, __global float *weight,
-                        __global int *index)
-{
-    const int i = get_global_id(0);
-    if (i >= m) return;
-    const double x = (double)xy[2 * (size_t)i], y = (double)xy[2 * (size_t)i + 1];
-    __global float *wo = weight + (size_t)taps * i;
-    __global int *io = index + (size_t)taps * i;
-    if (taps == 4) {
-        int x0 = (int)floor(x), y0 = (int)floor(y);
-        x0 = x0 < 0 ? 0 : (x0 > w - 2 ? w - 2 : x0);
-        y0 = y0 < 0 ? 0 : (y0 > h - 2 ? h - 2 : y0);
-        double ax = x - (double)x0, ay = y - (double)y0;
-        ax = ax < 0.0 ? 0.0 : (ax > 1.0 ? 1.0 : ax);
-        ay = ay < 0.0 ? 0.0 : (ay > 1.0 ? 1.0 : ay);
-        const int at = y0 * w + x0;
-        io[0] = at; io[1] = at + 1; io[2] = at + w; io[3] = at + w + 1;
-        wo[0] = (float)((1.0 - ax) * (1.0 - ay)); wo[1] = (float)(ax * (1.0 - ay));
-        wo[2] = (float)((1.0 - ax) * ay); wo[3] = (float)(ax * ay);
-        return;
-    }
-    int x0 = (int)floor(x), y0 = (int)floor(y);
-    x0 = x0 < 1 ? 1 : (x0 > w - 3 ? w - 3 : x0);
-    y0 = y0 < 1 ? 1 : (y0 > h - 3 ? h - 3 : y0);
-    double wx[4], wy[4];
-    for (int axis = 0; axis < 2; ++axis) {
-        double t = axis == 0 ? x - (double)x0 : y - (double)y0;
-        t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
-        const double t2 = t * t, t3 = t * t * t;
-        double *c = axis == 0 ? wx : wy;
-        c[0] = (-t3 + 2.0 * t2 - t) / 2.0;
-        c[1] = (3.0 * t3 - 5.0 * t2 + 2.0) / 2.0;
-        c[2] = (-3.0 * t3 + 4.0 * t2 + t) / 2.0;
-        c[3] = (t3 - t2) / 2.0;
-    }
-    for (int dy = 0; dy < 4; ++dy)
-        for (int dx = 0; dx < 4; ++dx) {
-            io[4 * dy + dx] = (y0 + dy - 1) * w + x0 + dx - 1;
-            wo[4 * dy + dx] = (float)(wy[dy] * wx[dx]);
-        }
-}
 """
 
 
@@ -983,8 +992,7 @@ def margin_kernels() -> tuple[Any, ...]:
     if not _device_has_doubles():
         return ()
     program = _margin_program()
-    return (*(Kernel(program, name, 1) for name in ("margin_rays", "margin_hits",
-                                                   "read_taps")),
+    return (*(Kernel(program, name, 1) for name in ("margin_rays", "margin_hits")),
             Kernel(program, "texel_coverage", 2))
 
 

@@ -613,7 +613,7 @@ class LevelGrid:
         self._index: tuple[int, int, int, int, Any, Any] | None = None
         self._texel: TexelSteps | bool | None = False
         self._splat: tuple[Any, Any, Any] | None = None
-        self._seams: tuple[Any, Any, Any] | bool | None = None
+        self._seams: tuple[Any, Any] | bool | None = None
 
     def device_buffers(self) -> None:
         """Make every device buffer the level's fills and blurs read (each is otherwise
@@ -634,17 +634,14 @@ class LevelGrid:
                            host_buffer(np.rint(t.shift).astype(np.int32)))
         return self._splat
 
-    def seam_buffers(self) -> tuple[Any, Any, Any] | None:
-        """Device buffers of the reads across the seams (CSR: row starts, columns,
-        weights) for the ``read_seams`` kernel, made on first use; None when scipy keeps
-        their indices in 64 bits (over 2^31 taps: the host reads them)."""
+    def seam_buffers(self) -> tuple[Any, Any] | None:
+        """Device buffers of the reads across the seams (:class:`~.chart_tiles.SeamReads`:
+        each texel's first read, the reads' positions) for the ``read_seams`` kernel,
+        made on first use; None on a device without doubles (the host reads them)."""
         if self._seams is None:
             reads = self.tiles.reads
-            if reads.indptr.dtype != np.int32 or reads.indices.dtype != np.int32:
-                self._seams = False
-            else:
-                self._seams = (host_buffer(reads.indptr), host_buffer(reads.indices),
-                               host_buffer(reads.data.astype(np.float32, copy=False)))
+            self._seams = False if seam_read_kernel() is None else \
+                (host_buffer(reads.rows), host_buffer(reads.xy))
         return self._seams or None
 
     def index(self) -> tuple[int, int, int, int, Any, Any]:
@@ -893,7 +890,8 @@ def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid], base: Any
         # 2.8 s diffusion at texture 2048), the kernel on all, the same sums
         filled = np.empty_like(out)
         sources[k] = host_output(filled)
-        seams(queue, (lh * lw,), None, *reads, out_buf, np.int32(lh * lw), sources[k])
+        seams(queue, (lh * lw,), None, *reads, np.int32(lh), np.int32(lw), np.int32(k > 0),
+              out_buf, np.int32(lh * lw), sources[k])
         held.append(out_buf)
     queue.finish()
     return sources

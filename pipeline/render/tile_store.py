@@ -3,7 +3,7 @@
 A skin mesh's chart tiles (:class:`~.chart_tiles.TileLevel`, one per pyramid level and
 margin) depend on its geometry, UVs and texture size only, never on the lights, the
 camera or the fits' weights; they are most of a first render's work at large textures
-(the demo face at texture 4096: 32-34 s of a 46-48 s render, against 1.4 GB on disk).
+(the demo face at texture 4096: 32-34 s of a 46-48 s render, against 0.65 GB on disk).
 A look-development loop renders the same asset again and again under other lights, and
 a farm renders its frames in separate processes, so the tiles are kept on disk as one
 uncompressed ``.npz`` per level and margin, under a key of everything they are made
@@ -37,19 +37,19 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from .chart_tiles import TileLevel
+from .chart_tiles import SeamReads, TileLevel
 from .options import LAYOUT_CACHE_ENV
 
 LIMIT_ENV = "SKINPIPE_LAYOUT_CACHE_GB"
 """Environment variable: the most the store's folder may hold, in GB (10^9 bytes)."""
 DEFAULT_LIMIT_GB = 8.0
-"""The demo face's tiles take 0.21 GB at texture 1024, 0.48 GB at 2048, 1.4 GB at 4096."""
+"""The demo face's tiles take 0.09 GB at texture 1024, 0.22 GB at 2048, 0.65 GB at 4096."""
 _SOURCES = ("chart_tiles.py", "diffusion.py", "texture_maps.py", "raytrace.py",
             "opencl.py", "tile_store.py")
 """The modules whose code decides the tiles' content (a changed line is a new key)."""
 _LIBRARIES = ("numpy", "scipy", "embreex")
 _FILE = re.compile(r"^L(\d+)_M(\d+)\.npz$")
-_ARRAYS = ("shape", "shift", "owner", "count", "mm_u", "mm_v", "indptr", "indices", "data")
+_ARRAYS = ("shape", "shift", "owner", "count", "mm_u", "mm_v", "rows", "xy")
 _STALE_TMP_S = 3600.0
 
 
@@ -169,7 +169,7 @@ class TileStore:
     def save(self, tiles: TileLevel) -> None:
         """Write ``tiles`` on the store's writer thread (their arrays taken now, before a
         ``LevelGrid`` drops their texel sizes), off the layout's path: a first render at
-        texture 4096 writes 1.4 GB in 3-4 s. :meth:`flush` waits for the writes."""
+        texture 4096 writes 0.65 GB in about 1 s. :meth:`flush` waits for the writes."""
         if self._unwritable:
             return
         arrays = _tile_arrays(tiles)
@@ -264,26 +264,24 @@ class TileStore:
 def _tile_arrays(tiles: TileLevel) -> dict[str, Any]:
     if tiles.mm_u is None or tiles.mm_v is None:
         raise ValueError("the tiles' texel sizes were dropped (save before LevelGrid)")
-    r = tiles.reads
     return {"shape": np.asarray(tiles.shape, np.int64), "shift": tiles.shift,
             "owner": tiles.owner, "count": tiles.count, "mm_u": tiles.mm_u,
-            "mm_v": tiles.mm_v, "indptr": r.indptr, "indices": r.indices, "data": r.data}
+            "mm_v": tiles.mm_v, "rows": tiles.reads.rows, "xy": tiles.reads.xy}
 
 
 def _read_tiles(path: Path, level: int, margin: int) -> TileLevel:
     """A stored level, its arrays checked against each other (the zip's CRC checks the
     bytes as numpy reads them)."""
-    from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
-
     with np.load(path, allow_pickle=False) as z:
         a = {name: z[name] for name in _ARRAYS}
     h, w = (int(x) for x in a["shape"])
     n = h * w
     flat = ("owner", "count", "mm_u", "mm_v")
+    rows, xy = a["rows"], a["xy"]
     if any(a[name].shape not in ((n,), (h, w)) for name in flat) or a["shift"].ndim != 2 \
-            or a["indptr"].shape != (n + 1,) or a["indices"].shape != a["data"].shape \
-            or int(a["indptr"][0]) != 0 or int(a["indptr"][-1]) != a["data"].size:
+            or rows.shape != (n + 1,) or rows.dtype != np.int32 or xy.dtype != np.float32 \
+            or xy.shape[1:] != (2,) or int(rows[0]) != 0 or int(rows[-1]) != xy.shape[0] \
+            or bool((np.diff(rows) < 0).any()):
         raise ValueError("arrays of inconsistent shapes")
-    reads = csr_matrix((a["data"], a["indices"], a["indptr"]), shape=(n, n), copy=False)
-    return TileLevel(level, margin, (h, w), a["shift"], a["owner"], a["count"], reads,
-                     a["mm_u"], a["mm_v"])
+    return TileLevel(level, margin, (h, w), a["shift"], a["owner"], a["count"],
+                     SeamReads((h, w), level, rows, xy), a["mm_u"], a["mm_v"])

@@ -352,29 +352,38 @@ def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
                                  None, charts)
         tiles[device] = [layout.grid(k, 6).tiles for k in range(4)]
     for k, (mine, want) in enumerate(zip(tiles[True], tiles[False], strict=True)):
-        assert want.reads.nnz > 0, k
-        for name in ("indptr", "indices", "data"):
+        assert want.reads.count > 0, k
+        for name in ("rows", "xy"):
             np.testing.assert_array_equal(getattr(mine.reads, name),
                                           getattr(want.reads, name), err_msg=f"{k} {name}")
 
 
 @pytest.mark.parametrize("level", [0, 1])
-def test_the_device_makes_the_read_taps_as_numpy_does(
-        level: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The reads' taps (bilinear at level 0, Catmull-Rom above) on the device against
-    numpy's, at random atlas positions including ones past every edge (the clamps):
-    the same indices and float32 weights bit for bit."""
+def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
+    """The device's reads (``read_seams``: taps made from each read's position, bilinear
+    at level 0, Catmull-Rom above) at random atlas positions including ones past every
+    edge (the clamps), 0-3 reads a texel, against scipy's product with
+    SeamReads.matrix() (numpy's taps): the same texels bit for bit."""
     import pipeline.render.chart_tiles as chart_tiles
+    from pipeline.render.opencl import host_output, read_output
 
-    if not chart_tiles._device_has_doubles():
-        pytest.skip("the device has no doubles: the taps are numpy's alone")
-    xy = (np.random.default_rng(level).random((5000, 2)) * [70, 50] - 3).astype(np.float32)
-    mine = chart_tiles._read_taps(xy, (45, 64), level)
-    monkeypatch.setattr(chart_tiles, "_device_has_doubles", lambda: False)
-    want = chart_tiles._read_taps(xy, (45, 64), level)
-    for got, expected in zip(mine, want, strict=True):
-        assert got.dtype == expected.dtype and got.shape == expected.shape
-        np.testing.assert_array_equal(got, expected)
+    kernel = chart_tiles.seam_read_kernel()
+    if kernel is None:
+        pytest.skip("the device has no doubles: the host reads across the seams")
+    rng = np.random.default_rng(level)
+    h, w = 45, 64
+    per_texel = rng.integers(0, 4, h * w)
+    rows = np.concatenate([[0], np.cumsum(per_texel)]).astype(np.int32)
+    xy = (rng.random((int(rows[-1]), 2)) * [w + 6, h + 6] - 3).astype(np.float32)
+    reads = chart_tiles.SeamReads((h, w), level, rows, xy)
+    src = rng.random((h * w, 4)).astype(np.float32)
+    got = np.empty_like(src)
+    out = host_output(got)
+    _, queue = cl_context()
+    kernel(queue, (h * w,), None, host_buffer(rows), host_buffer(xy), np.int32(h),
+           np.int32(w), np.int32(level > 0), host_buffer(src), np.int32(h * w), out)
+    read_output(queue, out, got)
+    np.testing.assert_array_equal(got, src + reads.matrix() @ src)
 
 
 @pytest.mark.parametrize("bend", [0.0, 0.02], ids=["flat", "bent"])
@@ -417,13 +426,14 @@ def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
     for k in range(4):
         grid = layout.grid(k, 4)
         reads = grid.seam_buffers()
-        assert reads is not None and grid.tiles.reads.nnz > 0, k
+        assert reads is not None and grid.tiles.reads.count > 0, k
         n = grid.shape[0] * grid.shape[1]
         src = np.random.default_rng(k).random((n, 4)).astype(np.float32)
         got = np.empty_like(src)
         out = host_output(got)
         source = host_buffer(src)
-        kernel(queue, (n,), None, *reads, source, np.int32(n), out)
+        kernel(queue, (n,), None, *reads, *(np.int32(x) for x in (*grid.shape, k > 0)),
+               source, np.int32(n), out)
         read_output(queue, out, got)
         np.testing.assert_array_equal(got, grid.tiles.read_across_seams(src.copy()),
                                       err_msg=f"level {k}")
