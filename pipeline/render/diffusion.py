@@ -344,7 +344,7 @@ _PYRAMID_KERNEL = r"""
 // chart's shift in that level's atlas, through a cubic B-spline (level 0: the texel).
 // Job n of the batch: jobs[6n .. 6n+5] = (offset of its texture in `terms` in float4;
 // job index into tw; level width; level height; its level, -1 for the unblurred
-// irradiance `base`; the level's first entry in `shift`). The region weights are read
+// irradiance `e`; the level's first entry in `shift`). The region weights are read
 // once for the whole batch (a pass per term read them, 24 bytes a texel with six
 // regions, once per term). The sum goes to `rgb` (the result's own memory on a CPU
 // device); acc_in: added to what the previous batches left there.
@@ -381,7 +381,12 @@ INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw
     }
     return acc;
 }
-__kernel void accumulate_terms(__global const float4 *terms, __global const float4 *base,
+// (E, 1) of finest texel i from the irradiance's RGB (H W x 3): the (E cov, cov) pair the
+// blurs carry, read in place (an (E, 1) copy was 268 MB at texture 4096)
+#define E_ONE(e, i) ((float4)((e)[3 * (size_t)(i)], (e)[3 * (size_t)(i) + 1], \
+                              (e)[3 * (size_t)(i) + 2], 1.0f))
+
+__kernel void accumulate_terms(__global const float4 *terms, __global const float *e,
                                __constant int *jobs, __global float *rgb,
                                __global const float *cover, __global const float *rw,
                                __constant float4 *tw, __global const int *chart,
@@ -408,7 +413,7 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
         const int off = jobs[6 * n], job = jobs[6 * n + 1], level = jobs[6 * n + 4];
         float4 t;
         if (level < 0) {
-            t = base[i];
+            t = E_ONE(e, i);
         } else if (level == 0) {
             const float2 s = shift[jobs[6 * n + 5] + c];
             t = terms[(size_t)off + (y + (int)s.y) * jobs[6 * n + 2] + x + (int)s.x];
@@ -438,10 +443,11 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 // splats to its first cell g0 = floor((x + 0.5) / 2^k - 0.5) with 1 - f and to g0 + 1
 // with f, f the fraction; so cell g gathers x in [g 2^k - 2^(k-1), g 2^k + 3 2^(k-1)):
 // the first 2^k with f, the next 2^k with 1 - f (per axis; level 0: x = g, weight 1).
-// base: (E, 1) per finest texel; share: the part of its square its chart covers;
+// e: E per finest texel (RGB, read as (E, 1)); share: the part of its square its chart
+// covers;
 // owner: each atlas texel's chart (-1: none); count: the splat's weights summed there
 // (0: no finest texel reaches it).
-__kernel void splat_level(__global const float4 *base, __global const float *share,
+__kernel void splat_level(__global const float *e, __global const float *share,
                           __global const int *chart,
                           __global const int *owner, __global const float *count,
                           __global const int2 *shift, __global float4 *out,
@@ -457,7 +463,7 @@ __kernel void splat_level(__global const float4 *base, __global const float *sha
         const int2 g = (int2)(x, y) - shift[c];
         if (level == 0) {
             if (g.x >= 0 && g.x < w && g.y >= 0 && g.y < h && chart[g.y * w + g.x] == c)
-                sum = share[g.y * w + g.x] * base[g.y * w + g.x];
+                sum = share[g.y * w + g.x] * E_ONE(e, g.y * w + g.x);
         } else {
             const int s = 1 << level;
             const float inv = 1.0f / (float)s;
@@ -474,7 +480,8 @@ __kernel void splat_level(__global const float4 *base, __global const float *sha
                     if (xx < 0 || xx >= w || chart[yy * w + xx] != c) continue;
                     float fx = ((float)(xx & (s - 1)) + 0.5f) * inv - 0.5f;
                     fx = fx < 0.0f ? fx + 1.0f : fx;
-                    row += ((dx < s ? fx : 1.0f - fx) * share[yy * w + xx]) * base[yy * w + xx];
+                    row += ((dx < s ? fx : 1.0f - fx) * share[yy * w + xx])
+                           * E_ONE(e, yy * w + xx);
                 }
                 sum += wy * row;
             }
@@ -743,7 +750,7 @@ class DiffusionLayout:
         del on_chart
         self.iir = iir_kernels()
         self.cover_buf = host_buffer(cov)
-        self.chart_buf = host_buffer(charts.chart.astype(np.int32))
+        self.chart_buf = host_buffer(np.asarray(charts.chart, np.int32))
         # the part of each texel's square its chart covers, for the tiles' splat
         self.share_buf = host_buffer(covered.astype(np.float32) if charts.coverage is None
                                      else charts.coverage)
@@ -859,41 +866,44 @@ def _release_freed_heap() -> None:
     trim(0)
 
 
-def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid], base: Any
-                 ) -> dict[int, Any]:
-    """Each level's tile atlas filled with the irradiance in ``base`` (the device's (E,
-    1) per finest texel, as the accumulation reads it; :meth:`TileLevel.fill`): the
-    splat on the device (``splat_level``: numpy's accumulations took half of a 4096
-    diffusion, 4.8 of 12 s), the reads across the seams on the host. Host memory a
-    device on this machine reads in place."""
-    if not grids:
-        return {}
+def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid], irradiance: Any,
+                 scratch: Any) -> dict[int, Any]:
+    """Each level's tile atlas filled with ``irradiance`` (a device buffer of the RGB per
+    finest texel, which the splat reads as (E, 1); :meth:`TileLevel.fill`): the splat on
+    the device (``splat_level``: numpy's accumulations took half of a 4096 diffusion,
+    4.8 of 12 s), and the reads across the seams too (``read_seams``; on the host where
+    the device has no doubles). Each level splats into ``scratch`` (a device buffer of
+    the largest atlas, float4: the blurs' work buffer), which the in-order queue's next
+    kernel reads across the seams into the level's own atlas: one splat buffer for all
+    levels, where one each held 0.47 GB beside the atlases at texture 4096. Host memory
+    a device on this machine reads in place."""
     kernel = pyramid_kernels(layout.n_regions)["splat_level"]
     seams = seam_read_kernel()
     queue = layout.iir.queue
     sources: dict[int, Any] = {}
-    held = []  # the splats' buffers, until the queue is done with them
+
+    def splat(k: int, grid: LevelGrid, into: Any) -> None:
+        lh, lw = grid.shape
+        kernel(queue, (lw, lh), None, irradiance, layout.share_buf, layout.chart_buf,
+               *grid.splat_buffers(), into, np.int32(layout.width), np.int32(layout.height),
+               np.int32(lw), np.int32(lh), np.int32(k))
+
     for k, grid in grids.items():
         lh, lw = grid.shape
-        out = np.empty((lh * lw, 4), np.float32)
-        out_buf = host_output(out)
-        owner, count, shift = grid.splat_buffers()
-        kernel(queue, (lw, lh), None, base, layout.share_buf, layout.chart_buf, owner, count,
-               shift, out_buf, np.int32(layout.width), np.int32(layout.height),
-               np.int32(lw), np.int32(lh), np.int32(k))
         reads = grid.seam_buffers()
         if reads is None:
+            out = np.empty((lh * lw, 4), np.float32)
+            out_buf = host_output(out)
+            splat(k, grid, out_buf)
             read_output(queue, out_buf, out)
             sources[k] = host_buffer(grid.tiles.read_across_seams(out))
             continue
+        splat(k, grid, scratch)
         # the reads on the device too: scipy's product ran on one core (0.45 s of a
         # 2.8 s diffusion at texture 2048), the kernel on all, the same sums
-        filled = np.empty_like(out)
-        sources[k] = host_output(filled)
+        sources[k] = host_output(np.empty((lh * lw, 4), np.float32))
         seams(queue, (lh * lw,), None, *reads, np.int32(lh), np.int32(lw), np.int32(k > 0),
-              out_buf, np.int32(lh * lw), sources[k])
-        held.append(out_buf)
-    queue.finish()
+              scratch, np.int32(lh * lw), sources[k])
     return sources
 
 
@@ -1045,11 +1055,11 @@ def diffuse_prepared(
     # with this irradiance (host memory, read in place on a CPU device)
     grids = {k: layout.grid(k, margin)
              for k, margin in sorted(layout.level_margins(v[used]).items())}
-    base = host_buffer(np.concatenate([e, np.ones((h, w, 1), np.float32)], axis=2))
-    sources = _fill_levels(layout, grids, base)
+    e_buf = host_buffer(e)
     stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
     nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
     tmp = layout.buffer("tmp", nbytes)
+    sources = _fill_levels(layout, grids, e_buf, tmp)
     sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
              for var, k in jobs]
     batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
@@ -1084,7 +1094,7 @@ def diffuse_prepared(
             stats.levels.append(k)
             blurred_texels += lh * lw
         kernels["accumulate_terms"](
-            queue, (w, h), None, terms, base,
+            queue, (w, h), None, terms, e_buf,
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
             out_buf, layout.cover_buf, layout.rw_buf, tw_buf, layout.chart_buf, shift_buf,
             np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))

@@ -15,6 +15,7 @@ the numpy version's last write does; one per texel interpolates the attributes);
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -38,9 +39,13 @@ class TextureMaps:
     mm_per_texel_v: NDArray[np.float32]  # (H, W)
     region_weights: NDArray[np.float32] | None  # (H, W, R)
 
-    @property
+    @cached_property
     def coverage(self) -> NDArray[np.float32]:
-        return (self.triangle >= 0).astype(np.float32)
+        """(H, W) 1 where a triangle covers the texel, else 0: one read-only array that
+        every task shares (one each held 67 MB apiece at texture 4096)."""
+        cov = (self.triangle >= 0).astype(np.float32)
+        cov.setflags(write=False)
+        return cov
 
 
 def texel_rows(texture: NDArray[Any], texels: NDArray[np.intp]) -> NDArray[Any]:
