@@ -612,11 +612,11 @@ class LevelGrid:
         on = [m[inner] for m in mm] if inner.any() else [m.ravel() for m in mm]
         self.typical = [float(np.median(m)) for m in on]
         self.uniform = all(float(m.max() - m.min()) <= 1e-6 * float(m.max()) for m in on)
-        self._q = tuple(quantized_log2(m) for m in mm)
+        self._q: tuple[NDArray[np.int32], ...] | None = tuple(quantized_log2(m) for m in mm)
         # the sizes live on as their log2 steps: the float copies go (8 bytes an atlas
         # texel, 0.23 GB over the levels at texture 4096, alive through the diffusion)
         tiles.mm_u = tiles.mm_v = None
-        self._inner = inner
+        self._inner: NDArray[np.bool_] | None = inner
         self._index: tuple[int, int, int, int, Any, Any] | None = None
         self._texel: TexelSteps | bool | None = False
         self._splat: tuple[Any, Any, Any] | None = None
@@ -625,12 +625,14 @@ class LevelGrid:
     def device_buffers(self) -> None:
         """Make every device buffer the level's fills and blurs read (each is otherwise
         made on first use): the splat's and seam reads', and for texel sizes that vary,
-        the recursive and the direct blur's indices."""
+        the recursive and the direct blur's indices; then drop the texel sizes' log2
+        steps those are made from (0.23 GB over the levels at texture 4096)."""
         self.splat_buffers()
         self.seam_buffers()
-        if not self.uniform:
+        if not self.uniform:  # a level of one texel size blurs without indices
             self.index()
             self.texel_steps()
+        self._q = self._inner = None
 
     def splat_buffers(self) -> tuple[Any, Any, Any]:
         """Device buffers of the tiles' owners, counts and chart shifts (int2) for the
@@ -656,6 +658,7 @@ class LevelGrid:
         (int32, row layout), v index buffer (transposed)) of the texel sizes on the log2
         grid, for the recursive blur; made on first use."""
         if self._index is None:
+            assert self._q is not None, "index() after device_buffers() dropped the steps"
             qu, qv = self._q
             flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
             lo_u, lo_v = int(qu.min()), int(qv.min())
@@ -671,6 +674,8 @@ class LevelGrid:
         when the steps span more than a uint16 holds."""
         if self._texel is False:
             steps, indices, smaller = [], [], 0
+            assert self._q is not None and self._inner is not None, \
+                "texel_steps() after device_buffers() dropped the steps"
             for q in self._q:
                 # the chart's own texels set the steps (a margin texel copies its nearest
                 # one, a degenerate texel's size as often as it is nearest)

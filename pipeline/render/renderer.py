@@ -410,13 +410,22 @@ class SkinTextures:
     tris: NDArray[np.int32]
     maps: TextureMaps
     albedo: NDArray[np.float32]
-    irradiance: NDArray[np.float32] | None = None
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
     keys: dict[str, str] = field(default_factory=dict)
     """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
     instead of hashing the maps themselves."""
+
+    @property
+    def irradiance(self) -> NDArray[np.float32] | None:
+        """The irradiance (H, W, 3), 0 off the charts, as a new array: the filled one where
+        a triangle covers the texel, which the push-pull and the gutter leave as it was
+        (a copy kept beside the filled one held 201 MB at texture 4096)."""
+        if self.irradiance_filled is None:
+            return None
+        return np.where((self.maps.triangle >= 0)[..., None], self.irradiance_filled,
+                        np.float32(0.0))
 
 
 class Renderer:
@@ -565,24 +574,24 @@ class Renderer:
             if interleave is not None and res.interleaved and visibility:
                 visibility = interleaved_visibility(res, maps, texel)
                 entering = res.entering_with(visibility)
-            e = np.zeros((*covered.shape, 3), np.float32)
-            e.reshape(-1, 3)[texel] = entering
             # one push-pull fills the irradiance and the visibility the specular lobe
             # looks up (dome lights light it unshadowed: theirs is not needed)
             kinds = {lt.path: lt.kind for lt in scene.lights}
             spec = [p for p in visibility if kinds.get(p) != "dome"]
             planes = np.zeros((*covered.shape, 3 + len(spec)), np.float32)
-            planes[..., :3] = e
-            for i, path in enumerate(spec):  # by flat index: a strided mask's took 5x
-                planes.reshape(-1, planes.shape[-1])[texel, 3 + i] = visibility[path]
+            flat = planes.reshape(-1, planes.shape[-1])
+            flat[texel, :3] = entering  # by flat index: a strided mask's took 5x
+            for i, path in enumerate(spec):
+                flat[texel, 3 + i] = visibility[path]
             filled = dilate_charts(push_pull(planes, maps.coverage), maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
-            # the cache keeps what later tasks read, not the per-light arrays (~100 MB)
-            return e, filled[..., :3], vis, (res.skipped, res.rays, res.seconds, penumbra)
+            # the cache keeps what later tasks read, not the per-light arrays (~100 MB);
+            # the irradiance itself is the filled one on the charts (SkinTextures)
+            return filled[..., :3], vis, (res.skipped, res.rays, res.seconds, penumbra)
 
-        e, filled, vis, (skipped, rays_cast, seconds, penumbra) = self._cached(
+        filled, vis, (skipped, rays_cast, seconds, penumbra) = self._cached(
             log, "irradiance", key, compute)
-        tex.irradiance, tex.irradiance_filled, tex.visibility = e, filled, vis
+        tex.irradiance_filled, tex.visibility = filled, vis
         log.skipped += [s for s in skipped if s not in log.skipped]
         log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
                                       "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
@@ -654,7 +663,7 @@ class Renderer:
                    texel_mm: float, layout: Future[DiffusionLayout] | None) -> None:
         opts = self.options
         maps = tex.maps
-        assert tex.irradiance is not None
+        assert tex.irradiance_filled is not None
         key = self._diffusion_key(tex, terms)
         prepared: DiffusionLayout | None = None
         if layout is not None:
@@ -669,7 +678,9 @@ class Renderer:
             a = opts.albedo_split
             # sqrt before and after (the default) without two general powers
             before = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, a)
-            pre = tex.irradiance * before
+            pre = tex.irradiance  # a new array: weighted in place
+            assert pre is not None
+            pre *= before
             del before  # made again after the blur: not held through its peak (texture-sized)
             cov = maps.coverage
             # the blur moves flux, it must not create or lose it (chart borders included)
