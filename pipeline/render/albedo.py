@@ -96,7 +96,7 @@ def paint_skin_albedo(maps: TextureMaps, region_names: tuple[str, ...],
     from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
     covered = np.flatnonzero(maps.triangle.ravel() >= 0)
-    pos = texel_rows(maps.position, covered).astype(np.float64)
+    pos = texel_rows(maps.surface[0], covered).astype(np.float64)
     # The texels' tree is built (scipy releases the GIL) while the tone is worked out:
     # 0.08-0.12 s at texture 1024, most of it hidden.
     with ThreadPoolExecutor(1) as pool:

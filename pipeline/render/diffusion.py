@@ -22,7 +22,7 @@ from __future__ import annotations
 import ctypes
 import math
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -592,7 +592,7 @@ def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
     corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
                                               maps.size)
     geometry = SeamGeometry(rays, mesh_index, tri_chart, corners, jacobian, maps.triangle,
-                            maps.position, maps.normal)
+                            *maps.surface)
     return ChartLayout(chart, n_charts, geometry,
                        texel_coverage(chart, maps.triangle, tri_chart, corners))
 
@@ -733,6 +733,7 @@ class DiffusionLayout:
         elif charts.chart.shape != (h, w) or not np.array_equal(charts.chart >= 0, covered):
             raise InputError("the chart map must have a chart exactly where coverage is")
         self.charts = charts
+        self._surface_released = False
         self.store = store
         self.levels = _max_level(h, w) + 1
         self._grids: dict[tuple[int, int], LevelGrid] = {}
@@ -824,6 +825,9 @@ class DiffusionLayout:
             key = self._made(level, margin)
         if key is None:
             c = self.charts
+            if c.geometry is None and self._surface_released:
+                raise RuntimeError(f"the layout's surface was let go (release_surface): no "
+                                   f"new tiles (level {level}, margin {margin}) can be made")
             tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
                                c.geometry, c.coverage, finest)
             if self.store is not None:
@@ -831,6 +835,13 @@ class DiffusionLayout:
             key = (level, margin)
             self._grids[key] = LevelGrid(tiles, self.iir.ctx)
         return self._grids[key]
+
+    def release_surface(self) -> None:
+        """Let the surface the margins are read from go (the texture's position and
+        normal maps, 0.4 GB at texture 4096) once the tiles every diffusion to come needs
+        are made: a render's last frame. Asking for other tiles then is an error."""
+        self.charts = replace(self.charts, geometry=None)
+        self._surface_released = True
 
     def _load(self, level: int, margin: int) -> bool:
         """Whether the store (if any) held tiles for (``level``, ``margin``), now made a

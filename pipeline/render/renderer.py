@@ -189,7 +189,7 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     traced = np.zeros(vis.shape, bool)
     for i, p in enumerate(paths):
         light_planes(res.visibility[p], res.unshadowed[p], texel, vis[i], traced[i])
-    filtered = filter_interleaved(vis, traced, maps.normal, at=texel)
+    filtered = filter_interleaved(vis, traced, maps.surface[1], at=texel)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
 
@@ -443,6 +443,10 @@ class Renderer:
         self._cache_lock = threading.Lock()  # the diffusion layout's task runs on a thread
         self.textures: list[SkinTextures] = []
         self._prewarmed = False
+        self.last_frame = False
+        """Whether no frame follows this one (:func:`render_files`' last): its texture
+        maps' position and normal, and its seam layout's surface, go as soon as its
+        irradiance and layout are made, rather than stay for a next frame."""
 
     def close(self) -> None:
         self.delegate.close()
@@ -558,7 +562,7 @@ class Renderer:
             texel = texels_in_blocks(covered)
             interleave = np.take(interleave_classes(covered.shape), texel) \
                 if opts.shadow_sampling != "full" else None
-            positions, normals = texel_rows(maps.position, texel), texel_rows(maps.normal, texel)
+            positions, normals = (texel_rows(m, texel) for m in maps.surface)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
@@ -597,6 +601,19 @@ class Renderer:
                                       "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
                                       "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
                                       "penumbra_texels": penumbra}
+
+    def _release_surface(self, tex: SkinTextures, layout: DiffusionLayout | None) -> None:
+        """Let ``tex``'s position and normal maps go, and ``layout``'s surface, once the
+        irradiance and the seam layout that read them are made, in a render's last frame
+        (0.4 GB at texture 4096, during the diffusion's peak): out of the cache too, so
+        that a later render makes them again."""
+        with self._cache_lock:
+            for k in [k for k in self._cache if k.startswith(("texture_maps:",
+                                                              "diffusion_layout:"))]:
+                del self._cache[k]
+        tex.maps = tex.maps.without_surface()
+        if layout is not None:
+            layout.release_surface()
 
     def _terms(self, tex: SkinTextures) -> tuple[DiffusionTerms, float]:
         """The blur schedule of a skin mesh's fits at its texture's median texel size
@@ -662,7 +679,6 @@ class Renderer:
     def _diffusion(self, log: TaskLog, tex: SkinTextures, terms: DiffusionTerms,
                    texel_mm: float, layout: Future[DiffusionLayout] | None) -> None:
         opts = self.options
-        maps = tex.maps
         assert tex.irradiance_filled is not None
         key = self._diffusion_key(tex, terms)
         prepared: DiffusionLayout | None = None
@@ -673,6 +689,9 @@ class Renderer:
             prepared = layout.result()
             log.measures["diffusion_layout"] = {
                 "beside": "irradiance", "waited_s": time.perf_counter() - start}
+        if self.last_frame:
+            self._release_surface(tex, prepared)
+        maps = tex.maps  # after the release: not the maps that still hold the surface
 
         def compute() -> Any:
             a = opts.albedo_split
@@ -1089,6 +1108,7 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
             t0 = time.perf_counter()
             if progress and t is not None:
                 progress(f"frame {t}")
+            renderer.last_frame = own and t == times[-1]
             images, log = renderer.render(t)
             frame_name = name if t is None else f"{name}.{t:04d}"
             uv_outputs = write_texture_outputs(out_dir, frame_name, renderer,

@@ -14,7 +14,7 @@ the numpy version's last write does; one per texel interpolates the attributes);
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -33,11 +33,29 @@ class TextureMaps:
 
     size: int
     triangle: NDArray[np.int32]  # (H, W), -1 where no triangle
-    position: NDArray[np.float32]  # (H, W, 3) scene units
-    normal: NDArray[np.float32]  # (H, W, 3) unit length where covered
+    position: NDArray[np.float32] | None  # (H, W, 3) scene units; None once let go
+    normal: NDArray[np.float32] | None  # (H, W, 3) unit length where covered; likewise
     mm_per_texel_u: NDArray[np.float32]  # (H, W)
     mm_per_texel_v: NDArray[np.float32]  # (H, W)
     region_weights: NDArray[np.float32] | None  # (H, W, R)
+
+    @property
+    def surface(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """The (position, normal) maps; an error once :meth:`without_surface` let them
+        go."""
+        if self.position is None or self.normal is None:
+            raise RuntimeError("these texture maps' position and normal maps were let go "
+                               "(TextureMaps.without_surface)")
+        return self.position, self.normal
+
+    def without_surface(self) -> TextureMaps:
+        """These maps less the position and normal maps, which only the irradiance and
+        the seam layout read (0.4 GB at texture 4096): for a render's last frame once
+        both are made. The coverage array stays the same one."""
+        out = replace(self, position=None, normal=None)
+        if "coverage" in self.__dict__:  # cached_property's value, not a field
+            out.__dict__["coverage"] = self.__dict__["coverage"]
+        return out
 
     @cached_property
     def coverage(self) -> NDArray[np.float32]:

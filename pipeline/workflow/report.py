@@ -233,7 +233,7 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                 covered = tex.maps.triangle >= 0
                 a = opts.albedo_split
                 finest = {
-                    "pos": tex.maps.position[covered].astype(np.float64) * sc.meters_per_unit
+                    "pos": tex.maps.surface[0][covered].astype(np.float64) * sc.meters_per_unit
                     * 1000.0,
                     "area": (tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered].astype(
                         np.float64),

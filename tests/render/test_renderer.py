@@ -14,7 +14,7 @@ from pipeline.cli import main
 from pipeline.errors import InputError
 from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
 from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render.diffusion import diffuse
+from pipeline.render.diffusion import DiffusionLayout, diffuse
 from pipeline.render.lighting import irradiance_texture, specular_albedo
 from pipeline.render.options import AOVS, DATA_AOVS
 from pipeline.render.raytrace import RayScene
@@ -307,6 +307,50 @@ def test_a_render_without_scattering_keeps_the_seam_layout(lit_patch: Path) -> N
     _, third = renderer.render()
     renderer.close()
     assert "diffusion_layout" in third.cached and "diffusion" in third.seconds
+
+
+def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: Path
+                                                                     ) -> None:
+    """A render's last frame lets the position and normal maps, and its seam layout's
+    surface, go once the irradiance and the layout are made: the same images bit for
+    bit as a frame that keeps them; a later frame of the same renderer makes them again
+    (the same images), and the let-go layout makes no tiles without its surface."""
+    from dataclasses import replace
+
+    kept = Renderer(open_stage_guarded(lit_patch), SMALL)
+    want, _ = kept.render()
+    assert kept.textures[0].maps.position is not None
+    kept.close()
+    renderer = Renderer(open_stage_guarded(lit_patch), SMALL)
+    renderer.last_frame = True
+    layouts: list[DiffusionLayout] = []
+    release = DiffusionLayout.release_surface
+
+    def spy(layout: DiffusionLayout) -> None:
+        layouts.append(layout)
+        release(layout)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DiffusionLayout, "release_surface", spy)
+        got, _ = renderer.render()
+    maps = renderer.textures[0].maps
+    assert maps.position is None and maps.normal is None
+    with pytest.raises(RuntimeError, match="let go"):
+        _ = maps.surface
+    with pytest.raises(RuntimeError, match="let go"):
+        layouts[0].grid(2, 99)  # tiles it never made
+    for aov, image in want.items():
+        np.testing.assert_array_equal(got[aov], image, err_msg=aov)
+    renderer.last_frame = False
+    again, log = renderer.render()
+    assert "texture_maps" in log.seconds and "diffusion" in log.cached
+    assert renderer.textures[0].maps.position is not None
+    for aov, image in want.items():
+        np.testing.assert_array_equal(again[aov], image, err_msg=aov)
+    renderer.options = replace(SMALL, albedo_split=0.3)  # new terms: the layout again
+    _, log = renderer.render()
+    renderer.close()
+    assert "diffusion_layout" in log.seconds
 
 
 def test_the_layout_beside_the_irradiance_reports_errors_and_ends_with_the_frame(
