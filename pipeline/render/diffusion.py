@@ -882,45 +882,33 @@ def _release_freed_heap() -> None:
     trim(0)
 
 
-def _fill_levels(layout: DiffusionLayout, grids: dict[int, LevelGrid], irradiance: Any,
-                 scratch: Any) -> dict[int, Any]:
-    """Each level's tile atlas filled with ``irradiance`` (a device buffer of the RGB per
+def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scratch: Any,
+                into: Any) -> Any:
+    """``grid``'s tile atlas filled with ``irradiance`` (a device buffer of the RGB per
     finest texel, which the splat reads as (E, 1); :meth:`TileLevel.fill`): the splat on
     the device (``splat_level``: numpy's accumulations took half of a 4096 diffusion,
-    4.8 of 12 s), and the reads across the seams too (``read_seams``; on the host where
-    the device has no doubles). Each level splats into ``scratch`` (a device buffer of
-    the largest atlas, float4: the blurs' work buffer), which the in-order queue's next
-    kernel reads across the seams into the level's own atlas: one splat buffer for all
-    levels, where one each held 0.47 GB beside the atlases at texture 4096. Host memory
-    a device on this machine reads in place."""
+    4.8 of 12 s) into ``scratch``, then the reads across the seams from there into
+    ``into`` (``read_seams``), which it returns; on a device without doubles the host
+    reads across the seams into an atlas of its own, returned instead. ``scratch`` and
+    ``into``: device buffers of at least the atlas (float4). Host memory a device on
+    this machine reads in place."""
     kernel = pyramid_kernels(layout.n_regions)["splat_level"]
-    seams = seam_read_kernel()
     queue = layout.iir.queue
-    sources: dict[int, Any] = {}
-
-    def splat(k: int, grid: LevelGrid, into: Any) -> None:
-        lh, lw = grid.shape
-        kernel(queue, (lw, lh), None, irradiance, layout.share_buf, layout.chart_buf,
-               *grid.splat_buffers(), into, np.int32(layout.width), np.int32(layout.height),
-               np.int32(lw), np.int32(lh), np.int32(k))
-
-    for k, grid in grids.items():
-        lh, lw = grid.shape
-        reads = grid.seam_buffers()
-        if reads is None:
-            out = np.empty((lh * lw, 4), np.float32)
-            out_buf = host_output(out)
-            splat(k, grid, out_buf)
-            read_output(queue, out_buf, out)
-            sources[k] = host_buffer(grid.tiles.read_across_seams(out))
-            continue
-        splat(k, grid, scratch)
-        # the reads on the device too: scipy's product ran on one core (0.45 s of a
-        # 2.8 s diffusion at texture 2048), the kernel on all, the same sums
-        sources[k] = host_output(np.empty((lh * lw, 4), np.float32))
-        seams(queue, (lh * lw,), None, *reads, np.int32(lh), np.int32(lw), np.int32(k > 0),
-              scratch, np.int32(lh * lw), sources[k])
-    return sources
+    lh, lw = grid.shape
+    reads = grid.seam_buffers()
+    out = np.empty((lh * lw, 4), np.float32) if reads is None else None
+    splat_into = scratch if out is None else host_output(out)
+    kernel(queue, (lw, lh), None, irradiance, layout.share_buf, layout.chart_buf,
+           *grid.splat_buffers(), splat_into, np.int32(layout.width), np.int32(layout.height),
+           np.int32(lw), np.int32(lh), np.int32(grid.level))
+    if out is not None:
+        read_output(queue, splat_into, out)
+        return host_buffer(grid.tiles.read_across_seams(out))
+    # the reads on the device too: scipy's product ran on one core (0.45 s of a 2.8 s
+    # diffusion at texture 2048), the kernel on all, the same sums
+    seam_read_kernel()(queue, (lh * lw,), None, *reads, np.int32(lh), np.int32(lw),
+                       np.int32(grid.level > 0), scratch, np.int32(lh * lw), into)
+    return into
 
 
 def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
@@ -1075,7 +1063,12 @@ def diffuse_prepared(
     stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
     nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
     tmp = layout.buffer("tmp", nbytes)
-    sources = _fill_levels(layout, grids, e_buf, tmp)
+    # one level's atlas at a time, filled before its first job: the jobs come level by
+    # level (a wider term never on a finer level), and the in-order queue fills the
+    # next level only after this one's blurs (every level's at once held 0.47 GB at
+    # texture 4096, one 0.32 GB)
+    source_buf = layout.buffer("source", nbytes)
+    source, source_level = None, -1
     sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
              for var, k in jobs]
     batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
@@ -1106,7 +1099,9 @@ def diffuse_prepared(
             lh, lw = grid.shape
             table[n] = (start // 16, j, lw, lh, k, shift_at[k])
             work = terms.get_sub_region(start, end - start)
-            _blur_job(layout, grid, sources[k], tmp, work, variance, stats)
+            if k != source_level:
+                source, source_level = _fill_level(layout, grid, e_buf, tmp, source_buf), k
+            _blur_job(layout, grid, source, tmp, work, variance, stats)
             stats.levels.append(k)
             blurred_texels += lh * lw
         kernels["accumulate_terms"](

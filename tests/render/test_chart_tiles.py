@@ -23,7 +23,7 @@ from pipeline.profile.reference_data import DEON_2007_SKIN
 from pipeline.render.diffusion import (
     ChartLayout,
     DiffusionLayout,
-    _fill_levels,
+    _fill_level,
     chart_layout,
     diffuse,
 )
@@ -319,7 +319,9 @@ def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
     e = np.random.default_rng(3).random((256, 256, 3)).astype(np.float32)
     grids = {k: layout.grid(k, 4) for k in range(4)}
     scratch = layout.buffer("tmp", max(g.shape[0] * g.shape[1] * 16 for g in grids.values()))
-    got = _fill_levels(layout, grids, host_buffer(e), scratch)
+    got = {k: _fill_level(layout, grid, host_buffer(e), scratch,
+                          layout.buffer(f"level {k}", grid.shape[0] * grid.shape[1] * 16))
+           for k, grid in grids.items()}
     _, queue = cl_context()
     covered = charts.chart >= 0
     for k, grid in grids.items():
