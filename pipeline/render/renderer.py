@@ -3,7 +3,7 @@
 Tasks, each cached on the content of its inputs (so a turntable computes the
 texture-space work once and re-runs only the camera's shading):
 
-    uvs -> texture maps -> albedo map -> irradiance -> diffusion -> shade -> output
+    uvs -> texture maps -> irradiance -> albedo map -> diffusion -> shade -> output
 
 Units: texture-space radii and variances in mm (the stretch map turns scene units into
 mm with the stage's metersPerUnit); colours linear in the stage's working space
@@ -409,7 +409,7 @@ class SkinTextures:
     uv_tris: NDArray[np.int32]
     tris: NDArray[np.int32]
     maps: TextureMaps
-    albedo: NDArray[np.float32]
+    albedo: NDArray[np.float32] | None = None  # after the irradiance (Renderer._albedo)
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
@@ -537,16 +537,21 @@ class Renderer:
             mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.meters_per_unit,
             mesh.region_weights))
         albedo_key = content_hash(key, mesh.albedo, scene.working_colorspace)
-        albedo, source = self._cached(log, "albedo", albedo_key, lambda: albedo_map(
-            mesh, opts.texture_size, scene.working_colorspace))
-        log.measures["albedo_source"] = source
         irradiance_key = content_hash(
             mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
             [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness, opts.rho_s,
             opts.seed, opts.shadow_sampling, opts.light_sequence)
-        return SkinTextures(mesh, uv, uv_tris, tris, maps, albedo,
+        return SkinTextures(mesh, uv, uv_tris, tris, maps,
                             keys={"maps": key, "albedo": albedo_key,
                                   "irradiance": irradiance_key})
+
+    def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
+        """``tex``'s albedo map: after the irradiance, which does not read it (a painted
+        albedo held 201 MB beside the irradiance's peak at texture 4096)."""
+        albedo, source = self._cached(log, "albedo", tex.keys["albedo"], lambda: albedo_map(
+            tex.mesh, self.options.texture_size, scene.working_colorspace))
+        log.measures["albedo_source"] = source
+        tex.albedo = albedo
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]]) -> None:
@@ -693,10 +698,13 @@ class Renderer:
             self._release_surface(tex, prepared)
         maps = tex.maps  # after the release: not the maps that still hold the surface
 
+        albedo = tex.albedo
+        assert albedo is not None
+
         def compute() -> Any:
             a = opts.albedo_split
             # sqrt before and after (the default) without two general powers
-            before = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, a)
+            before = np.sqrt(albedo) if a == 0.5 else np.power(albedo, a)
             pre = tex.irradiance  # a new array: weighted in place
             assert pre is not None
             pre *= before
@@ -723,7 +731,7 @@ class Renderer:
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             flux_out = float((area @ out.reshape(-1, 3)).sum())
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            after = np.sqrt(tex.albedo) if a == 0.5 else np.power(tex.albedo, 1.0 - a)
+            after = np.sqrt(albedo) if a == 0.5 else np.power(albedo, 1.0 - a)
             out *= after  # out is this task's own array: in place
             del after
             out *= np.float32(1.0 / math.pi)
@@ -747,7 +755,7 @@ class Renderer:
                       dome_textures: dict[str, NDArray[np.float32]] | None = None
                       ) -> SkinTextures:
         """A skin mesh's texture-space tasks for a frame of ``scene`` (the ray scene
-        ``rays`` holds every mesh of it): texture maps, albedo, irradiance and the
+        ``rays`` holds every mesh of it): texture maps, irradiance, albedo and the
         diffused radiance, the seam layout made beside the irradiance; each task's
         seconds, cached tasks and measures go to ``log``."""
         tex = self._textures(log, scene, mesh)
@@ -760,6 +768,7 @@ class Renderer:
             if layout is not None:  # no thread outlives its frame, not even on errors
                 wait([layout])
             raise
+        self._albedo(log, scene, tex)
         self._diffusion(log, tex, terms, texel_mm, layout)
         store = None if layout is None else layout.result().store
         if store is not None:  # its writes ran beside the diffusion
@@ -925,6 +934,7 @@ class Renderer:
                 assert tex.radiance is not None
                 out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
             if "albedo" in wanted:
+                assert tex.albedo is not None
                 out["albedo"][sel] = bilinear(tex.albedo, uv)
             if "irradiance" in wanted:
                 assert tex.irradiance_filled is not None
