@@ -76,6 +76,7 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
         rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
         tex = renderer._textures(log, sc, mesh)
         renderer._irradiance(log, sc, tex, rays, {})
+        renderer._albedo(log, sc, tex)
     finally:
         renderer.close()
     maps = tex.maps
