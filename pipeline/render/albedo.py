@@ -211,7 +211,8 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     if progress:
         progress(f"paint albedo {size}x{size}")
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
-    image = dilate_charts(push_pull(albedo, maps.coverage), maps.coverage)[::-1]  # row 0: v=1
+    image = dilate_charts(push_pull(albedo, maps.coverage, in_place=True),
+                          maps.coverage)[::-1]  # row 0: v = 1
     texture = Path(asset).resolve().parent / ALBEDO_NAME
     # OpenImageIO makes the MIP-mapped texture without the GIL while MaterialX builds and
     # validates the material document (0.34 and 0.3 s at 1024); nothing is saved until

@@ -592,7 +592,8 @@ class Renderer:
             flat[texel, :3] = entering  # by flat index: a strided mask's took 5x
             for i, path in enumerate(spec):
                 flat[texel, 3 + i] = visibility[path]
-            filled = dilate_charts(push_pull(planes, maps.coverage), maps.coverage)
+            filled = dilate_charts(push_pull(planes, maps.coverage, in_place=True),
+                                   maps.coverage)
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB);
             # the irradiance itself is the filled one on the charts (SkinTextures)
@@ -735,7 +736,7 @@ class Renderer:
             out *= after  # out is this task's own array: in place
             del after
             out *= np.float32(1.0 / math.pi)
-            radiance = dilate_charts(push_pull(out, cov), cov)
+            radiance = dilate_charts(push_pull(out, cov, in_place=True), cov)
             return radiance, skipped, passes, energy, work
 
         radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)

@@ -26,6 +26,28 @@ def test_device_equals_the_numpy_reference(shape: tuple[int, int], channels: int
     np.testing.assert_array_equal(out[cov > 0], values[cov > 0])
 
 
+@pytest.mark.parametrize(("shape", "channels"), [((33, 47), 3), ((64, 64), 1), ((1, 1), 3)])
+def test_in_place_writes_the_same_maps_into_the_values(shape: tuple[int, int],
+                                                       channels: int) -> None:
+    """``in_place``: the result bit for bit as a new array's, in the values' own memory
+    (float32, C-contiguous); other values (float64, strided) are left as they were and
+    the result comes in a new array."""
+    rng = np.random.default_rng(2)
+    values = rng.random((*shape, channels)).astype(np.float32)
+    cov = (rng.random(shape) > 0.7).astype(np.float32)
+    want = push_pull(values, cov)
+    mine = values.copy()
+    got = push_pull(mine, cov, in_place=True)
+    np.testing.assert_array_equal(got, want)
+    assert np.shares_memory(got, mine) or shape == (1, 1)
+    for other in (values.astype(np.float64), np.asfortranarray(values)):
+        kept = other.copy()
+        got = push_pull(other, cov, in_place=True)
+        np.testing.assert_array_equal(got, want)
+        assert not np.shares_memory(got, other)
+        np.testing.assert_array_equal(other, kept)
+
+
 def test_holes_take_their_surroundings_and_nothing_outside_their_range() -> None:
     # a hole inside a constant field takes the constant; holes between two fields take
     # values between them
