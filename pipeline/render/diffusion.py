@@ -660,13 +660,14 @@ class LevelGrid:
         if self._index is None:
             assert self._q is not None, "index() after device_buffers() dropped the steps"
             qu, qv = self._q
-            flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
             lo_u, lo_v = int(qu.min()), int(qv.min())
+            # each index made once, in the order the pass reads it, and read in place on
+            # a CPU device (a copy, a transposed copy and the device's own copy were 0.4
+            # GB of passing pages at level 0 of texture 4096, beside the irradiance)
             self._index = (
                 lo_u, int(qu.max()), lo_v, int(qv.max()),
-                cl.Buffer(self.ctx, flags, hostbuf=(qu - lo_u).astype(np.int32)),
-                cl.Buffer(self.ctx, flags, hostbuf=np.ascontiguousarray((qv - lo_v).T,
-                                                                         np.int32)))
+                host_buffer(np.subtract(qu, np.int32(lo_u), dtype=np.int32)),
+                host_buffer(np.subtract(qv.T, np.int32(lo_v), dtype=np.int32, order="C")))
         return self._index
 
     def texel_steps(self) -> TexelSteps | None:
@@ -685,14 +686,19 @@ class LevelGrid:
                 lo = int(np.partition(on, rank)[rank])
                 steps.append(np.arange(lo, int(q.max()) + 1, dtype=np.int32))
                 smaller += int((on < lo).sum())
-                indices.append(np.maximum(q - lo, 0))
+                del on
+                indices.append(lo)
             if max(st.size for st in steps) > 65535:
                 self._texel = None
             else:
-                flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+                def index(q: NDArray[np.int32], lo: int) -> Any:  # max(q - lo, 0) as uint16
+                    step = np.subtract(q, np.int32(lo), dtype=np.int32)
+                    np.maximum(step, 0, out=step)
+                    return host_buffer(step.astype(np.uint16))
+
                 self._texel = TexelSteps(
-                    *steps, *(cl.Buffer(self.ctx, flags, hostbuf=i.astype(np.uint16))
-                              for i in indices), smaller)
+                    *steps, *(index(q, lo) for q, lo in zip(self._q, indices, strict=True)),
+                    smaller)
         return self._texel  # type: ignore[return-value]
 
 

@@ -583,6 +583,10 @@ class Renderer:
             if interleave is not None and res.interleaved and visibility:
                 visibility = interleaved_visibility(res, maps, texel)
                 entering = res.entering_with(visibility)
+            notes = (res.skipped, res.rays, res.seconds, penumbra)
+            # the points and the per-light sums go before the planes and their push-pull
+            # (0.5 GB at texture 4096)
+            del positions, normals, interleave, res
             # one push-pull fills the irradiance and the visibility the specular lobe
             # looks up (dome lights light it unshadowed: theirs is not needed)
             kinds = {lt.path: lt.kind for lt in scene.lights}
@@ -597,7 +601,7 @@ class Renderer:
             vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB);
             # the irradiance itself is the filled one on the charts (SkinTextures)
-            return filled[..., :3], vis, (res.skipped, res.rays, res.seconds, penumbra)
+            return filled[..., :3], vis, notes
 
         filled, vis, (skipped, rays_cast, seconds, penumbra) = self._cached(
             log, "irradiance", key, compute)
