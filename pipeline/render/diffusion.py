@@ -538,11 +538,14 @@ LAYOUT_LEVELS_AT_ONCE = 2
 TERM_BUFFER_TEXTURES = 4
 """Blurred terms kept at once before they are added up, in full-resolution textures
 (64 MiB each at 2048^2): each further batch reads and writes the result once more."""
-TERM_BUFFER_MAX_BYTES = 512 << 20
+TERM_BUFFER_MAX_BYTES = 256 << 20
 """...but at most this many bytes of them (or one term, if larger): at texture 4096 four
-textures are 1 GiB; at this cap the demo scene's render peaked at 6.71 GB instead of
-7.38 GB, the same image, the diffusion as fast (two textures: 9.15 s against 9.19 s).
-Textures of 2048 and below stay under it."""
+textures are 1 GiB; at 512 MiB the demo scene's render peaked at 6.71 GB instead of
+7.38 GB, the same image, the diffusion as fast (two textures: 9.15 s against 9.19 s);
+at 256 MiB, with the seam reads as positions and one level's atlas at a time, 4.25-4.30
+GB instead of 4.42-4.58 GB, the diffusion 4.6-5.0 s against 4.2-5.5 s (three renders
+each, in turns) and the image bit for bit: each batch adds its terms in turn to what the
+last left, so the cap changes no sum."""
 _TERM_ALIGN = 4096
 """Byte alignment of each term in the term buffer (a sub-buffer's origin must be aligned
 to the device's base address alignment, at most 4 KiB)."""
