@@ -413,6 +413,28 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
     np.testing.assert_array_equal(charts.coverage, again.coverage)
 
 
+def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the device has no doubles (no ``read_seams``), the host reads each level
+    across the seams (scipy's product with SeamReads.matrix()) into an atlas of its own:
+    the same diffused light bit for bit as the device's reads, on the two-chart patch
+    with random light and d'Eon's six terms."""
+    import pipeline.render.diffusion as diffusion
+
+    maps, charts = _layout(256)
+    e = np.random.default_rng(5).random((256, 256, 3)).astype(np.float32)
+    v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
+    outs = []
+    for device_reads in (True, False):
+        if not device_reads:
+            monkeypatch.setattr(diffusion, "seam_read_kernel", lambda: None)
+        out, stats = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                             v, w, charts=charts)
+        assert len(set(stats.levels)) >= 2  # several levels, each filled in turn
+        outs.append(out)
+    np.testing.assert_array_equal(outs[1], outs[0])
+
+
 def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
     """The reads across the seams on the device (``read_seams``: each row's products in
     turn, float32) against TileLevel.read_across_seams (scipy's sparse product), levels
