@@ -102,6 +102,35 @@ def test_a_damaged_file_is_removed_and_the_tiles_made_again(patch_layout,
     assert len(store.saved) == 2  # both made again and written again
 
 
+def test_an_old_format_or_reads_past_their_end_are_made_again(patch_layout,
+                                                                 tmp_path: Path) -> None:
+    """Files whose zip reads back but whose reads do not hold together are removed and
+    their tiles made again: one in the sparse-matrix format the store used before
+    (indptr, indices, data), one whose texel rows would read past the reads' end (the
+    device kernel would read out of bounds)."""
+    reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch"))
+    files = sorted((tmp_path / TileStore(tmp_path, "patch").key).glob("*.npz"))
+    assert len(files) >= 2
+    for path, how in zip(files, ("old format", "past the end"), strict=False):
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+        rows = arrays.pop("rows")
+        if how == "old format":
+            arrays.pop("xy")
+            arrays |= {"indptr": rows, "indices": np.zeros(int(rows[-1]), np.int32),
+                       "data": np.zeros(int(rows[-1]), np.float32)}
+        else:
+            rows[1] = rows[-1] + 1000  # a texel's reads beyond the last read
+            arrays["rows"] = rows
+        with path.open("wb") as f:
+            np.savez(f, **arrays)
+    store = TileStore(tmp_path, "patch")
+    out, _ = _diffused(patch_layout, store)
+    np.testing.assert_array_equal(out, reference)
+    assert sum("did not read back" in n for n in store.notes) == 2, store.notes
+    assert len(store.saved) == 2
+
+
 def test_a_folder_that_cannot_be_written_costs_only_the_store(patch_layout,
                                                                tmp_path: Path) -> None:
     blocker = tmp_path / "not-a-folder"
