@@ -540,12 +540,12 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     # the coverage each atlas texel gathers (weights alone) and its texel sizes' sums
     if finest.mm is None:
         raise InputError("tile_level needs the finest texels' sizes (finest_texels' mm)")
-    summed = _splat(*splat_geometry(finest, shift, level, w), level, shape,
-                    np.concatenate([np.ones((finest.share.size, 1), np.float32), finest.mm],
-                                   axis=1))
-    count = summed[:, 0].astype(np.float32)
-    mm = summed[:, 1:] / np.where(count > 0, count, 1.0)[:, None] * scale
-    del summed
+    # a value's sums at a time (each (H W,) float64, its column as _splat sums it alone):
+    # the three at once with the sizes' quotients were 0.9 GB of passing pages at level
+    # 0 of texture 4096, the layout's peak
+    geometry_k = splat_geometry(finest, shift, level, w)
+    count = _splat(*geometry_k, level, shape,
+                   np.ones((finest.share.size, 1), np.float32))[:, 0].astype(np.float32)
     inner = count > 1e-6
     full = count >= (1.0 - 1e-3) * float(4**level)
     # every tile texel's nearest fully covered texel of its own chart (within its
@@ -567,11 +567,19 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
         owner[idx] = c
     in_tile = owner >= 0
     outside = in_tile & ~inner
-    mm[outside] = mm[nearest[outside]]
     partial = in_tile & ~full  # cells a seam may cross: the margin and the chart's edge
-    typical = [float(np.median(mm[inner, k])) if inner.any() else 1.0 for k in range(2)]
-    mm_u_out = np.where(in_tile, mm[:, 0], typical[0]).astype(np.float32).reshape(h, w)
-    mm_v_out = np.where(in_tile, mm[:, 1], typical[1]).astype(np.float32).reshape(h, w)
+    per_count = np.where(count > 0, count, 1.0)
+    mm_out = []
+    for k in range(2):  # each axis's texel size: the mean of its finest texels' (mm)
+        mm = _splat(*geometry_k, level, shape, finest.mm[:, k:k + 1])[:, 0]
+        np.divide(mm, per_count, out=mm)
+        np.multiply(mm, scale, out=mm)
+        mm[outside] = mm[nearest[outside]]  # a margin texel: its nearest tile texel's
+        typical = float(np.median(mm[inner])) if inner.any() else 1.0
+        mm_out.append(np.where(in_tile, mm, typical).astype(np.float32).reshape(h, w))
+        del mm
+    del per_count, geometry_k
+    mm_u_out, mm_v_out = mm_out
     index = np.zeros(0, np.int64)
     source = np.zeros((0, 2), np.float32)
     if geometry is not None and margin > 0:
