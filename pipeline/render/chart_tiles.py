@@ -210,15 +210,18 @@ class SeamReads:
     def count(self) -> int:
         return int(self.xy.shape[0])
 
+    @cached_property
     def matrix(self) -> Any:
         """The reads as a sparse (H W, H W) matrix (scipy CSR): row t the weights with
-        which atlas texel t reads the tiles' texels, each read's taps side by side."""
+        which atlas texel t reads the tiles' texels, each read's taps side by side. Made
+        once, where the host reads across the seams (a device without doubles, every
+        frame's fill) or a test compares with it."""
         from scipy.sparse import csr_matrix  # lazy: 0.2 s to import
 
         n = self.shape[0] * self.shape[1]
         index, weight = (_bilinear_taps if self.level == 0 else _cubic_taps)(
             self.xy, self.shape)
-        indptr = self.rows.astype(np.int64) * _taps_per_read(self.level)
+        indptr = self.rows.astype(np.int64) * index.shape[0]  # 4 or 16 taps a read
         return csr_matrix((np.ascontiguousarray(weight.T).ravel(),
                            np.ascontiguousarray(index.T).ravel(), indptr), shape=(n, n))
 
@@ -285,7 +288,7 @@ class TileLevel:
         in full reads across the seams added, in place (:attr:`reads`)."""
         # read among the tiles' own texels only, before any margin is filled (16 taps a
         # read at 1.6 M reads: 0.9 s a fill as numpy gathers, 0.1 s as one product)
-        splatted += self.reads.matrix() @ splatted
+        splatted += self.reads.matrix @ splatted
         return splatted
 
 
@@ -295,7 +298,7 @@ _SEAM_READ_KERNEL = r"""
 // position xy), each read's taps made as _bilinear_taps (level 0) or _cubic_taps make
 // them (doubles in numpy's order, weights rounded to float32) and their products added
 // in turn from zero in float32 as scipy's csr_matvecs adds the matrix's rows (no fused
-// multiply-adds): the same texels bit for bit as SeamReads.matrix()'s product.
+// multiply-adds): the same texels bit for bit as SeamReads.matrix's product.
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -409,10 +412,6 @@ def _cubic_taps(xy: NDArray[np.float32], shape: tuple[int, int]
     idx = ((y0[None, None, :] + d[:, None, None]) * w
            + x0[None, None, :] + d[None, :, None]).reshape(16, -1)
     return idx, (wy[:, None, :] * wx[None, :, :]).reshape(16, -1).astype(np.float32)
-
-
-def _taps_per_read(level: int) -> int:
-    return 4 if level == 0 else 16
 
 
 def _pack(sizes: NDArray[np.int64]) -> tuple[NDArray[np.int64], tuple[int, int]]:

@@ -930,7 +930,8 @@ def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any]) -> NDArray[n
     """Texels (H, W) whose interleaved shadow rays do not all agree: the texel's own rays
     (visibility strictly between 0 and 1) or those of a traced texel in its 3 x 3
     neighbourhood (a different visibility). Elsewhere the neighbourhood's rays, all four
-    interleaved sets of strata, saw the light all visible or all blocked."""
+    interleaved sets of strata, saw the light all visible or all blocked. The numpy
+    reference of :func:`penumbra_at`, which the adaptive pass runs."""
     from scipy.ndimage import maximum_filter, minimum_filter  # lazy, as the fit's solvers
 
     vis = np.asarray(visibility, np.float32)

@@ -365,7 +365,7 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     """The device's reads (``read_seams``: taps made from each read's position, bilinear
     at level 0, Catmull-Rom above) at random atlas positions including ones past every
     edge (the clamps), 0-3 reads a texel, against scipy's product with
-    SeamReads.matrix() (numpy's taps): the same texels bit for bit."""
+    SeamReads.matrix (numpy's taps): the same texels bit for bit."""
     import pipeline.render.chart_tiles as chart_tiles
     from pipeline.render.opencl import host_output, read_output
 
@@ -385,7 +385,7 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     kernel(queue, (h * w,), None, host_buffer(rows), host_buffer(xy), np.int32(h),
            np.int32(w), np.int32(level > 0), host_buffer(src), np.int32(h * w), out)
     read_output(queue, out, got)
-    np.testing.assert_array_equal(got, src + reads.matrix() @ src)
+    np.testing.assert_array_equal(got, src + reads.matrix @ src)
 
 
 @pytest.mark.parametrize("bend", [0.0, 0.02], ids=["flat", "bent"])
@@ -416,7 +416,7 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
 def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Where the device has no doubles (no ``read_seams``), the host reads each level
-    across the seams (scipy's product with SeamReads.matrix()) into an atlas of its own:
+    across the seams (scipy's product with SeamReads.matrix) into an atlas of its own:
     the same diffused light bit for bit as the device's reads, on the two-chart patch
     with random light and d'Eon's six terms."""
     import pipeline.render.diffusion as diffusion
