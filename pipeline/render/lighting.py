@@ -14,7 +14,7 @@ import math
 import threading
 import time
 import zlib
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
@@ -37,7 +37,13 @@ from .opencl import (
     run_on_host_arrays,
 )
 from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS
-from .raytrace import RayScene, morton_order, offset_ray_origin
+from .raytrace import (
+    OFFSET_FLOAT_SCALE,
+    OFFSET_INT_SCALE,
+    OFFSET_ORIGIN,
+    RayScene,
+    morton_order,
+)
 from .scene import Light
 
 SKIN_IOR = 1.4
@@ -703,7 +709,7 @@ def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
     :func:`filter_interleaved` at the covered texels (``at``, as the renderer runs it)
     or (if ``refined``) :func:`refine_penumbrae`'s :func:`penumbra_at` will launch for
     these lights (for :class:`~.opencl.Prewarm`)."""
-    kernels, interleaved_lights = [], 0
+    kernels, interleaved_lights = [_offset_kernel()], 0
     for light in lights:
         if not np.any(light.radiance > 0):
             continue
@@ -810,6 +816,48 @@ class IrradianceResult:
         return out
 
 
+_OFFSET_KERNEL = r"""
+// offset_ray_origin per coordinate (points and normals as 3N floats): the integer
+// offset away from zero, or p + s n within OFFSET_ORIGIN of zero, rounded as numpy
+// rounds it (a product and a sum, not one fused operation)
+#pragma OPENCL FP_CONTRACT OFF
+__kernel void offset_origin(__global const float *p, __global const float *nrm,
+                            const float int_scale, const float near, const float origin,
+                            const int n, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float pc = p[i], nc = nrm[i];
+    const int of_i = (int)(int_scale * nc);  // toward zero, as numpy's astype
+    const uint shifted = (uint)as_int(pc) + (uint)(pc < 0.0f ? -of_i : of_i);
+    out[i] = (pc < 0.0f ? -pc : pc) < origin ? pc + near * nc : as_float(shifted);
+}
+"""
+
+
+@device_cache(maxsize=1)
+def _offset_kernel() -> Any:
+    return Kernel(build(_OFFSET_KERNEL), "offset_origin", 1)
+
+
+def ray_origins(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np.float32]:
+    """:func:`~.raytrace.offset_ray_origin` on the OpenCL device, the same floats bit for
+    bit: the shadow rays' origins (N, 3). numpy's passes took 13 ms of the demo face's
+    interleaved irradiance at texture 1024 (0.43 s), before its first ray."""
+    p = np.ascontiguousarray(points, dtype=np.float32)
+    n = np.ascontiguousarray(normals, dtype=np.float32)
+    if n.shape != p.shape or p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"points and normals must agree as (N, 3); got {p.shape} and "
+                         f"{n.shape}")
+    out = np.empty_like(p)
+    if p.size:
+        _, queue = cl_context()
+        run_on_host_arrays(_offset_kernel(), queue, (p.size,),
+                           [p, n, np.float32(OFFSET_INT_SCALE), np.float32(OFFSET_FLOAT_SCALE),
+                            np.float32(OFFSET_ORIGIN), np.int32(p.size)], [out])
+    return out
+
+
 def light_rng(seed: int, light: Light) -> np.random.Generator:
     """The random numbers of one light's samples: the same for the light in every call
     (its samples' grid), whatever other lights are sampled with it."""
@@ -862,14 +910,13 @@ def irradiance_texture(
         """``a`` (per sorted point) in the points' own order."""
         return a if back_order is None else np.take(a, back_order, axis=0)
 
-    origins = offset_ray_origin(pos, nrm)
+    origins = ray_origins(pos, nrm)
     n = pos.shape[0]
     entering = np.zeros((n, 3), np.float32)
     visibility: dict[str, NDArray[np.float32]] = {}
     unshadowed_by_light: dict[str, NDArray[np.float32]] = {}
     skipped: list[str] = []
     interleaved: set[str] = set()
-    n_rays = 0
     point_buffers: dict[str, Any] = {}  # origins and normals on the device, for every light
     samplers: list[LightSampler] = []
     for light in lights:
@@ -880,8 +927,41 @@ def irradiance_texture(
                                      (dome_textures or {}).get(light.path), classes,
                                      roughness, rho_s, point_buffers=point_buffers,
                                      sequence=sequence, complement=complement))
+    n_rays = 0
+    for sampler, lit, unshadowed, cast in cast_samples(samplers, rays):
+        light = sampler.light
+        n_rays += cast
+        if not unshadowed.any():
+            skipped.append(f"light {light.path}: adds nothing (all samples below the "
+                           "horizon)")
+            continue
+        if not lit.any():  # its visibility, 0, is still the specular lobe's and the
+            # adaptive pass's (which refines a light's penumbrae from it)
+            skipped.append(f"light {light.path}: adds nothing (shadowed everywhere)")
+        if sampler.sets is not None:
+            interleaved.add(light.path)
+        colour = sampler.colour
+        entering += lit[:, None] * colour if lit.ndim == 1 else lit * colour
+        visibility[light.path] = back(light_visibility(lit, unshadowed))
+        # back to the points' order before the colour: a third of the gathered bytes
+        unshadowed_by_light[light.path] = coloured(sampler, back(unshadowed))
+    result = back(entering)
+    return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
+                            time.perf_counter() - start, frozenset(interleaved))
 
+
+def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
+                 ) -> Iterator[tuple[LightSampler, NDArray[Any], NDArray[Any], int]]:
+    """Every sample of every sampler (each over its own points), its shadow rays cast:
+    yields per sampler, in turn, (sampler, lit, unshadowed, rays cast), the sums over its
+    samples of the weights (entering the skin) that reached the light and of all of
+    them, (N,) or (N, 3) for a textured dome. One queue of every sampler's samples on two
+    workers: sample k+1's directions are made while sample k's rays are in Embree, and a
+    sampler's sums are made (by the caller too) while the next one's rays are: the gaps
+    between lights were a tenth of the demo face's interleaved pass at texture 1024,
+    and the adaptive pass's lights, one call each, left 60 ms of its 1.1 s idle."""
     worker = threading.local()
+    most = max((s.origins.shape[0] for s in samplers), default=0)
 
     def one(job: tuple[LightSampler, int]) -> tuple[Any, Any, int]:
         # light the specular lobe reflects does not enter the skin; rays of points
@@ -889,30 +969,29 @@ def irradiance_texture(
         # traced, where gathering the others and scattering their answers back took
         # 25 ms a sample at texture 1024
         sampler, k = job
+        n = sampler.origins.shape[0]
         if not hasattr(worker, "rays"):
-            # each worker's rays from sample to sample in the same arrays: fresh ones
-            # were 0.12 GB of new pages a sample at texture 4096 (zeroed by the kernel)
-            worker.rays = (np.empty((n, 3), np.float32), np.empty(n, np.float32))
-        d, dist, w = sampler.entering_sample(k, worker.rays)
+            # each worker's rays from sample to sample in the same arrays (their first
+            # rows for fewer points): fresh ones were 0.12 GB of new pages a sample at
+            # texture 4096 (zeroed by the kernel)
+            worker.rays = (np.empty((most, 3), np.float32), np.empty(most, np.float32))
+        d, dist, w = sampler.entering_sample(k, (worker.rays[0][:n], worker.rays[1][:n]))
         cast = int(np.count_nonzero((w if w.ndim == 1 else w.max(axis=1)) > 0))
         if cast == 0:
             return None, None, 0
-        open_ = ~rays.occluded(origins, d, dist)
+        open_ = ~rays.occluded(sampler.origins, d, dist)
         # a product, not np.where (2.5 ms a sample on a random mask, 0.3 ms): the
         # weights are finite
         return w * (open_ if w.ndim == 1 else open_[:, None]), w, cast
 
-    # one queue of every light's samples: sample k+1's directions are computed while
-    # sample k's rays are in Embree, and a light's sums are made while the next
-    # light's rays are (the gaps between lights, a tenth of the demo face's interleaved
-    # pass at texture 1024, had idle cores)
     jobs = [(sampler, k) for sampler in samplers for k in range(sampler.count)]
     with ThreadPoolExecutor(2) as pool:
         results = pool.map(one, jobs)
         for sampler in samplers:
-            light = sampler.light
+            n = sampler.origins.shape[0]
             lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
             unshadowed = np.zeros_like(lit)
+            n_rays = 0
             for _ in range(sampler.count):
                 got, full, cast = next(results)
                 if got is not None:
@@ -920,28 +999,22 @@ def irradiance_texture(
                     unshadowed += full
                     n_rays += cast
             sampler.close()
-            if not unshadowed.any():
-                skipped.append(f"light {light.path}: adds nothing (all samples below the "
-                               "horizon)")
-                continue
-            if not lit.any():  # its visibility, 0, is still the specular lobe's and the
-                # adaptive pass's (which refines a light's penumbrae from it)
-                skipped.append(f"light {light.path}: adds nothing (shadowed everywhere)")
-            if sampler.sets is not None:
-                interleaved.add(light.path)
-            colour = sampler.colour
-            entering += lit[:, None] * colour if lit.ndim == 1 else lit * colour
-            lit_s = lit if lit.ndim == 1 else sum_axis1(lit)
-            un_s = unshadowed if unshadowed.ndim == 1 else sum_axis1(unshadowed)
-            vis = np.where(un_s > 0, lit_s / np.maximum(un_s, 1e-30), 0.0)
-            visibility[light.path] = back(vis).astype(np.float32, copy=False)
-            # back to the points' order before the colour: a third of the gathered bytes
-            un = back(unshadowed)
-            unshadowed_by_light[light.path] = un[:, None] * colour if un.ndim == 1 else \
-                un * colour
-    result = back(entering)
-    return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
-                            time.perf_counter() - start, frozenset(interleaved))
+            yield sampler, lit, unshadowed, n_rays
+
+
+def light_visibility(lit: NDArray[Any], unshadowed: NDArray[Any]) -> NDArray[np.float32]:
+    """A light's visibility per point from :func:`cast_samples`' sums: the fraction of
+    the unshadowed weight that reached it, 0 where none could."""
+    lit_s = lit if lit.ndim == 1 else sum_axis1(lit)
+    un_s = unshadowed if unshadowed.ndim == 1 else sum_axis1(unshadowed)
+    vis = np.where(un_s > 0, lit_s / np.maximum(un_s, 1e-30), 0.0)
+    return vis.astype(np.float32, copy=False)
+
+
+def coloured(sampler: LightSampler, unshadowed: NDArray[Any]) -> NDArray[np.float32]:
+    """A light's unshadowed irradiance (N, 3): its weights times its colour."""
+    colour = sampler.colour
+    return unshadowed[:, None] * colour if unshadowed.ndim == 1 else unshadowed * colour
 
 
 def sum_axis1(a: NDArray[Any]) -> NDArray[Any]:
@@ -1014,40 +1087,52 @@ def refine_penumbrae(
     refined: dict[str, NDArray[np.int64]] = {}
     n_rays = result.rays
     classes = np.asarray(interleave)
+    pos = np.asarray(positions, dtype=np.float32)
+    nrm = np.asarray(normals, dtype=np.float32)
     if texel is None:
         texel = np.flatnonzero(covered)
     texel32 = flat_texels(texel, *covered.shape)  # once for every light's penumbra
+    # every light's penumbra first, then all their rays in one queue (cast_samples):
+    # one light's sums are merged while the next one's rays are cast
+    samplers: list[LightSampler] = []
+    cast_at: dict[str, NDArray[np.int64]] = {}
     for light in lights:
         path = light.path
         if path not in result.interleaved:
             continue
-        un1 = result.unshadowed[path]
         vis1, traced = np.zeros(covered.shape, np.float32), np.zeros(covered.shape, bool)
-        light_planes(result.visibility[path], un1, texel32, vis1, traced)
-        where = np.flatnonzero(penumbra_at(vis1, traced, texel32))
-        refined[path] = where
+        light_planes(result.visibility[path], result.unshadowed[path], texel32, vis1,
+                     traced)
+        where = refined[path] = np.flatnonzero(penumbra_at(vis1, traced, texel32))
         if not where.size:
             continue
+        # each point's result does not depend on the order: the rays go along a
+        # Morton curve of the points unless they are coherent already
+        at = cast_at[path] = where if coherent else where[morton_order(pos[where])]
         # each penumbra texel the strata of the three interleaved classes it has not
         # traced (three quarters of them, once each)
-        more = irradiance_texture(positions[where], normals[where], [light], rays, samples,
-                                  roughness, rho_s, seed, dome_textures, classes[where],
-                                  sequence, coherent, complement=True)
-        n_rays += more.rays
-        un2 = more.unshadowed.get(path, np.zeros((where.size, 3), np.float32))
-        vis2 = more.visibility.get(path, np.zeros(where.size, np.float32))
+        samplers.append(LightSampler(light, ray_origins(pos[at], nrm[at]), nrm[at],
+                                     samples, light_rng(seed, light),
+                                     (dome_textures or {}).get(light.path), classes[at],
+                                     roughness, rho_s, sequence=sequence, complement=True))
+    for sampler, lit, more_un, cast in cast_samples(samplers, rays):
+        path, at = sampler.light.path, cast_at[sampler.light.path]
+        n_rays += cast
+        un2 = coloured(sampler, more_un)
+        vis2 = light_visibility(lit, more_un)
         # each pass's weights average over its own strata, a quarter and three quarters
         # of them: the texel's estimate from all of them weights the passes so
-        un1_where = un1[where]
-        un_all = np.float32(0.25) * un1_where + np.float32(0.75) * un2
-        un1_sum, un2_sum = sum_axis1(un1_where), sum_axis1(un2)
-        lit_all = np.float32(0.25) * result.visibility[path][where] * un1_sum + \
+        un1 = result.unshadowed[path]
+        un1_at = un1[at]
+        un_all = np.float32(0.25) * un1_at + np.float32(0.75) * un2
+        un1_sum, un2_sum = sum_axis1(un1_at), sum_axis1(un2)
+        lit_all = np.float32(0.25) * result.visibility[path][at] * un1_sum + \
             np.float32(0.75) * vis2 * un2_sum
         un_sum = np.float32(0.25) * un1_sum + np.float32(0.75) * un2_sum
         vis = visibility[path] = visibility[path].copy()
-        vis[where] = np.where(un_sum > 0, lit_all / np.maximum(un_sum, 1e-30), 0.0)
+        vis[at] = np.where(un_sum > 0, lit_all / np.maximum(un_sum, 1e-30), 0.0)
         un = unshadowed[path] = un1.copy()
-        un[where] = un_all
+        un[at] = un_all
     out = replace(result, visibility=visibility, unshadowed=unshadowed, rays=n_rays,
                   seconds=result.seconds + time.perf_counter() - start,
                   interleaved=frozenset())

@@ -21,12 +21,13 @@ from pipeline.render.lighting import (
     light_sample_set,
     penumbra_at,
     penumbra_texels,
+    ray_origins,
     refine_penumbrae,
     sobol_points,
     specular_albedo,
     sum_axis1,
 )
-from pipeline.render.raytrace import RayScene, morton_order
+from pipeline.render.raytrace import OFFSET_ROWS, RayScene, morton_order, offset_ray_origin
 from pipeline.render.scene import Light
 from pipeline.render.texture_maps import texels_in_blocks
 
@@ -431,7 +432,7 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
     # the OpenCL sampler (sphere lights, untextured domes) computes what LightSampler.sample
     # and specular_albedo compute in numpy, from the same strata
     rng = np.random.default_rng(5)
-    n = 5000
+    n = 5003  # the kernel's last work-item holds three points of its eight lanes
     pts = rng.normal(size=(n, 3)).astype(np.float32)
     nrm = rng.normal(size=(n, 3)).astype(np.float32)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -461,3 +462,21 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
         np.testing.assert_allclose(dist[agree], np.where(lit, dist_ref, 0)[agree], rtol=1e-6)
         assert np.all(dist[w == 0] == 0) and np.all(dist[w > 0] > 0)
     assert np.all(np.isfinite(w)) and np.all(w >= 0)
+
+
+def test_device_ray_origins_equal_numpys_bit_for_bit() -> None:
+    """ray_origins (OpenCL) against offset_ray_origin (numpy, itself tested against
+    Wächter & Binder's listing): magnitudes from 1e-4 to 1e4, zeros of both signs (the
+    near-zero branch's product and sum), past a chunk of numpy's and an odd count."""
+    rng = np.random.default_rng(8)
+    n = OFFSET_ROWS + 77
+    p = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-4, 5, (n, 1))).astype(np.float32)
+    p[::11, 1] = 0.0
+    p[::13, 2] = -0.0
+    nrm = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    np.testing.assert_array_equal(ray_origins(p, nrm).view(np.int32),
+                                  offset_ray_origin(p, nrm).view(np.int32))
+    assert ray_origins(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)
+    with pytest.raises(InputError, match="points and normals must agree"):
+        ray_origins(p, nrm[:-1])
