@@ -812,7 +812,9 @@ class IrradianceResult:
         filtered form): sum of unshadowed x visibility."""
         out = np.zeros_like(self.entering)
         for path, un in self.unshadowed.items():
-            out += un * np.asarray(visibility[path], np.float32)[..., None]
+            vis = np.asarray(visibility[path], np.float32)
+            for c in range(un.shape[-1]):  # un * vis[..., None], a column at a time
+                out[..., c] += un[..., c] * vis
         return out
 
 
@@ -941,7 +943,7 @@ def irradiance_texture(
         if sampler.sets is not None:
             interleaved.add(light.path)
         colour = sampler.colour
-        entering += lit[:, None] * colour if lit.ndim == 1 else lit * colour
+        entering += times_colour(lit, colour) if lit.ndim == 1 else lit * colour
         visibility[light.path] = back(light_visibility(lit, unshadowed))
         # back to the points' order before the colour: a third of the gathered bytes
         unshadowed_by_light[light.path] = coloured(sampler, back(unshadowed))
@@ -1014,7 +1016,18 @@ def light_visibility(lit: NDArray[Any], unshadowed: NDArray[Any]) -> NDArray[np.
 def coloured(sampler: LightSampler, unshadowed: NDArray[Any]) -> NDArray[np.float32]:
     """A light's unshadowed irradiance (N, 3): its weights times its colour."""
     colour = sampler.colour
-    return unshadowed[:, None] * colour if unshadowed.ndim == 1 else unshadowed * colour
+    return times_colour(unshadowed, colour) if unshadowed.ndim == 1 else unshadowed * colour
+
+
+def times_colour(values: NDArray[Any], colour: NDArray[Any]) -> NDArray[Any]:
+    """``values[:, None] * colour`` (N,) x (3,) -> (N, 3), one column at a time: the same
+    products, where numpy's broadcast of (N, 1) against (3,) took 5-6 ms on the demo
+    face's 481k texels at texture 1024 (per light, twice, at the end of the irradiance's
+    rays) and the columns 0.5 ms."""
+    out = np.empty((values.shape[0], 3), np.result_type(values, colour))
+    for c in range(3):
+        np.multiply(values, colour[c], out=out[:, c])
+    return out
 
 
 def sum_axis1(a: NDArray[Any]) -> NDArray[Any]:
