@@ -407,21 +407,11 @@ def build(source: str, options: list[str] | None = None) -> Any:
     return program
 
 
-def sqrt_function() -> str:
-    """What kernels' ``SQRTF`` stands for. PoCL links OpenCL's ``sqrt`` as an out-of-line
-    call (``_cl_sqrtf``), and a call in the body stops LLVM from vectorising the
-    work-item loop; clang's builtin is the same correctly rounded square root, inlined
-    (with scalar loads in place of a float4 one, the light-sample kernel on 700k points
-    went 14.7 -> 3.6 ms on PoCL, Intel's runtime 3.9-4.1 ms either way). Other runtimes
-    keep ``sqrt``: their compilers need not know clang's builtins."""
-    return "__builtin_sqrtf" if _on_pocl() else "sqrt"
-
-
 def _build_now(source: str, options: list[str] | None) -> Any:
     ctx, _ = cl_context()
     # argument info lets Kernel.warm fill a launch of any kernel
     opts = [*(options or []), f"-DNT_STORE={int(device_choice().nontemporal_stores)}",
-            f"-DSQRTF={sqrt_function()}", "-cl-kernel-arg-info"]
+            "-cl-kernel-arg-info"]
     start = time.perf_counter()
     with warnings.catch_warnings():
         # Intel's runtime writes a build log for every program, errors or not
