@@ -31,6 +31,8 @@ from pipeline.render.raytrace import OFFSET_ROWS, RayScene, morton_order, offset
 from pipeline.render.scene import Light
 from pipeline.render.texture_maps import texels_in_blocks
 
+from .test_raytrace import hard_origins, offset_by_listing
+
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
 
@@ -464,19 +466,14 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
     assert np.all(np.isfinite(w)) and np.all(w >= 0)
 
 
-def test_device_ray_origins_equal_numpys_bit_for_bit() -> None:
-    """ray_origins (OpenCL) against offset_ray_origin (numpy, itself tested against
-    Wächter & Binder's listing): magnitudes from 1e-4 to 1e4, zeros of both signs (the
-    near-zero branch's product and sum), past a chunk of numpy's and an odd count."""
-    rng = np.random.default_rng(8)
-    n = OFFSET_ROWS + 77
-    p = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-4, 5, (n, 1))).astype(np.float32)
-    p[::11, 1] = 0.0
-    p[::13, 2] = -0.0
-    nrm = rng.normal(size=(n, 3)).astype(np.float32)
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    np.testing.assert_array_equal(ray_origins(p, nrm).view(np.int32),
-                                  offset_ray_origin(p, nrm).view(np.int32))
+def test_device_ray_origins_equal_the_listing_bit_for_bit() -> None:
+    """ray_origins (OpenCL) against Wächter & Binder's listing written out in numpy, and
+    so against offset_ray_origin: magnitudes from 1e-4 to 1e4, zeros of both signs (the
+    near-zero branch's product and sum, which must not be fused), an odd count."""
+    p, nrm = hard_origins(OFFSET_ROWS + 77, 8)
+    got = ray_origins(p, nrm).view(np.int32)
+    np.testing.assert_array_equal(got, offset_by_listing(p, nrm).view(np.int32))
+    np.testing.assert_array_equal(got, offset_ray_origin(p, nrm).view(np.int32))
     assert ray_origins(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)
     with pytest.raises(InputError, match="points and normals must agree"):
         ray_origins(p, nrm[:-1])

@@ -53,23 +53,29 @@ def test_one_length_for_all_rays(far: float | None) -> None:
     assert rays.stats.rays.get("occlusion", 0) == (0 if far == 0.0 else 4)
 
 
-def _offset_by_listing(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+def offset_by_listing(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Wächter & Binder's listing 6-1, written out per coordinate over whole arrays."""
     of_i = (np.float32(256.0) * n).astype(np.int32)
     p_i = (p.view(np.int32) + np.where(p < 0, -of_i, of_i)).view(np.float32)
     return np.where(np.abs(p) < np.float32(1 / 32), p + np.float32(1 / 65536) * n, p_i)
 
 
-def test_ray_origins_in_chunks_equal_the_listing_bit_for_bit() -> None:
-    rng = np.random.default_rng(4)
-    n = 2 * OFFSET_ROWS + 123  # chunk borders and a short last chunk
+def hard_origins(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points whose magnitudes span 1e-4 to 1e4, with zeros of both signs (the listing's
+    near-zero branch), and unit normals: float32 (n, 3) each."""
+    rng = np.random.default_rng(seed)
     p = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-4, 5, (n, 1))).astype(np.float32)
     p[::11, 1] = 0.0
     p[::13, 2] = -0.0
     nrm = rng.normal(size=(n, 3)).astype(np.float32)
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return p, nrm
+
+
+def test_ray_origins_in_chunks_equal_the_listing_bit_for_bit() -> None:
+    p, nrm = hard_origins(2 * OFFSET_ROWS + 123, 4)  # chunk borders, a short last chunk
     np.testing.assert_array_equal(offset_ray_origin(p, nrm).view(np.int32),
-                                  _offset_by_listing(p, nrm).view(np.int32))
+                                  offset_by_listing(p, nrm).view(np.int32))
     with pytest.raises(InputError, match="points and normals must agree"):
         offset_ray_origin(p, nrm[:-1])
 
