@@ -540,11 +540,13 @@ class LightSampler:
             w = w * (enters if w.ndim == 1 else enters[:, None])
             return d, np.where((w if w.ndim == 1 else w.max(axis=1)) > 0, dist,
                                np.float32(0)), w
-        _, queue = cl_context()
         dev, n = self.device, self.origins.shape[0]
         d_into, far_into = rays_into if rays_into is not None else (
             np.empty((n, 3), np.float32), np.empty(n, np.float32))
         out = (d_into, np.empty(n, np.float32), far_into)
+        if n == 0:  # no launch: mapping an empty output is an OpenCL error
+            return out[0], out[2], out[1]
+        _, queue = cl_context()
         # each sample's own arrays, written in place on a CPU device (a copy out of
         # device buffers took 1.3-2.9 ms of a sample's 4-7 at texture 1024)
         buffers = [host_output(a) for a in out]

@@ -477,3 +477,17 @@ def test_device_ray_origins_equal_the_listing_bit_for_bit() -> None:
     assert ray_origins(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)
     with pytest.raises(InputError, match="points and normals must agree"):
         ray_origins(p, nrm[:-1])
+
+
+@pytest.mark.parametrize("kind", ["sphere", "dome"])
+def test_no_points_is_no_rays(kind: str) -> None:
+    # a sampler over no points launches nothing (mapping an empty output buffer raised
+    # clEnqueueMapBuffer INVALID_VALUE); the irradiance of no points is empty
+    matrix = np.eye(4)
+    matrix[3, :3] = (0.0, 0.0, 5.0)
+    light = Light("/L", kind, np.ones(3), matrix, radius=1.0)
+    none = np.zeros((0, 3))
+    d, dist, w = LightSampler(light, none, none, 16, np.random.default_rng(0)).entering_sample(0)
+    assert d.shape == (0, 3) and dist.shape == (0,) and w.shape == (0,)
+    res = irradiance_texture(none, none, [light], _floor(), 16, interleave=np.zeros(0, int))
+    assert res.entering.shape == (0, 3) and res.rays == 0
