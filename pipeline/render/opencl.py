@@ -717,7 +717,11 @@ def run_on_host_arrays(kernel: Any, queue: Any, global_size: tuple[int, ...],
 
 def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:
     """Bring ``array`` up to date with the :func:`host_output` buffer over it: a map and
-    unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue)."""
+    unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue).
+    An empty array has nothing to bring (OpenCL refuses to map zero bytes)."""
+    if array.size == 0:
+        queue.finish()
+        return
     if _host_memory_device():
         mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
                                           array.dtype)

@@ -165,3 +165,12 @@ def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
     since = opencl.LEDGER.since(before)
     assert since["programs_built"] == 1 and since["build_seconds"] >= 0
     assert since["kernel_launches"] == {"twice": 2}
+
+
+def test_an_empty_output_reads_back_without_a_map(cl_device: Candidate) -> None:
+    # OpenCL refuses to map zero bytes (clEnqueueMapBuffer: INVALID_VALUE): an empty
+    # output has nothing to read back, and its buffer (one placeholder element) stays
+    _, queue = opencl.cl_context()
+    empty = np.empty((0, 3), np.float32)
+    opencl.read_output(queue, opencl.host_output(empty), empty)
+    assert empty.shape == (0, 3)
