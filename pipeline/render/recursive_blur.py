@@ -229,10 +229,24 @@ __kernel void iir_rows_transposed(__global const float4 *src, __global float4 *d
 """
 
 
+QUANTIZE_CHUNK = 1 << 18
+"""Values :func:`quantized_log2` takes at a time (a multiple of any SIMD width, so that
+each value goes through numpy's loops as in one whole-array call): the temporaries stay
+in cache. Whole arrays' were three fresh pages of each texel-size map, 0.2-0.7 s for a
+layout's 44 M atlas texels at texture 4096, these about 0.05 s."""
+
+
 def quantized_log2(x: NDArray[Any]) -> NDArray[np.int32]:
     """round(QUANT_STEPS_PER_OCTAVE log2 x): where per-texel blurs keep their sigma (or
     texel size), within 0.034% (the coefficients of neighbouring texels are shared)."""
-    return np.rint(QUANT_STEPS_PER_OCTAVE * np.log2(x)).astype(np.int32)
+    values = np.asarray(x)
+    flat = values.reshape(-1)
+    out = np.empty(flat.shape, np.int32)
+    for s in range(0, flat.size, QUANTIZE_CHUNK):
+        part = np.log2(flat[s:s + QUANTIZE_CHUNK])
+        part *= QUANT_STEPS_PER_OCTAVE
+        out[s:s + QUANTIZE_CHUNK] = np.rint(part, out=part)
+    return out.reshape(values.shape)
 
 
 def quantized_sigma(sigma: NDArray[Any]) -> NDArray[np.float64]:

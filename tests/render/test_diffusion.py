@@ -17,6 +17,7 @@ from pipeline.render.diffusion import (
     blur_reference,
     diffuse,
     diffuse_gather,
+    ranked_step,
 )
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
@@ -387,3 +388,14 @@ def test_region_presence_is_each_regions_maximum_above_zero(texels: int) -> None
     weights[:, :, 1] = 0.0
     np.testing.assert_array_equal(_region_presence(weights),
                                   weights.reshape(-1, 5).max(axis=0) > 0)
+
+
+@pytest.mark.parametrize("n", [1, 9, 10007])
+@pytest.mark.parametrize("spread", [0, 40, 30000])
+def test_ranked_step_is_numpys_partition_and_count(n: int, spread: int) -> None:
+    # the direct blur's lowest step: the rank-th smallest texel step and how many lie
+    # below it, against np.partition and a count (one step, a few octaves, a wide span)
+    q = np.random.default_rng(n + spread).normal(-7000, spread + 1e-9, n).astype(np.int32)
+    for rank in sorted({0, min(8, n - 1), n // 2, n - 1}):
+        lo = int(np.partition(q, rank)[rank])
+        assert ranked_step(q, rank) == (lo, int((q < lo).sum()))

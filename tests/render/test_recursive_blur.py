@@ -7,10 +7,13 @@ import numpy as np
 import pytest
 
 from pipeline.render.recursive_blur import (
+    QUANT_STEPS_PER_OCTAVE,
+    QUANTIZE_CHUNK,
     RecursiveBlur,
     coefficient_table,
     deriche_coefficients,
     deriche_variance,
+    quantized_log2,
     recursive_reference,
 )
 
@@ -81,3 +84,16 @@ def test_table_is_finite_and_extreme_inputs_stay_finite() -> None:
     assert np.all(np.isfinite(out))
     with pytest.raises(ValueError, match="texture must be"):
         RecursiveBlur(16, 24).blur(np.zeros((16, 16, 4)), 1.0, 1.0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_quantized_log2_in_chunks_is_the_whole_array_formula(dtype: type) -> None:
+    # chunk borders, a short last chunk, a 2-D map and a scalar: round(1024 log2 x) as
+    # one numpy expression over the whole array, bit for bit
+    rng = np.random.default_rng(6)
+    x = (0.05 * 2.0 ** rng.normal(0, 3, (3, QUANTIZE_CHUNK + 77))).astype(dtype)
+    want = np.rint(QUANT_STEPS_PER_OCTAVE * np.log2(x)).astype(np.int32)
+    got = quantized_log2(x)
+    assert got.dtype == np.int32 and got.shape == x.shape
+    np.testing.assert_array_equal(got, want)
+    assert int(quantized_log2(dtype(2.0))) == QUANT_STEPS_PER_OCTAVE
