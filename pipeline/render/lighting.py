@@ -1124,10 +1124,9 @@ def refine_penumbrae(
         # each point's result does not depend on the order: the rays go along a
         # Morton curve of the points unless they are coherent already
         at = cast_at[path] = where if coherent else where[morton_order(pos[where])]
+        nrm_at = np.take(nrm, at, axis=0)  # fancy indexing of (N, 3) rows took 5x as long
         # each penumbra texel the strata of the three interleaved classes it has not
         # traced (three quarters of them, once each)
-        # rows gathered by np.take: fancy indexing of (N, 3) rows took 5x as long
-        nrm_at = np.take(nrm, at, axis=0)
         samplers.append(LightSampler(light, ray_origins(np.take(pos, at, axis=0), nrm_at),
                                      nrm_at, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes[at],
