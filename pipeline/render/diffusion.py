@@ -622,11 +622,10 @@ class LevelGrid:
     with what its blurs need: texel sizes on the log2 grid as device indices (recursive
     and direct blur), whether the size is one everywhere, the typical size."""
 
-    def __init__(self, tiles: TileLevel, ctx: Any) -> None:
+    def __init__(self, tiles: TileLevel) -> None:
         self.tiles = tiles
         self.level = tiles.level
         self.shape = tiles.shape
-        self.ctx = ctx
         inner = tiles.count.reshape(tiles.shape) > 0
         mm = [tiles.mm_u, tiles.mm_v]
         on = [m[inner] for m in mm] if inner.any() else [m.ravel() for m in mm]
@@ -694,7 +693,7 @@ class LevelGrid:
         """:class:`TexelSteps` for the per-texel direct blur, made on first use; None
         when the steps span more than a uint16 holds."""
         if self._texel is False:
-            steps, indices, smaller = [], [], 0
+            steps, lows, smaller = [], [], 0
             assert self._q is not None and self._inner is not None, \
                 "texel_steps() after device_buffers() dropped the steps"
             for q in self._q:
@@ -707,7 +706,7 @@ class LevelGrid:
                 steps.append(np.arange(lo, int(q.max()) + 1, dtype=np.int32))
                 smaller += below
                 del on
-                indices.append(lo)
+                lows.append(lo)
             if max(st.size for st in steps) > 65535:
                 self._texel = None
             else:
@@ -723,7 +722,7 @@ class LevelGrid:
                     return host_buffer(step.reshape(q.shape))
 
                 self._texel = TexelSteps(
-                    *steps, *(index(q, lo) for q, lo in zip(self._q, indices, strict=True)),
+                    *steps, *(index(q, lo) for q, lo in zip(self._q, lows, strict=True)),
                     smaller)
         return self._texel  # type: ignore[return-value]
 
@@ -865,7 +864,7 @@ class DiffusionLayout:
             if self.store is not None:
                 self.store.save(tiles)  # before LevelGrid drops the texel sizes
             key = (level, margin)
-            self._grids[key] = LevelGrid(tiles, self.iir.ctx)
+            self._grids[key] = LevelGrid(tiles)
         return self._grids[key]
 
     def release_surface(self) -> None:
@@ -881,7 +880,7 @@ class DiffusionLayout:
         tiles = None if self.store is None else self.store.load(level, margin)
         if tiles is None:
             return False
-        self._grids[(level, tiles.margin)] = LevelGrid(tiles, self.iir.ctx)
+        self._grids[(level, tiles.margin)] = LevelGrid(tiles)
         return True
 
     def _made(self, level: int, margin: int) -> tuple[int, int] | None:
