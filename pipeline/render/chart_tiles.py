@@ -40,7 +40,7 @@ from .opencl import (
     host_buffer,
     run_on_host_arrays,
 )
-from .raytrace import unique_keys
+from .sorting import unique_keys
 
 TILE_GAP = 2
 """Texels of nothing between two tiles' margins: the recursive blur's tail beyond the

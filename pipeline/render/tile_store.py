@@ -45,7 +45,7 @@ LIMIT_ENV = "SKINPIPE_LAYOUT_CACHE_GB"
 DEFAULT_LIMIT_GB = 8.0
 """The demo face's tiles take 0.09 GB at texture 1024, 0.22 GB at 2048, 0.65 GB at 4096."""
 _SOURCES = ("chart_tiles.py", "diffusion.py", "texture_maps.py", "raytrace.py",
-            "opencl.py", "tile_store.py")
+            "sorting.py", "opencl.py", "tile_store.py")
 """The modules whose code decides the tiles' content (a changed line is a new key)."""
 _LIBRARIES = ("numpy", "scipy", "embreex")
 _FILE = re.compile(r"^L(\d+)_M(\d+)\.npz$")

@@ -12,8 +12,6 @@ from pipeline.render.raytrace import (
     OFFSET_ROWS,
     RayScene,
     offset_ray_origin,
-    stable_order,
-    unique_keys,
 )
 
 
@@ -78,19 +76,3 @@ def test_ray_origins_in_chunks_equal_the_listing_bit_for_bit() -> None:
                                   offset_by_listing(p, nrm).view(np.int32))
     with pytest.raises(InputError, match="points and normals must agree"):
         offset_ray_origin(p, nrm[:-1])
-
-
-@pytest.mark.parametrize(("n", "high"), [(1, 5), (1000, 7), (200_000, 10**12), (5000, 2**62)])
-def test_packed_sorts_are_numpys_stable_sort_and_unique(n: int, high: int) -> None:
-    """stable_order against np.argsort(kind="stable") and unique_keys against
-    np.unique's first indices, inverse and counts: keys with many repeats, wide keys
-    (the packed sort's bits run out at 2^62 with these indices: numpy's own sort), and
-    negative keys (numpy's own sort too)."""
-    rng = np.random.default_rng(n)
-    for keys in (rng.integers(0, high, n), rng.integers(-high, high, n)):
-        np.testing.assert_array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
-        _, first, inverse, counts = np.unique(keys, return_index=True, return_inverse=True,
-                                              return_counts=True)
-        for got, want in zip(unique_keys(keys), (first, inverse, counts), strict=True):
-            np.testing.assert_array_equal(got, want)
-    assert all(a.size == 0 for a in unique_keys(np.zeros(0, np.int64)))
