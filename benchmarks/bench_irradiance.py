@@ -114,7 +114,9 @@ def embreex_rate_on(rays: RayScene, calls: list[tuple[np.ndarray, ...]]) -> floa
 def measure(scene: Path, size: int) -> dict[str, Any]:
     stage = open_stage_guarded(scene)
     out: dict[str, Any] = {"texture_size": size, "light_samples": 16}
-    renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8)))
+    # no image (8 x 8 pixels): interleaving period 2 throughout, as texture 1024 takes
+    renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8),
+                                             interleave_period=2))
     try:
         sc = renderer.delegate.sync()
         rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
@@ -151,7 +153,7 @@ def measure(scene: Path, size: int) -> dict[str, Any]:
 
     def irradiance_task(mode: str, scene_rays: RayScene) -> dict[str, Any]:
         r = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8),
-                                          shadow_sampling=mode))
+                                          shadow_sampling=mode, interleave_period=2))
         try:
             s2 = r.delegate.sync()
             log = TaskLog()

@@ -68,7 +68,10 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
     from pipeline.render.renderer import Renderer, RenderOptions, TaskLog, diffusion_terms
     from pipeline.render.unwrap import triangulate
 
-    renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8)))
+    # no image (8 x 8 pixels): interleaving period 2 at every size, the texture-space
+    # work per texel the same
+    renderer = Renderer(stage, RenderOptions(texture_size=size, resolution=(8, 8),
+                                             interleave_period=2))
     try:
         sc = renderer.delegate.sync()
         mesh = sc.skin[0]

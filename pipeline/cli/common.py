@@ -110,6 +110,7 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
         AOVS,
         BLURS,
         DATA_AOVS,
+        INTERLEAVE_PERIODS,
         LAYOUT_CACHE_HELP,
         LIGHT_SEQUENCES,
         SHADOW_SAMPLING,
@@ -133,11 +134,20 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
                    help="light samples per texel and light (area and dome lights; "
                         "see --shadow-sampling for how many are traced)")
     p.add_argument("--shadow-sampling", choices=SHADOW_SAMPLING, default="interleaved",
-                   help="interleaved: each texel traces a quarter of the light samples and "
-                        "borrows the rest from its 3x3 neighbours (Keller & Heidrich 2001); "
-                        "adaptive: the same, then the texels whose neighbourhood's rays "
-                        "disagree (penumbrae) trace the other three quarters themselves; "
-                        "full: every texel traces all of them (default interleaved)")
+                   help="interleaved: each texel of a PxP block traces 1/P^2 of the light "
+                        "samples and borrows the rest from its neighbours (Keller & "
+                        "Heidrich 2001; see --interleave-period); adaptive: the same, then "
+                        "the texels whose neighbourhood's rays disagree (penumbrae) trace "
+                        "the rest themselves; full: every texel traces all of them "
+                        "(default interleaved)")
+    p.add_argument("--interleave-period", default="auto", metavar="auto|P",
+                   type=_period(INTERLEAVE_PERIODS),
+                   help=f"P of interleaved and adaptive sampling, one of "
+                        f"{', '.join(map(str, INTERLEAVE_PERIODS))}; auto (default): 2, or "
+                        "larger where the texture is finer than the image (several texels "
+                        "a pixel at the skin: rays go per pixel, not per texel; the "
+                        "demo face at texture 4096 takes 4, a quarter of the rays); "
+                        "render.json says which")
     p.add_argument("--light-sequence", choices=LIGHT_SEQUENCES, default="sobol",
                    help="light sample points: sobol (scrambled Sobol; --light-samples "
                         "rounded up to a power of two; on the demo face 12%% less error "
@@ -180,13 +190,30 @@ def render_options(args: argparse.Namespace) -> Any:
     return RenderOptions(
         resolution=args.resolution, texture_size=args.texture_size, aovs=args.aovs,
         light_samples=args.light_samples, shadow_sampling=args.shadow_sampling,
-        light_sequence=args.light_sequence,
+        interleave_period=args.interleave_period, light_sequence=args.light_sequence,
         roughness=args.roughness, rho_s=args.rho_s,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,
         texture_outputs=args.texture_outputs,
         half_float=args.half_float, layout_cache=_layout_cache(args.layout_cache))
+
+
+def _period(periods: tuple[int, ...]) -> Any:
+    """--interleave-period's parser: 'auto' as 0, else one of ``periods``."""
+    def parse(text: str) -> int:
+        if text.strip().lower() == "auto":
+            return 0
+        try:
+            value = int(text)
+        except ValueError:
+            value = -1
+        if value not in periods:
+            raise argparse.ArgumentTypeError(
+                f"expected auto or one of {', '.join(map(str, periods))}, got {text!r}")
+        return value
+
+    return parse
 
 
 def _layout_cache(value: str | None) -> str | None:

@@ -36,7 +36,7 @@ from .opencl import (
     read_output,
     run_on_host_arrays,
 )
-from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS
+from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS, INTERLEAVE_PERIODS
 from .raytrace import (
     OFFSET_FLOAT_SCALE,
     OFFSET_INT_SCALE,
@@ -122,34 +122,56 @@ def specular_albedo(cos_theta: NDArray[Any], roughness: float = DEFAULT_ROUGHNES
 
 
 def stratified_unit_square(n: int, rng: np.random.Generator,
-                           even: bool = False) -> NDArray[np.float64]:
-    """n jittered points in [0, 1)^2 on a near-square grid (n rounded up to a full grid;
-    with ``even``, to a grid with an even number of rows and columns). Point
+                           multiple: int = 1) -> NDArray[np.float64]:
+    """n jittered points in [0, 1)^2 on a near-square grid (n rounded up to a full grid
+    whose numbers of rows and columns are multiples of ``multiple``). Point
     ``gy * nx + gx`` lies in column gx, row gy."""
-    nx, ny = grid_shape(n, even)
+    nx, ny = grid_shape(n, multiple)
     gx, gy = np.meshgrid(np.arange(nx), np.arange(ny))
     pts = np.stack([(gx.ravel() + rng.random(nx * ny)) / nx,
                     (gy.ravel() + rng.random(nx * ny)) / ny], axis=1)
     return pts
 
 
-def grid_shape(n: int, even: bool = False) -> tuple[int, int]:
-    """Columns and rows of the stratified grid that holds at least n samples."""
+def grid_shape(n: int, multiple: int = 1) -> tuple[int, int]:
+    """Columns and rows of the stratified grid that holds at least n samples, each a
+    multiple of ``multiple``."""
     nx = max(1, math.ceil(math.sqrt(n)))
-    nx += nx % 2 if even else 0
+    nx = -(-nx // multiple) * multiple
     ny = max(1, math.ceil(n / nx))
-    ny += ny % 2 if even else 0
-    return nx, ny
+    return nx, -(-ny // multiple) * multiple
 
 
-def interleaved_strata(n: int) -> NDArray[np.int64]:
-    """Interleaved sampling (Keller & Heidrich 2001) of an even stratified grid: row
-    ``2 (y % 2) + (x % 2)`` lists the strata that texel (x, y) traces, those whose column
-    and row have the texel's parity. Each row is itself a coarser stratification of the
-    square, and every 2 x 2 block of texels covers all the strata between them."""
-    nx, ny = grid_shape(n, even=True)
+def interleaved_strata(n: int, period: int = 2) -> NDArray[np.int64]:
+    """Interleaved sampling (Keller & Heidrich 2001) of a stratified grid whose rows and
+    columns are multiples of the ``period`` p: row ``p (y % p) + (x % p)`` lists the
+    strata that texel (x, y) traces, those whose column and row are the texel's modulo
+    p. Each row is itself a coarser stratification of the square, and every p x p block
+    of texels covers all the strata between them."""
+    nx, ny = grid_shape(n, period)
     g = np.arange(nx * ny).reshape(ny, nx)
-    return np.stack([g[qy::2, qx::2].ravel() for qy in (0, 1) for qx in (0, 1)])
+    return np.stack([g[qy::period, qx::period].ravel() for qy in range(period)
+                     for qx in range(period)])
+
+
+
+def interleave_period(texels_per_pixel: float, points: int) -> int:
+    """The interleaving period p for a texture of ``texels_per_pixel`` texels across an
+    image pixel at the skin and a light of ``points`` sample points: the largest of
+    :data:`INTERLEAVE_PERIODS` whose reconstruction (the tent of :func:`filter_interleaved`,
+    variance (p^2 - 1) / 6 texel^2 along each axis) is no wider in pixels than period 2's
+    at one texel a pixel (0.5 pixel^2), i.e. p^2 <= 3 k^2 + 1, and whose p^2 classes each
+    keep a sample (p^2 <= points); 2 when none is (a texture no finer than the image,
+    or too few samples, as before). Rays then go per pixel, not per texel: at 4 texels a
+    pixel (the demo face at texture 4096) period 4 traces a quarter of period 2's, 16 a
+    pixel and light at 16 samples where texture 1024 traces 4."""
+    k = float(texels_per_pixel)
+    k2 = k * k if math.isfinite(k) and k > 0 else 0.0
+    best = INTERLEAVE_PERIODS[0]
+    for p in INTERLEAVE_PERIODS:
+        if p * p <= 3.0 * k2 + 1.0 and p * p <= points:
+            best = p
+    return best
 
 
 def sobol_points(n: int) -> int:
@@ -159,23 +181,30 @@ def sobol_points(n: int) -> int:
 
 
 def complement_sets(sets: NDArray[Any]) -> NDArray[Any]:
-    """The strata each interleaving class does not trace (4, 3 x count): for class c the
-    sets of classes c + 1, c + 2 and c + 3 (mod 4), in that order."""
-    return np.stack([np.concatenate([sets[(c + j) % 4] for j in (1, 2, 3)])
-                     for c in range(4)])
+    """The strata each interleaving class does not trace (C, (C - 1) x count) for C
+    classes (rows of ``sets``): for class c the sets of classes c + 1, ..., c + C - 1
+    (mod C), in that order."""
+    classes = sets.shape[0]
+    return np.stack([np.concatenate([sets[(c + j) % classes] for j in range(1, classes)])
+                     for c in range(classes)])
 
 
 def light_sample_set(samples: int, rng: np.random.Generator, interleaved: bool,
-                     sequence: str = "stratified"
+                     sequence: str = "stratified", period: int = 2
                      ) -> tuple[NDArray[np.float64], NDArray[np.int64] | None]:
-    """A light's sample points in [0, 1)^2 and, if ``interleaved``, the four sets of them
-    the interleaving classes trace (rows, as :func:`interleaved_strata`).
+    """A light's sample points in [0, 1)^2 and, if ``interleaved``, the p^2 sets of them
+    the interleaving classes of ``period`` p trace (rows, as :func:`interleaved_strata`);
+    None where there are fewer points than classes.
 
-    'stratified': a jittered near-square grid, each set the strata of one parity of
-    column and row. 'sobol': the first 2^m points of a scrambled Sobol sequence (Sobol
-    1967; scipy's linear matrix scrambling with a digital shift, Matousek 1998), each set
-    a quarter of them in order: consecutive aligned blocks of a (0, m, 2)-net are nets
-    themselves, so each set is stratified on its own as well."""
+    'stratified': a jittered near-square grid, each set the strata of one class of
+    column and row modulo p. 'sobol': the first 2^m points of a scrambled Sobol sequence
+    (Sobol 1967; scipy's linear matrix scrambling with a digital shift, Matousek 1998),
+    each set a p^2-th of them in order: consecutive aligned blocks of a (0, m, 2)-net
+    are nets themselves, so each set is stratified on its own as well."""
+    if period not in INTERLEAVE_PERIODS:
+        raise InputError(f"interleaving period must be one of {INTERLEAVE_PERIODS}, got "
+                         f"{period}")
+    classes = period * period
     if sequence == "sobol":
         # lazy: all of scipy.stats comes with it, 0.8-1.1 s on 2 cores (imported on a
         # thread beside the texture maps, it slowed them as much: the GIL)
@@ -183,12 +212,14 @@ def light_sample_set(samples: int, rng: np.random.Generator, interleaved: bool,
 
         m = sobol_points(samples)
         grid = qmc.Sobol(2, scramble=True, seed=rng).random(m)
-        sets = np.arange(m).reshape(4, m // 4) if interleaved and m >= 4 else None
+        sets = np.arange(m).reshape(classes, m // classes) if interleaved and \
+            m >= classes else None
         return grid, sets
     if sequence != "stratified":
         raise InputError(f"unknown light sample sequence {sequence!r}")
-    if interleaved and samples >= 4:
-        return stratified_unit_square(samples, rng, even=True), interleaved_strata(samples)
+    if interleaved and samples >= classes:
+        return stratified_unit_square(samples, rng, period), \
+            interleaved_strata(samples, period)
     return stratified_unit_square(samples, rng), None
 
 
@@ -334,7 +365,7 @@ __kernel void sample_entering(__global const float *origin, __global const float
     LANES(AT)
     // (u, cos 2 pi v, sin 2 pi v) of the stratum: the host takes the trigonometry
     float8 u, cv, sv;
-#if INTERLEAVED  // the k-th stratum of the point's class (sets: 4 rows of COUNT)
+#if INTERLEAVED  // the k-th stratum of the point's class (sets: a row of COUNT each)
 #define UV(l) { __global const float *uv = strata_uv + \
                     (size_t)4 * sets[(int)classes[at[l]] * COUNT + k]; \
                 u.s##l = uv[0]; cv.s##l = uv[1]; sv.s##l = uv[2]; }
@@ -428,14 +459,15 @@ class LightSampler:
     factor per point (cos x solid angle, or cos x cos x area / d^2, over the samples per
     point) and the light's colour, or (N, 3) per point for a textured dome.
 
-    With ``interleave`` (one class 0-3 per point, from the texel's parity), point i
-    traces only the strata ``sets[interleave[i]]`` (:func:`light_sample_set`): a quarter
-    of the rays, the rest borrowed from its neighbours by ``filter_interleaved``.
+    With ``interleave`` (one class 0 to p^2 - 1 per point, from the texel's position
+    modulo the ``period`` p), point i traces only the strata ``sets[interleave[i]]``
+    (:func:`light_sample_set`): a p^2-th of the rays, the rest borrowed from its
+    neighbours by ``filter_interleaved``.
     ``point_buffers`` (a dict, empty at first) lets the samplers of several lights over
     the same points share one device buffer each of the origins, normals and classes.
     ``sequence``: the sample points, :func:`light_sample_set`. With ``complement`` as well,
-    each point traces the strata its class does not, the other three classes' sets in
-    turn (:func:`refine_penumbrae`: with its first quarter, all of them)."""
+    each point traces the strata its class does not, the other classes' sets in turn
+    (:func:`refine_penumbrae`: with its first share, all of them)."""
 
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
@@ -443,26 +475,29 @@ class LightSampler:
                  interleave: NDArray[Any] | None = None, roughness: float = DEFAULT_ROUGHNESS,
                  rho_s: float = DEFAULT_RHO_S, device: bool = True,
                  point_buffers: dict[str, Any] | None = None,
-                 sequence: str = "stratified", complement: bool = False) -> None:
+                 sequence: str = "stratified", complement: bool = False,
+                 period: int = 2) -> None:
         self.light = light
         self.roughness, self.rho_s = float(roughness), float(rho_s)
         self.origins = origins
         self.normals = normals
         self.sets: NDArray[np.int32] | None = None
-        """Interleaved: the strata each class traces (4, count); else None."""
+        """Interleaved: the strata each class traces (p^2, count); else None."""
         self.classes: NDArray[np.uint8] | None = None
         # a light of zero extent has one direction: one ray says all, and interleaving
         # it (then filtering) would only blur its hard shadow
         if is_delta_light(light):
             samples = 1
-        self.grid, sets = light_sample_set(samples, rng, interleave is not None, sequence)
+        self.grid, sets = light_sample_set(samples, rng, interleave is not None, sequence,
+                                           period)
         if sets is not None and complement:
             sets = complement_sets(sets)
         if sets is not None:
             # a byte per point for its class, not its strata (count int32 per point, 123
             # MB a light at texture 4096, gathered and then copied to the device)
             self.sets = np.ascontiguousarray(sets, np.int32)
-            self.classes = (np.asarray(interleave) % 4).astype(np.uint8, copy=False)
+            self.classes = (np.asarray(interleave) % (period * period)).astype(
+                np.uint8, copy=False)
             self.count = self.sets.shape[1]
         else:
             self.count = self.grid.shape[0]
@@ -606,7 +641,8 @@ _INTERLEAVE_KERNEL = r"""
 // one work-item per texel (AT: per texel of the list at, flat indices); planes (light,
 // y, x) with traced = 0 or 1; normals packed xyz per texel, read as floats (vload3, dot
 // and abs are calls or vector values to PoCL, which then does not vectorise the
-// work-item loop)
+// work-item loop). The tent spans PERIOD - 1 texels each side, weights
+// (PERIOD - |dx|)(PERIOD - |dy|): each class of the period weighs the same
 __kernel void filter_interleaved(__global const float *vis, __global const float *traced,
                                  __global const float *normal, __global float *out,
                                  const int h, const int w, const float min_cos
@@ -627,16 +663,17 @@ __kernel void filter_interleaved(__global const float *vis, __global const float
     const int plane = h * w;
     float num[LIGHTS], den[LIGHTS];
     for (int l = 0; l < LIGHTS; ++l) { num[l] = 0.0f; den[l] = 0.0f; }
-    for (int dy = -1; dy <= 1; ++dy) {
+    for (int dy = 1 - PERIOD; dy < PERIOD; ++dy) {
         const int yy = y + dy;
         if (yy < 0 || yy >= h) continue;
-        for (int dx = -1; dx <= 1; ++dx) {
+        for (int dx = 1 - PERIOD; dx < PERIOD; ++dx) {
             const int xx = x + dx;
             if (xx < 0 || xx >= w) continue;
             const int j = yy * w + xx;
             if (nx * normal[3 * j] + ny * normal[3 * j + 1] + nz * normal[3 * j + 2] < min_cos)
                 continue;
-            const float tent = (dy == 0 ? 2.0f : 1.0f) * (dx == 0 ? 2.0f : 1.0f);
+            const float tent = (float)(PERIOD - (dy < 0 ? -dy : dy)) *
+                               (float)(PERIOD - (dx < 0 ? -dx : dx));
             for (int l = 0; l < LIGHTS; ++l) {
                 const float kt = tent * traced[l * plane + j];
                 num[l] += kt * vis[l * plane + j];
@@ -653,18 +690,20 @@ MAX_FILTER_LIGHTS = 4
 go in further launches."""
 
 
-@device_cache(maxsize=2 * MAX_FILTER_LIGHTS)
-def _interleave_kernel(lights: int, at: bool = False) -> Any:
+@device_cache(maxsize=4 * MAX_FILTER_LIGHTS)
+def _interleave_kernel(lights: int, at: bool = False, period: int = 2) -> Any:
 
-    program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}", f"-DAT={int(at)}"])
+    program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}", f"-DAT={int(at)}",
+                                         f"-DPERIOD={period}"])
     return Kernel(program, "filter_interleaved", 1 if at else 2)
 
 
 _PENUMBRA_KERNEL = r"""
-// penumbra_texels at the texels of the list at (flat indices): the 3 x 3 maximum and
-// minimum of the visibility over traced texels, where an untraced texel or one beyond
-// the texture's edge counts 0 for the maximum and 1 for the minimum (the numpy
-// definition's constant edges); comparisons only, so the same booleans
+// penumbra_texels at the texels of the list at (flat indices): the maximum and minimum
+// of the visibility over traced texels within PERIOD - 1 of the texel (the filter's
+// reach), where an untraced texel or one beyond the texture's edge counts 0 for the
+// maximum and 1 for the minimum (the numpy definition's constant edges); comparisons
+// only, so the same booleans
 __kernel void penumbra_at(__global const float *vis, __global const uchar *traced,
                           __global const int *at, const int h, const int w, const int n,
                           __global uchar *out)
@@ -673,8 +712,8 @@ __kernel void penumbra_at(__global const float *vis, __global const uchar *trace
     if (o >= n) return;
     const int i = at[o], x = i % w, y = i / w;
     float hi = -INFINITY, lo = INFINITY;
-    for (int dy = -1; dy <= 1; ++dy) {
-        for (int dx = -1; dx <= 1; ++dx) {
+    for (int dy = 1 - PERIOD; dy < PERIOD; ++dy) {
+        for (int dx = 1 - PERIOD; dx < PERIOD; ++dx) {
             const int xx = x + dx, yy = y + dy;
             const int j = yy * w + xx;
             const int in = xx >= 0 && xx < w && yy >= 0 && yy < h && traced[j];
@@ -689,44 +728,47 @@ __kernel void penumbra_at(__global const float *vis, __global const uchar *trace
 """
 
 
-@device_cache(maxsize=1)
-def _penumbra_kernel() -> Any:
-    return Kernel(build(_PENUMBRA_KERNEL), "penumbra_at", 1)
+@device_cache(maxsize=len(INTERLEAVE_PERIODS))
+def _penumbra_kernel(period: int = 2) -> Any:
+    return Kernel(build(_PENUMBRA_KERNEL, [f"-DPERIOD={period}"]), "penumbra_at", 1)
 
 
 def sample_plan(light: Light, samples: int, interleaved: bool,
-                sequence: str = "stratified") -> tuple[int, bool]:
+                sequence: str = "stratified", period: int = 2) -> tuple[int, bool]:
     """(samples each point traces, whether they are interleaved) for ``light`` at
     ``samples`` per point, as :class:`LightSampler` takes them: from the same
     :func:`light_sample_set` (its points are a few dozen at most)."""
     grid, sets = light_sample_set(1 if is_delta_light(light) else samples,
-                                  np.random.default_rng(0), interleaved, sequence)
+                                  np.random.default_rng(0), interleaved, sequence, period)
     return (int(sets.shape[1]), True) if sets is not None else (int(grid.shape[0]), False)
 
 
 def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
                        textured_domes: Collection[str] = (), filtered: bool = True,
-                       sequence: str = "stratified", refined: bool = False) -> list[Any]:
+                       sequence: str = "stratified", refined: bool = False,
+                       period: int = 2) -> list[Any]:
     """The device kernels :func:`irradiance_texture` and (if ``filtered``)
     :func:`filter_interleaved` at the covered texels (``at``, as the renderer runs it)
     or (if ``refined``) :func:`refine_penumbrae`'s :func:`penumbra_at` will launch for
-    these lights (for :class:`~.opencl.Prewarm`)."""
+    these lights at the interleaving ``period`` (for :class:`~.opencl.Prewarm`)."""
     kernels, interleaved_lights = [_offset_kernel()], 0
     for light in lights:
         if not np.any(light.radiance > 0):
             continue
-        count, inter = sample_plan(light, samples, interleaved, sequence)
+        count, inter = sample_plan(light, samples, interleaved, sequence, period)
         interleaved_lights += inter
         if light.kind in DEVICE_SAMPLED_KINDS and light.path not in textured_domes:
             kernels.append(_sample_kernel(light.kind, count, inter))
-            if refined and inter:  # the penumbrae's other three quarters
-                kernels.append(_sample_kernel(light.kind, 3 * count, inter))
+            if refined and inter:  # the penumbrae's other classes' strata
+                kernels.append(_sample_kernel(light.kind, (period * period - 1) * count,
+                                              inter))
     if filtered:
         for start in range(0, interleaved_lights, MAX_FILTER_LIGHTS):
             kernels.append(_interleave_kernel(min(MAX_FILTER_LIGHTS,
-                                                  interleaved_lights - start), at=True))
+                                                  interleaved_lights - start), True,
+                                              period))
     if refined and interleaved_lights:
-        kernels.append(_penumbra_kernel())
+        kernels.append(_penumbra_kernel(period))
     return kernels
 
 
@@ -751,10 +793,12 @@ def light_planes(visibility: NDArray[Any], unshadowed: NDArray[Any], texel: NDAr
 
 def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
                        normal: NDArray[Any], min_cos: float = 0.9,
-                       at: NDArray[Any] | None = None) -> NDArray[np.float32]:
+                       at: NDArray[Any] | None = None, period: int = 2
+                       ) -> NDArray[np.float32]:
     """Texture-space reconstruction of interleaved shadow rays: each texel's visibility
-    (L, H, W: one plane per light) becomes the (1 2 1)^2 / 16 tent average over its
-    3 x 3 neighbourhood, which weights the four interleaved stratum sets equally
+    (L, H, W: one plane per light) becomes the tent average over the (2p - 1)^2 texels
+    around it for the ``period`` p, weights (p - |dx|)(p - |dy|) / p^4 ((1 2 1)^2 / 16
+    over 3 x 3 at period 2), which weight the p^2 interleaved stratum sets equally
     (Keller & Heidrich 2001). Neighbours count only where ``traced`` > 0 (the texel
     traced rays towards that light) and their normal (H, W, 3) is within acos(min_cos)
     of the texel's, so that a crease or a chart that happens to touch does not bleed.
@@ -785,7 +829,7 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
         traced_buf = host_buffer((np.asarray(traced[part]) > 0).astype(np.float32))
         out_buf = host_output(out_part)
         grid = (w, h) if points is None else (points.size,)
-        _interleave_kernel(part.stop - start, points is not None)(
+        _interleave_kernel(part.stop - start, points is not None, period)(
             queue, grid, None, vis_buf, traced_buf, nrm_buf, out_buf, np.int32(h),
             np.int32(w), np.float32(min_cos), *at_args)
         read_output(queue, out_buf, out_part)
@@ -806,7 +850,7 @@ class IrradianceResult:
     rays: int = 0
     seconds: float = 0.0
     interleaved: frozenset[str] = frozenset()
-    """Lights whose shadow rays were interleaved (each point traced a quarter of the
+    """Lights whose shadow rays were interleaved (each point traced a share of the
     samples): only their visibility is reconstructed by ``filter_interleaved``."""
 
     def entering_with(self, visibility: dict[str, NDArray[Any]]) -> NDArray[np.float32]:
@@ -879,14 +923,14 @@ def irradiance_texture(
     samples: int = 16, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     interleave: NDArray[Any] | None = None, sequence: str = "stratified",
-    coherent: bool = False, complement: bool = False,
+    coherent: bool = False, complement: bool = False, period: int = 2,
 ) -> IrradianceResult:
     """Irradiance entering the skin at surface points (N, 3) with unit normals, summed
     over ``lights`` with ``samples`` shadow rays per light and point (the points of
-    :func:`light_sample_set` for ``sequence``; with
-    ``interleave``, a class 0-3 per point: a quarter of them, see ``LightSampler``; the
+    :func:`light_sample_set` for ``sequence``; with ``interleave``, a class 0 to p^2 - 1
+    per point for the ``period`` p: a p^2-th of them, see ``LightSampler``; the
     per-point visibility is then noisy until ``filter_interleaved`` has run; with
-    ``complement`` too, the other three quarters).
+    ``complement`` too, the other classes' strata).
 
     Ray origins are pushed off the surface along the normal by what their floating-point
     error needs (:func:`~.raytrace.offset_ray_origin`); rays whose cosine is <= 0 are
@@ -930,7 +974,8 @@ def irradiance_texture(
         samplers.append(LightSampler(light, origins, nrm, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes,
                                      roughness, rho_s, point_buffers=point_buffers,
-                                     sequence=sequence, complement=complement))
+                                     sequence=sequence, complement=complement,
+                                     period=period))
     n_rays = 0
     for sampler, lit, unshadowed, cast in cast_samples(samplers, rays):
         light = sampler.light
@@ -1042,22 +1087,25 @@ def sum_axis1(a: NDArray[Any]) -> NDArray[Any]:
     return out
 
 
-def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any]) -> NDArray[np.bool_]:
+def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any],
+                    period: int = 2) -> NDArray[np.bool_]:
     """Texels (H, W) whose interleaved shadow rays do not all agree: the texel's own rays
-    (visibility strictly between 0 and 1) or those of a traced texel in its 3 x 3
-    neighbourhood (a different visibility). Elsewhere the neighbourhood's rays, all four
-    interleaved sets of strata, saw the light all visible or all blocked. The numpy
-    reference of :func:`penumbra_at`, which the adaptive pass runs."""
+    (visibility strictly between 0 and 1) or those of a traced texel in the (2p - 1)^2
+    neighbourhood :func:`filter_interleaved` reads for the ``period`` p (3 x 3 at 2; a
+    different visibility). Elsewhere the neighbourhood's rays, all p^2 interleaved sets
+    of strata, saw the light all visible or all blocked. The numpy reference of
+    :func:`penumbra_at`, which the adaptive pass runs."""
     from scipy.ndimage import maximum_filter, minimum_filter  # lazy, as the fit's solvers
 
     vis = np.asarray(visibility, np.float32)
-    hi = maximum_filter(np.where(traced, vis, 0.0), size=3, mode="constant", cval=0.0)
-    lo = minimum_filter(np.where(traced, vis, 1.0), size=3, mode="constant", cval=1.0)
+    size = 2 * period - 1
+    hi = maximum_filter(np.where(traced, vis, 0.0), size=size, mode="constant", cval=0.0)
+    lo = minimum_filter(np.where(traced, vis, 1.0), size=size, mode="constant", cval=1.0)
     return traced & ((hi > lo) | ((vis > 0) & (vis < 1)))
 
 
 def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
-                at: NDArray[Any]) -> NDArray[np.bool_]:
+                at: NDArray[Any], period: int = 2) -> NDArray[np.bool_]:
     """:func:`penumbra_texels` at the texels of ``at`` (flat indices into the (H, W)
     planes), on the OpenCL device: one work-item per listed texel, not two 3 x 3
     filters over the whole texture and a gather (54 ms for the demo face's two lights
@@ -1071,7 +1119,7 @@ def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
     out = np.zeros(points.size, np.uint8)
     if points.size:
         _, queue = cl_context()
-        run_on_host_arrays(_penumbra_kernel(), queue, (points.size,),
+        run_on_host_arrays(_penumbra_kernel(period), queue, (points.size,),
                            [vis, np.ascontiguousarray(traced, np.bool_).view(np.uint8),
                             points, np.int32(h), np.int32(w), np.int32(points.size)], [out])
     return out.view(np.bool_)
@@ -1083,14 +1131,14 @@ def refine_penumbrae(
     samples: int, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     sequence: str = "stratified", texel: NDArray[np.intp] | None = None,
-    coherent: bool = False,
+    coherent: bool = False, period: int = 2,
 ) -> tuple[IrradianceResult, dict[str, NDArray[np.int64]]]:
-    """Adaptive shadow rays: after an interleaved pass (``result``: every covered texel of
-    ``covered`` traced the quarter of the strata its ``interleave`` class names; the
-    points are the texels at flat indices ``texel``, by default in row order), the
-    texels of :func:`penumbra_texels` trace the other three quarters (the same strata:
-    :func:`light_rng`), so that their visibility is their own estimate from all
-    ``samples``. Every other texel's neighbourhood agreed, so the interleaved
+    """Adaptive shadow rays: after an interleaved pass of ``period`` p (``result``: every
+    covered texel of ``covered`` traced the p^2-th of the strata its ``interleave``
+    class names; the points are the texels at flat indices ``texel``, by default in row
+    order), the texels of :func:`penumbra_texels` trace the other classes' strata (the
+    same strata: :func:`light_rng`), so that their visibility is their own estimate from
+    all ``samples``. Every other texel's neighbourhood agreed, so the interleaved
     reconstruction there is its own value: nothing is filtered. The error target is
     full sampling's (each texel's visibility from all ``samples`` strata) at a fraction
     of its rays (cast as :func:`irradiance_texture` casts them, ``coherent`` or not).
@@ -1118,33 +1166,35 @@ def refine_penumbrae(
         vis1, traced = np.zeros(covered.shape, np.float32), np.zeros(covered.shape, bool)
         light_planes(result.visibility[path], result.unshadowed[path], texel32, vis1,
                      traced)
-        where = refined[path] = np.flatnonzero(penumbra_at(vis1, traced, texel32))
+        where = refined[path] = np.flatnonzero(penumbra_at(vis1, traced, texel32, period))
         if not where.size:
             continue
         # each point's result does not depend on the order: the rays go along a
         # Morton curve of the points unless they are coherent already
         at = cast_at[path] = where if coherent else where[morton_order(pos[where])]
         nrm_at = np.take(nrm, at, axis=0)  # fancy indexing of (N, 3) rows took 5x as long
-        # each penumbra texel the strata of the three interleaved classes it has not
-        # traced (three quarters of them, once each)
+        # each penumbra texel the strata of the interleaved classes it has not traced
+        # (the other p^2 - 1 shares of them, once each)
         samplers.append(LightSampler(light, ray_origins(np.take(pos, at, axis=0), nrm_at),
                                      nrm_at, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes[at],
-                                     roughness, rho_s, sequence=sequence, complement=True))
+                                     roughness, rho_s, sequence=sequence, complement=True,
+                                     period=period))
+    # each pass's weights average over its own strata, 1 / p^2 and the rest of them:
+    # the texel's estimate from all of them weights the passes so (0.25 and 0.75 at 2)
+    first = np.float32(1.0 / (period * period))
+    rest = np.float32(1.0) - first
     for sampler, lit, more_un, cast in cast_samples(samplers, rays):
         path, at = sampler.light.path, cast_at[sampler.light.path]
         n_rays += cast
         un2 = coloured(sampler, more_un)
         vis2 = light_visibility(lit, more_un)
-        # each pass's weights average over its own strata, a quarter and three quarters
-        # of them: the texel's estimate from all of them weights the passes so
         un1 = result.unshadowed[path]
         un1_at = np.take(un1, at, axis=0)
-        un_all = np.float32(0.25) * un1_at + np.float32(0.75) * un2
+        un_all = first * un1_at + rest * un2
         un1_sum, un2_sum = sum_axis1(un1_at), sum_axis1(un2)
-        lit_all = np.float32(0.25) * result.visibility[path][at] * un1_sum + \
-            np.float32(0.75) * vis2 * un2_sum
-        un_sum = np.float32(0.25) * un1_sum + np.float32(0.75) * un2_sum
+        lit_all = first * result.visibility[path][at] * un1_sum + rest * vis2 * un2_sum
+        un_sum = first * un1_sum + rest * un2_sum
         vis = visibility[path] = visibility[path].copy()
         vis[at] = np.where(un_sum > 0, lit_all / np.maximum(un_sum, 1e-30), 0.0)
         un = unshadowed[path] = un1.copy()

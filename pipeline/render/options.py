@@ -19,6 +19,9 @@ radiance), stretch (mm per texel along u and v), region (index of the largest re
 weight, -1 outside the charts), each with the charts' coverage."""
 BLURS = ("recursive", "gather")
 SHADOW_SAMPLING = ("adaptive", "interleaved", "full")
+INTERLEAVE_PERIODS = (2, 4, 8)
+"""Periods p of interleaved sampling (p x p classes of texels): p^2 must divide a
+scrambled Sobol set's 2^m points for each class's share to be a net itself."""
 LIGHT_SEQUENCES = ("stratified", "sobol")
 DEFAULT_ROUGHNESS = 0.35
 """Beckmann roughness of the skin's specular lobe (Torrance-Sparrow)."""
@@ -57,10 +60,15 @@ class RenderOptions:
     aovs: tuple[str, ...] = AOVS
     light_samples: int = 16
     shadow_sampling: str = "interleaved"
-    """'interleaved': each texel traces a quarter of the light samples and borrows the
-    rest from its 3 x 3 neighbours; 'adaptive': the same, then texels whose 3 x 3
-    neighbourhood's rays disagree (penumbrae) trace the rest themselves; 'full': every
-    texel traces all of them."""
+    """'interleaved': each texel of a p x p block traces a p^2-th of the light samples
+    and borrows the rest from its neighbours within p - 1 texels
+    (:attr:`interleave_period`); 'adaptive': the same, then texels whose neighbourhood's
+    rays disagree (penumbrae) trace the rest themselves; 'full': every texel traces all
+    of them."""
+    interleave_period: int = 0
+    """The period p of interleaved and adaptive sampling (2, 4 or 8); 0: chosen per skin
+    mesh from its texels per image pixel (:func:`~.lighting.interleave_period`: 2 unless
+    the texture is finer than the image)."""
     light_sequence: str = "sobol"
     """Light sample points: 'sobol' (scrambled Sobol, light_samples rounded up to a power
     of two) or 'stratified' (a jittered grid)."""
@@ -111,6 +119,10 @@ class RenderOptions:
         if self.shadow_sampling not in SHADOW_SAMPLING:
             raise InputError(f"unknown shadow sampling {self.shadow_sampling!r}; choose from "
                              f"{', '.join(SHADOW_SAMPLING)}")
+        if self.interleave_period not in (0, *INTERLEAVE_PERIODS):
+            raise InputError(f"interleave period must be 0 (auto) or one of "
+                             f"{', '.join(map(str, INTERLEAVE_PERIODS))}, got "
+                             f"{self.interleave_period}")
         if self.light_sequence not in LIGHT_SEQUENCES:
             raise InputError(f"unknown light sample sequence {self.light_sequence!r}; choose "
                              f"from {', '.join(LIGHT_SEQUENCES)}")

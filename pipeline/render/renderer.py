@@ -45,11 +45,13 @@ from .diffusion import DiffusionLayout, chart_layout, diffuse_gather, diffuse_pr
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
+    interleave_period,
     irradiance_kernels,
     irradiance_texture,
     light_direction,
     light_planes,
     refine_penumbrae,
+    sobol_points,
     specular_albedo,
     torrance_sparrow,
 )
@@ -66,7 +68,7 @@ from .opencl import (
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
-from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
+from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
 from .tile_store import TileStore
 from .unwrap import triangulate, unwrap
@@ -163,22 +165,50 @@ def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0
 # ------------------------------------------------------------------------ helpers
 
 
-def interleave_classes(shape: tuple[int, int]) -> NDArray[np.uint8]:
-    """Each texel's interleaving class, 2 (y mod 2) + (x mod 2), flat in row order: one
-    byte a texel, from the two parities (the texels' flat indices' divisions and
-    remainders in int64 took 0.21-0.23 s at texture 4096, this 0.02 s)."""
+def interleave_classes(shape: tuple[int, int], period: int = 2) -> NDArray[np.uint8]:
+    """Each texel's interleaving class for the ``period`` p, p (y mod p) + (x mod p),
+    flat in row order: one byte a texel, from rows' and columns' remainders (the texels'
+    flat indices' divisions and remainders in int64 took 0.21-0.23 s at texture 4096,
+    this 0.02 s)."""
     h, w = shape
-    rows = (np.arange(h) % 2 * 2).astype(np.uint8)
-    columns = (np.arange(w) % 2).astype(np.uint8)
+    rows = (np.arange(h) % period * period).astype(np.uint8)
+    columns = (np.arange(w) % period).astype(np.uint8)
     return (rows[:, None] + columns[None, :]).ravel()
 
 
+def texels_per_pixel(points: NDArray[Any], tris: NDArray[Any], uv: NDArray[Any],
+                     uv_tris: NDArray[Any], texture_size: int, camera: Camera,
+                     width: int) -> float:
+    """How many texels of a ``texture_size`` texture lie across one pixel of a ``width``
+    pixels wide image at the skin: the pixel's side over the texel's, both in scene
+    units. The texel's mean side is sqrt(A / (A_uv S^2)) (the mesh's area over its UV
+    area); the pixel's is its footprint at the triangles' median depth along the
+    camera's axis (perspective: depth x aperture / focal length / width; orthographic:
+    aperture / width). 0 where either cannot be told (no area, behind the camera)."""
+    corners = np.asarray(points, np.float64)[tris]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                         corners[:, 2] - corners[:, 0]), axis=1).sum()
+    t = np.asarray(uv, np.float64)[uv_tris]
+    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    if not (area > 0 and uv_area > 0 and width > 0):
+        return 0.0
+    texel = math.sqrt(area / uv_area) / texture_size
+    if camera.projection == "orthographic":
+        pixel = camera.horizontal_aperture / width
+    else:
+        depth = float(np.median((corners.mean(axis=1) - camera.position)
+                                @ -camera.rotation[:, 2]))
+        pixel = depth * camera.horizontal_aperture / camera.focal_length / width
+    return pixel / texel if pixel > 0 and math.isfinite(pixel / texel) else 0.0
+
+
 def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
-                           texel: NDArray[np.intp] | None = None
+                           texel: NDArray[np.intp] | None = None, period: int = 2
                            ) -> dict[str, NDArray[np.float32]]:
-    """Each light's per-texel visibility from interleaved shadow rays, reconstructed in
-    texture space (``filter_interleaved``) and returned per covered texel (``texel``:
-    the points' flat indices, in their order; by default row order)."""
+    """Each light's per-texel visibility from interleaved shadow rays of ``period``,
+    reconstructed in texture space (``filter_interleaved``) and returned per covered
+    texel (``texel``: the points' flat indices, in their order; by default row order)."""
     covered = maps.triangle >= 0
     if texel is None:
         texel = np.flatnonzero(covered)
@@ -189,7 +219,7 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     traced = np.zeros(vis.shape, bool)
     for i, p in enumerate(paths):
         light_planes(res.visibility[p], res.unshadowed[p], texel, vis[i], traced[i])
-    filtered = filter_interleaved(vis, traced, maps.surface[1], at=texel)
+    filtered = filter_interleaved(vis, traced, maps.surface[1], at=texel, period=period)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
 
@@ -413,6 +443,10 @@ class SkinTextures:
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
+    period: int = 2
+    """The interleaving period of its shadow rays (:meth:`Renderer._interleaving`)."""
+    texels_per_pixel: float = 0.0
+    """Texels across an image pixel at the skin (:func:`texels_per_pixel`; 0: unknown)."""
     keys: dict[str, str] = field(default_factory=dict)
     """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
     instead of hashing the maps themselves."""
@@ -497,17 +531,23 @@ class Renderer:
         opts = self.options
         domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
         render = "pipeline.render."
+        # each skin mesh's interleaving period where its UVs are known before the render
+        # (an unwrap's are not: theirs, if not 2, are built at their first launch)
+        periods = {self._interleaving(scene, m, m.uv, uv_triangles(m), triangulate(m.mesh))[0]
+                   if usable_uvs(m) is None else 2 for m in scene.skin}
         steps: list[Callable[[], Any]] = [
             PlannedStep(render + "texture_maps", "texture_kernels"),
-            lambda: irradiance_kernels(scene.lights, opts.light_samples,
-                                       opts.shadow_sampling != "full", domes,
-                                       filtered=opts.shadow_sampling == "interleaved",
-                                       sequence=opts.light_sequence,
-                                       refined=opts.shadow_sampling == "adaptive"),
+            *(lambda p=p: irradiance_kernels(scene.lights, opts.light_samples,
+                                             opts.shadow_sampling != "full", domes,
+                                             filtered=opts.shadow_sampling == "interleaved",
+                                             sequence=opts.light_sequence,
+                                             refined=opts.shadow_sampling == "adaptive",
+                                             period=p) for p in sorted(periods)),
             PlannedStep(render + "push_pull", "push_pull_kernels")]
         if opts.scattering and opts.blur == "recursive":
             # the seam layout's (beside the irradiance)
-            steps.insert(2, PlannedStep(render + "chart_tiles", "margin_kernels"))
+            steps.insert(1 + len(periods),
+                         PlannedStep(render + "chart_tiles", "margin_kernels"))
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
                               for m in scene.skin})
             steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))
@@ -537,13 +577,30 @@ class Renderer:
             mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.meters_per_unit,
             mesh.region_weights))
         albedo_key = content_hash(key, mesh.albedo, scene.working_colorspace)
+        period, per_pixel = self._interleaving(scene, mesh, uv, uv_tris, tris)
         irradiance_key = content_hash(
             mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
             [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness, opts.rho_s,
-            opts.seed, opts.shadow_sampling, opts.light_sequence)
-        return SkinTextures(mesh, uv, uv_tris, tris, maps,
+            opts.seed, opts.shadow_sampling, opts.light_sequence, period)
+        return SkinTextures(mesh, uv, uv_tris, tris, maps, period=period,
+                            texels_per_pixel=per_pixel,
                             keys={"maps": key, "albedo": albedo_key,
                                   "irradiance": irradiance_key})
+
+    def _interleaving(self, scene: SceneData, mesh: SceneMesh, uv: NDArray[Any],
+                      uv_tris: NDArray[Any], tris: NDArray[Any]) -> tuple[int, float]:
+        """The interleaving period of a skin mesh's shadow rays (the option's, else
+        :func:`~.lighting.interleave_period` of its texels per pixel for the light
+        samples' points) and its texels per pixel (0 without a camera)."""
+        opts = self.options
+        per_pixel = 0.0 if scene.camera is None else texels_per_pixel(
+            mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.camera,
+            opts.resolution[0])
+        if opts.interleave_period:
+            return opts.interleave_period, per_pixel
+        points = sobol_points(opts.light_samples) if opts.light_sequence == "sobol" \
+            else opts.light_samples
+        return interleave_period(per_pixel, points), per_pixel
 
     def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
         """``tex``'s albedo map: after the irradiance, which does not read it (a painted
@@ -559,29 +616,30 @@ class Renderer:
         maps = tex.maps
         covered = maps.triangle >= 0
         key = tex.keys["irradiance"]
+        period = tex.period
 
         def compute() -> Any:
             # covered texels by flat index and np.take / np.put: a boolean mask over
             # (H, W, 3) maps gathers and scatters rows several times slower. In blocks,
             # so that their rays go to Embree in a coherent order as they are
             texel = texels_in_blocks(covered)
-            interleave = np.take(interleave_classes(covered.shape), texel) \
+            interleave = np.take(interleave_classes(covered.shape, period), texel) \
                 if opts.shadow_sampling != "full" else None
             positions, normals = (texel_rows(m, texel) for m in maps.surface)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
-                                     coherent=True)
+                                     coherent=True, period=period)
             penumbra: dict[str, int] = {}  # texels refined per light (adaptive)
             if opts.shadow_sampling == "adaptive" and res.interleaved:
                 res, refined = refine_penumbrae(
                     res, covered, positions, normals, interleave, scene.lights, rays,
                     opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
-                    opts.light_sequence, texel, coherent=True)
+                    opts.light_sequence, texel, coherent=True, period=period)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
             visibility, entering = res.visibility, res.entering
             if interleave is not None and res.interleaved and visibility:
-                visibility = interleaved_visibility(res, maps, texel)
+                visibility = interleaved_visibility(res, maps, texel, period)
                 entering = res.entering_with(visibility)
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the points and the per-light sums go before the planes and their push-pull
@@ -610,7 +668,10 @@ class Renderer:
         log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
                                       "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
                                       "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
-                                      "penumbra_texels": penumbra}
+                                      "penumbra_texels": penumbra,
+                                      "interleave_period": period if opts.shadow_sampling
+                                      != "full" else None,
+                                      "texels_per_pixel": round(tex.texels_per_pixel, 3)}
 
     def _release_surface(self, tex: SkinTextures, layout: DiffusionLayout | None) -> None:
         """Let ``tex``'s position and normal maps go, and ``layout``'s surface, once the

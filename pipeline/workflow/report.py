@@ -211,8 +211,11 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
     cases = [(g, b) for g in grids for b in blurs]
     for size in sorted(sizes, reverse=True):
         for grid, blur in cases:
+            # no image (8 x 8 pixels): interleaving period 2, not the period the texels
+            # per pixel of such an image would take
             opts = RenderOptions(texture_size=size, light_samples=light_samples,
-                                 variance_grid=grid, resolution=(8, 8), blur=blur)
+                                 variance_grid=grid, resolution=(8, 8), blur=blur,
+                                 interleave_period=2)
             renderer = Renderer(stage, opts)
             try:
                 sc = renderer.delegate.sync()
@@ -348,8 +351,11 @@ def lighting_tradeoff(scene: Path, texture_size: int = 1024,
 
     def irradiance(samples: int, mode: str, sequence: str
                    ) -> tuple[NDArray[Any], NDArray[Any], dict[str, Any]]:
+        # the error is per texel: interleaving period 2, whatever the texels per pixel
+        # (a larger one is chosen for an image that averages several texels a pixel)
         opts = RenderOptions(texture_size=texture_size, light_samples=samples,
-                             shadow_sampling=mode, light_sequence=sequence, resolution=(8, 8))
+                             shadow_sampling=mode, light_sequence=sequence, resolution=(8, 8),
+                             interleave_period=2)
         renderer = Renderer(stage, opts)
         try:
             sc = renderer.delegate.sync()

@@ -129,3 +129,23 @@ def test_the_progress_bar_in_a_log(capsys: pytest.CaptureFixture[str]) -> None:
         bar("irradiance")
         raise RuntimeError("stop")
     assert "done" not in capsys.readouterr().err
+
+
+def test_interleave_period_is_auto_or_a_period(capsys: pytest.CaptureFixture[str]) -> None:
+    """--interleave-period: 'auto' (the default) is the options' 0; 2, 4 or 8 as given;
+    anything else an argparse error naming the choices."""
+    import argparse
+
+    from pipeline.cli.common import add_render_options, render_options
+
+    parser = argparse.ArgumentParser()
+    add_render_options(parser)
+    assert render_options(parser.parse_args([])).interleave_period == 0
+    assert render_options(parser.parse_args(["--interleave-period", "AUTO"])
+                          ).interleave_period == 0
+    assert render_options(parser.parse_args(["--interleave-period", "4"])
+                          ).interleave_period == 4
+    for bad in ("3", "16", "four"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--interleave-period", bad])
+        assert "expected auto or one of 2, 4, 8" in capsys.readouterr().err

@@ -26,8 +26,9 @@ from pipeline.render.renderer import (
     interleave_classes,
     render_files,
     resample_bilinear,
+    texels_per_pixel,
 )
-from pipeline.render.scene import Light
+from pipeline.render.scene import Camera, Light
 from pipeline.render.texture_maps import rasterize
 from pipeline.render.unwrap import triangulate, unwrap
 from pipeline.usd.io import open_stage_guarded
@@ -210,12 +211,55 @@ def test_shared_variance_grid_reports_its_error() -> None:
         diffusion_terms(fits, single="nose")
 
 
-@pytest.mark.parametrize("shape", [(4, 4), (3, 5), (1, 7), (7, 1)])
-def test_interleave_classes_are_the_texels_parities(shape: tuple[int, int]) -> None:
+@pytest.mark.parametrize("shape", [(4, 4), (3, 5), (1, 7), (7, 1), (9, 10)])
+@pytest.mark.parametrize("period", [2, 4, 8])
+def test_interleave_classes_are_the_texels_rows_and_columns_modulo_the_period(
+        shape: tuple[int, int], period: int) -> None:
     y, x = np.indices(shape)
-    classes = interleave_classes(shape)
+    classes = interleave_classes(shape, period)
     assert classes.dtype == np.uint8
-    np.testing.assert_array_equal(classes, (2 * (y % 2) + x % 2).ravel())
+    np.testing.assert_array_equal(classes, (period * (y % period) + x % period).ravel())
+
+
+def test_texels_per_pixel_is_the_pixels_footprint_over_the_texels() -> None:
+    """A 40 mm square patch (UVs over [0, 1]) on a 128 texture: texels 0.3125 mm. A
+    camera 100 mm above it (focal length 50, aperture 45) sees 90 mm across 48 pixels,
+    1.875 mm each: 6 texels a pixel; an orthographic view 150 mm wide, 3.125 mm: 10; a
+    patch behind the camera or without area: 0 (unknown)."""
+    pts, tris, uv = grid_patch(4, 40.0)
+    up = Camera("/Cam", np.array([0.0, 0.0, 100.0]), np.eye(3), 50.0, 45.0, 45.0)
+    assert texels_per_pixel(pts, tris, uv, tris, 128, up, 48) == pytest.approx(6.0)
+    assert texels_per_pixel(pts, tris, uv, tris, 256, up, 96) == pytest.approx(6.0)
+    ortho = Camera("/Cam", np.array([0.0, 0.0, 100.0]), np.eye(3), 50.0, 150.0, 150.0,
+                   "orthographic")
+    assert texels_per_pixel(pts, tris, uv, tris, 128, ortho, 48) == pytest.approx(10.0)
+    below = Camera("/Cam", np.array([0.0, 0.0, -100.0]), np.eye(3), 50.0, 45.0, 45.0)
+    assert texels_per_pixel(pts, tris, uv, tris, 128, below, 48) == 0.0
+    assert texels_per_pixel(pts, tris, uv * 0.0, tris, 128, up, 48) == 0.0
+
+
+def test_the_render_takes_the_interleaving_period_of_its_texels_per_pixel(
+        lit_patch: Path) -> None:
+    """The lit patch at 6 texels a pixel: period 4 at 16 light samples (8 needs 64), 2
+    at one sample, the option's where it is set; render.json's measures say which, and
+    the period is part of the irradiance's key."""
+    from dataclasses import replace
+
+    stage = open_stage_guarded(lit_patch)
+    for options, period in ((replace(SMALL, light_samples=16), 4), (SMALL, 2),
+                            (replace(SMALL, light_samples=64), 8),
+                            (replace(SMALL, light_samples=16, interleave_period=2), 2)):
+        renderer = Renderer(stage, options)
+        _, log = renderer.render()
+        assert log.measures["irradiance"]["interleave_period"] == period
+        assert log.measures["irradiance"]["texels_per_pixel"] == pytest.approx(6.0, rel=1e-3)
+        key = renderer.textures[0].keys["irradiance"]
+        renderer.options = replace(options, interleave_period=8 if period != 8 else 2)
+        assert renderer._textures(log, renderer.delegate.sync(None),
+                                  renderer.textures[0].mesh).keys["irradiance"] != key
+        renderer.close()
+    with pytest.raises(InputError, match="interleave period"):
+        replace(SMALL, interleave_period=3)
 
 
 def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
