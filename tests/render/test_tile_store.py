@@ -277,3 +277,52 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
     np.testing.assert_array_equal(back.owner, tiles.owner)
     np.testing.assert_array_equal(back.reads.rows, tiles.reads.rows)
     np.testing.assert_array_equal(back.reads.xy, tiles.reads.xy)
+
+
+def test_aligned_npz_is_an_npz_whose_arrays_map_in_place(tmp_path: Path) -> None:
+    """write_aligned_npz: numpy's np.load and zipfile's own CRC check read it; each
+    member's array data starts at a multiple of ALIGN bytes in the file (from the zip's
+    local headers and numpy's .npy header); mapped_npz gives the same arrays as views
+    of the mapping (copy-on-write: a write leaves the file), np.savez's unaligned file
+    the same arrays copied, and a flipped byte a ValueError naming its member."""
+    import struct
+    import zipfile
+
+    rng = np.random.default_rng(1)
+    arrays = {"xy": rng.random((1001, 2)).astype(np.float32),
+              "rows": np.arange(13, dtype=np.int32), "none": np.zeros((0, 2), np.float32),
+              "shape": np.array([4, 5], np.int64), "f": np.asfortranarray(rng.random((3, 7)))}
+    path = tmp_path / "a.npz"
+    with path.open("wb") as f:
+        tile_store.write_aligned_npz(f, arrays)
+    with np.load(path) as z:
+        for name, want in arrays.items():
+            np.testing.assert_array_equal(z[name], want)
+            assert z[name].dtype == want.dtype
+    with zipfile.ZipFile(path) as z, path.open("rb") as f:
+        assert z.testzip() is None
+        for info in z.infolist():
+            f.seek(info.header_offset + 26)
+            name_len, extra_len = struct.unpack("<HH", f.read(4))
+            f.seek(info.header_offset + 30 + name_len + extra_len)
+            np.lib.format.read_magic(f)
+            np.lib.format.read_array_header_1_0(f)
+            assert f.tell() % tile_store.ALIGN == 0, info.filename
+    mapped = tile_store.mapped_npz(path, tuple(arrays))
+    for name, want in arrays.items():
+        np.testing.assert_array_equal(mapped[name], want)
+        assert type(mapped[name]) is np.ndarray and mapped[name].flags.aligned
+        assert mapped[name].ctypes.data % tile_store.ALIGN == 0 or not mapped[name].size
+    mapped["xy"][0, 0] = -1.0
+    with np.load(path) as z:
+        assert z["xy"][0, 0] == arrays["xy"][0, 0]
+    plain = tmp_path / "plain.npz"
+    np.savez(plain, **arrays)
+    for name, got in tile_store.mapped_npz(plain, tuple(arrays)).items():
+        np.testing.assert_array_equal(got, arrays[name])
+        assert got.flags.aligned
+    data = bytearray(path.read_bytes())
+    data[data.find(arrays["xy"].tobytes()[:64]) + 4000] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="xy: its CRC-32 differs"):
+        tile_store.mapped_npz(path, tuple(arrays))
