@@ -253,11 +253,19 @@ def test_the_render_takes_the_interleaving_period_of_its_texels_per_pixel(
         _, log = renderer.render()
         assert log.measures["irradiance"]["interleave_period"] == period
         assert log.measures["irradiance"]["texels_per_pixel"] == pytest.approx(6.0, rel=1e-3)
-        key = renderer.textures[0].keys["irradiance"]
-        renderer.options = replace(options, interleave_period=8 if period != 8 else 2)
-        assert renderer._textures(log, renderer.delegate.sync(None),
-                                  renderer.textures[0].mesh).keys["irradiance"] != key
+        if period != 2:  # another period, another irradiance
+            key = renderer.textures[0].keys["irradiance"]
+            renderer.options = replace(options, interleave_period=2)
+            assert renderer._textures(log, renderer.delegate.sync(None),
+                                      renderer.textures[0].mesh).keys["irradiance"] != key
         renderer.close()
+    # a period asked for whose classes the samples cannot fill: the largest that they
+    # can, and a note (16 samples: 4, not 8, which would trace every sample)
+    renderer = Renderer(stage, replace(SMALL, light_samples=16, interleave_period=8))
+    _, log = renderer.render()
+    renderer.close()
+    assert log.measures["irradiance"]["interleave_period"] == 4
+    assert any("interleave period 8: 16 light samples" in s for s in log.skipped)
     with pytest.raises(InputError, match="interleave period"):
         replace(SMALL, interleave_period=3)
 
