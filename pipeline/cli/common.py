@@ -143,7 +143,9 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
     p.add_argument("--interleave-period", default="auto", metavar="auto|P",
                    type=_period(INTERLEAVE_PERIODS),
                    help=f"P of interleaved and adaptive sampling, one of "
-                        f"{', '.join(map(str, INTERLEAVE_PERIODS))}; auto (default): 2, or "
+                        f"{', '.join(map(str, INTERLEAVE_PERIODS))} (at most what "
+                        "--light-samples fills: a sample for each of the P^2 classes); "
+                        "auto (default): 2, or "
                         "larger where the texture is finer than the image (several texels "
                         "a pixel at the skin: rays go per pixel, not per texel; the "
                         "demo face at texture 4096 takes 4, a quarter of the rays); "
