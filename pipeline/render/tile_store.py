@@ -13,10 +13,11 @@ the source of the modules that make them, the libraries whose arithmetic they us
 the OpenCL device that computed their margin points.
 
 Every file is written to a temporary name and renamed (processes may write the same key
-at once), never changed in place, so a render that maps one keeps it whole; a file that does not read back (zip CRC, shapes) is removed and the tiles are
-made again; a folder that cannot be written is reported and the render goes on. The
-least recently used entries go when the folder passes its limit
-(:data:`LIMIT_ENV`, default :data:`DEFAULT_LIMIT_GB`).
+at once), never changed in place, so a render that maps one keeps it whole; a file that
+does not read back (zip CRC, shapes) is removed and the tiles are made again; a folder
+that cannot be written is reported and the render goes on. The least recently used
+entries go when the folder passes its limit (:data:`LIMIT_ENV`, default
+:data:`DEFAULT_LIMIT_GB`).
 """
 
 from __future__ import annotations
