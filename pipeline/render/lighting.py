@@ -154,7 +154,6 @@ def interleaved_strata(n: int, period: int = 2) -> NDArray[np.int64]:
                      for qx in range(period)])
 
 
-
 def interleave_period(texels_per_pixel: float, points: int) -> int:
     """The interleaving period p for a texture of ``texels_per_pixel`` texels across an
     image pixel at the skin and a light of ``points`` sample points: the largest of

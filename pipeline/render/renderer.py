@@ -581,7 +581,8 @@ class Renderer:
         irradiance_key = content_hash(
             mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
             [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness, opts.rho_s,
-            opts.seed, opts.shadow_sampling, opts.light_sequence, period)
+            opts.seed, opts.shadow_sampling, opts.light_sequence,
+            period if opts.shadow_sampling != "full" else 0)  # full sampling has none
         return SkinTextures(mesh, uv, uv_tris, tris, maps, period=period,
                             texels_per_pixel=per_pixel,
                             keys={"maps": key, "albedo": albedo_key,
