@@ -617,15 +617,32 @@ def ranked_step(steps: NDArray[np.int32], rank: int) -> tuple[int, int]:
     return first + at, int(cumulative[at - 1]) if at else 0
 
 
+LEVEL_ARRAYS = ("typical", "uniform", "index_bounds", "index_u", "index_v", "steps_u",
+                "steps_v", "texel_u", "texel_v", "smaller")
+"""The arrays :meth:`LevelGrid.derived` gives and a LevelGrid is made from again."""
+
+
 class LevelGrid:
     """One pyramid level as an atlas of chart tiles (:class:`~.chart_tiles.TileLevel`)
     with what its blurs need: texel sizes on the log2 grid as device indices (recursive
-    and direct blur), whether the size is one everywhere, the typical size."""
+    and direct blur), whether the size is one everywhere, the typical size. With
+    ``derived`` (:meth:`derived` of an earlier grid of the same tiles, read back from
+    the tile store) those are taken as they are, not made from the texel sizes."""
 
-    def __init__(self, tiles: TileLevel) -> None:
+    def __init__(self, tiles: TileLevel, derived: dict[str, NDArray[Any]] | None = None
+                 ) -> None:
         self.tiles = tiles
         self.level = tiles.level
         self.shape = tiles.shape
+        self._index: tuple[int, int, int, int, Any, Any] | None = None
+        self._index_arrays: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
+        self._texel: TexelSteps | bool | None = False
+        self._texel_arrays: tuple[NDArray[np.uint16], NDArray[np.uint16]] | None = None
+        self._splat: tuple[Any, Any, Any] | None = None
+        self._seams: tuple[Any, Any] | bool | None = None
+        if derived is not None:
+            self._take(derived)
+            return
         inner = tiles.count.reshape(tiles.shape) > 0
         mm = [tiles.mm_u, tiles.mm_v]
         on = [m[inner] for m in mm] if inner.any() else [m.ravel() for m in mm]
@@ -636,10 +653,67 @@ class LevelGrid:
         # texel, 0.23 GB over the levels at texture 4096, alive through the diffusion)
         tiles.mm_u = tiles.mm_v = None
         self._inner: NDArray[np.bool_] | None = inner
-        self._index: tuple[int, int, int, int, Any, Any] | None = None
-        self._texel: TexelSteps | bool | None = False
-        self._splat: tuple[Any, Any, Any] | None = None
-        self._seams: tuple[Any, Any] | bool | None = None
+
+    def derived(self) -> dict[str, NDArray[Any]]:
+        """What the level's blurs need of its texel sizes, as arrays (:data:`LEVEL_ARRAYS`,
+        for the tile store; empty where a uniform level or steps past a uint16 need
+        none): the typical sizes, whether uniform, the recursive blur's indices and the
+        direct blur's steps, made now if they were not yet."""
+        none = np.zeros(0, np.int32)
+        out: dict[str, NDArray[Any]] = {
+            "typical": np.asarray(self.typical, np.float64),
+            "uniform": np.asarray([self.uniform], np.int8), "index_bounds": none,
+            "index_u": none, "index_v": none, "steps_u": none, "steps_v": none,
+            "texel_u": none.astype(np.uint16), "texel_v": none.astype(np.uint16),
+            "smaller": np.zeros(1, np.int64)}
+        if self.uniform:
+            return out
+        lo_u, hi_u, lo_v, hi_v, _, _ = self.index()
+        assert self._index_arrays is not None
+        out.update(index_bounds=np.asarray([lo_u, hi_u, lo_v, hi_v], np.int64),
+                   index_u=self._index_arrays[0], index_v=self._index_arrays[1])
+        texel = self.texel_steps()
+        if texel is not None:
+            assert self._texel_arrays is not None
+            out.update(steps_u=texel.u, steps_v=texel.v, texel_u=self._texel_arrays[0],
+                       texel_v=self._texel_arrays[1],
+                       smaller=np.asarray([texel.smaller], np.int64))
+        return out
+
+    def _take(self, derived: dict[str, NDArray[Any]]) -> None:
+        """:meth:`derived`'s arrays as this grid's, checked against its tiles' shape and
+        each other (ValueError: a device kernel would read past them)."""
+        h, w = self.shape
+        typical, uniform = derived["typical"], derived["uniform"]
+        if typical.shape != (2,) or uniform.shape != (1,):
+            raise ValueError("a level grid's typical sizes or uniformity of another shape")
+        self.typical = [float(t) for t in typical]
+        self.uniform = bool(uniform[0])
+        self._q = self._inner = None
+        if self.uniform:
+            return
+        bounds, qu, qv = derived["index_bounds"], derived["index_u"], derived["index_v"]
+        if bounds.shape != (4,) or qu.shape != (h, w) or qv.shape != (w, h) or \
+                qu.dtype != np.int32 or qv.dtype != np.int32:
+            raise ValueError("a level grid's blur indices of another shape")
+        lo_u, hi_u, lo_v, hi_v = (int(b) for b in bounds)
+        for q, top in ((qu, hi_u - lo_u), (qv, hi_v - lo_v)):
+            if q.size and (int(q.min()) < 0 or int(q.max()) > top):
+                raise ValueError("a level grid's blur indices past their steps")
+        self._index_arrays = (qu, qv)
+        self._index = (lo_u, hi_u, lo_v, hi_v, host_buffer(qu), host_buffer(qv))
+        su, sv = derived["steps_u"], derived["steps_v"]
+        if not su.size:  # steps past a uint16: the direct blur has no indices
+            self._texel = None
+            return
+        tu, tv = derived["texel_u"], derived["texel_v"]
+        if tu.shape != (h, w) or tv.shape != (h, w) or tu.dtype != np.uint16 or \
+                tv.dtype != np.uint16 or su.ndim != 1 or sv.ndim != 1 or \
+                int(tu.max()) >= su.size or int(tv.max()) >= sv.size:
+            raise ValueError("a level grid's direct blur steps of another shape")
+        self._texel_arrays = (tu, tv)
+        self._texel = TexelSteps(su, sv, host_buffer(tu), host_buffer(tv),
+                                 int(derived["smaller"][0]))
 
     def device_buffers(self) -> None:
         """Make every device buffer the level's fills and blurs read (each is otherwise
@@ -683,10 +757,11 @@ class LevelGrid:
             # each index made once, in the order the pass reads it, and read in place on
             # a CPU device (a copy, a transposed copy and the device's own copy were 0.4
             # GB of passing pages at level 0 of texture 4096, beside the irradiance)
-            self._index = (
-                lo_u, int(qu.max()), lo_v, int(qv.max()),
-                host_buffer(np.subtract(qu, np.int32(lo_u), dtype=np.int32)),
-                host_buffer(np.subtract(qv.T, np.int32(lo_v), dtype=np.int32, order="C")))
+            self._index_arrays = (np.subtract(qu, np.int32(lo_u), dtype=np.int32),
+                                  np.subtract(qv.T, np.int32(lo_v), dtype=np.int32,
+                                              order="C"))
+            self._index = (lo_u, int(qu.max()), lo_v, int(qv.max()),
+                           *(host_buffer(a) for a in self._index_arrays))
         return self._index
 
     def texel_steps(self) -> TexelSteps | None:
@@ -710,8 +785,8 @@ class LevelGrid:
             if max(st.size for st in steps) > 65535:
                 self._texel = None
             else:
-                def index(q: NDArray[np.int32], lo: int) -> Any:  # max(q - lo, 0) as uint16
-                    flat = q.reshape(-1)
+                def index(q: NDArray[np.int32], lo: int) -> NDArray[np.uint16]:
+                    flat = q.reshape(-1)  # max(q - lo, 0) as uint16
                     step = np.empty(flat.shape, np.uint16)
                     # a chunk at a time: the int32 difference stays in cache (whole
                     # arrays' were 0.1 GB of fresh pages per level 0 at texture 4096)
@@ -719,11 +794,11 @@ class LevelGrid:
                         part = np.subtract(flat[s:s + QUANTIZE_CHUNK], np.int32(lo),
                                            dtype=np.int32)
                         step[s:s + QUANTIZE_CHUNK] = np.maximum(part, 0, out=part)
-                    return host_buffer(step.reshape(q.shape))
+                    return step.reshape(q.shape)
 
-                self._texel = TexelSteps(
-                    *steps, *(index(q, lo) for q, lo in zip(self._q, lows, strict=True)),
-                    smaller)
+                tu, tv = (index(q, lo) for q, lo in zip(self._q, lows, strict=True))
+                self._texel_arrays = (tu, tv)
+                self._texel = TexelSteps(*steps, host_buffer(tu), host_buffer(tv), smaller)
         return self._texel  # type: ignore[return-value]
 
 
@@ -861,10 +936,10 @@ class DiffusionLayout:
                                    f"new tiles (level {level}, margin {margin}) can be made")
             tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
                                c.geometry, c.coverage, finest)
-            if self.store is not None:
-                self.store.save(tiles)  # before LevelGrid drops the texel sizes
             key = (level, margin)
-            self._grids[key] = LevelGrid(tiles)
+            grid = self._grids[key] = LevelGrid(tiles)
+            if self.store is not None:  # with what its blurs need of the texel sizes
+                self.store.save(tiles, grid.derived())
         return self._grids[key]
 
     def release_surface(self) -> None:
@@ -877,10 +952,10 @@ class DiffusionLayout:
     def _load(self, level: int, margin: int) -> bool:
         """Whether the store (if any) held tiles for (``level``, ``margin``), now made a
         level of this layout."""
-        tiles = None if self.store is None else self.store.load(level, margin)
-        if tiles is None:
+        grid = None if self.store is None else self.store.load(level, margin, LevelGrid)
+        if grid is None:
             return False
-        self._grids[(level, tiles.margin)] = LevelGrid(tiles)
+        self._grids[(level, grid.tiles.margin)] = grid
         return True
 
     def _made(self, level: int, margin: int) -> tuple[int, int] | None:

@@ -32,11 +32,12 @@ import threading
 import time
 import zipfile
 import zlib
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,7 +55,10 @@ _SOURCES = ("chart_tiles.py", "diffusion.py", "texture_maps.py", "raytrace.py",
 """The modules whose code decides the tiles' content (a changed line is a new key)."""
 _LIBRARIES = ("numpy", "scipy", "embreex")
 _FILE = re.compile(r"^L(\d+)_M(\d+)\.npz$")
-_ARRAYS = ("shape", "shift", "owner", "count", "mm_u", "mm_v", "rows", "xy")
+_DERIVED = "grid_"
+"""The prefix of the arrays a level's grid derived from the tiles' texel sizes (stored
+with the tiles, in their place)."""
+Made = TypeVar("Made")
 _STALE_TMP_S = 3600.0
 ALIGN = 64
 """Each stored array's data starts at a multiple of this many bytes in its file (numpy's
@@ -147,17 +151,19 @@ class TileStore:
             return []
         return sorted((int(m[1]), int(m[2])) for m in map(_FILE.match, names) if m)
 
-    def load(self, level: int, margin: int) -> TileLevel | None:
-        """Level ``level``'s stored tiles with the narrowest margin of at least ``margin``
-        (a wider one holds what a narrower would), or None. A file that does not read back
-        whole is removed."""
+    def load(self, level: int, margin: int,
+             make: Callable[[TileLevel, dict[str, NDArray[Any]]], Made]) -> Made | None:
+        """``make`` of level ``level``'s stored tiles with the narrowest margin of at
+        least ``margin`` (a wider one holds what a narrower would) and the arrays stored
+        with them (:meth:`save`'s ``derived``), or None. A file that does not read back
+        whole, or whose arrays ``make`` refuses (ValueError, KeyError), is removed."""
         fits = [m for (k, m) in self.stored() if k == level and m >= margin]
         if not fits:
             return None
         path = self.entry / f"L{level}_M{min(fits)}.npz"
         start = time.perf_counter()
         try:
-            tiles = _read_tiles(path, level, min(fits))
+            made = make(*_read_tiles(path, level, min(fits)))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             try:
                 path.unlink(missing_ok=True)
@@ -169,20 +175,21 @@ class TileStore:
             return None
         with self._lock:
             self.read_s += time.perf_counter() - start
-            self.loaded.append((level, tiles.margin))
+            self.loaded.append((level, min(fits)))
         try:
             os.utime(self.entry)  # most recently used: the last to go
         except OSError:
             pass
-        return tiles
+        return made
 
-    def save(self, tiles: TileLevel) -> None:
-        """Write ``tiles`` on the store's writer thread (their arrays taken now, before a
-        ``LevelGrid`` drops their texel sizes), off the layout's path: a first render at
-        texture 4096 writes 0.65 GB in about 1 s. :meth:`flush` waits for the writes."""
+    def save(self, tiles: TileLevel, derived: dict[str, NDArray[Any]]) -> None:
+        """Write ``tiles`` and the arrays ``derived`` from their texel sizes (a
+        ``LevelGrid``'s, which :meth:`load` gives back in their place) on the store's
+        writer thread, off the layout's path: a first render at texture 4096 writes
+        0.8 GB in about 1 s. :meth:`flush` waits for the writes."""
         if self._unwritable:
             return
-        arrays = _tile_arrays(tiles)
+        arrays = _tile_arrays(tiles, derived)
         with self._lock:
             if self._writer is None:
                 self._writer = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-tiles")
@@ -271,12 +278,10 @@ class TileStore:
                 "notes": list(self.notes)}
 
 
-def _tile_arrays(tiles: TileLevel) -> dict[str, Any]:
-    if tiles.mm_u is None or tiles.mm_v is None:
-        raise ValueError("the tiles' texel sizes were dropped (save before LevelGrid)")
+def _tile_arrays(tiles: TileLevel, derived: dict[str, NDArray[Any]]) -> dict[str, Any]:
     return {"shape": np.asarray(tiles.shape, np.int64), "shift": tiles.shift,
-            "owner": tiles.owner, "count": tiles.count, "mm_u": tiles.mm_u,
-            "mm_v": tiles.mm_v, "rows": tiles.reads.rows, "xy": tiles.reads.xy}
+            "owner": tiles.owner, "count": tiles.count, "rows": tiles.reads.rows,
+            "xy": tiles.reads.xy, **{_DERIVED + k: v for k, v in derived.items()}}
 
 
 def write_aligned_npz(f: IO[bytes], arrays: dict[str, Any]) -> None:
@@ -296,8 +301,10 @@ def write_aligned_npz(f: IO[bytes], arrays: dict[str, Any]) -> None:
                 np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
-def mapped_npz(path: Path, names: tuple[str, ...]) -> dict[str, NDArray[Any]]:
-    """The arrays ``names`` of an uncompressed ``.npz``, each a view of the file mapped
+def mapped_npz(path: Path, names: tuple[str, ...] | None = None
+               ) -> dict[str, NDArray[Any]]:
+    """The arrays ``names`` (None: every one) of an uncompressed ``.npz``, each a view
+    of the file mapped
     copy-on-write (``np.load`` copies each member twice into new memory: 1.3 s for the
     demo face's finest level at texture 4096, this 0.25 s), after the member's CRC-32
     over the mapping equals the zip's. An array whose data is not aligned in the file
@@ -305,6 +312,8 @@ def mapped_npz(path: Path, names: tuple[str, ...]) -> dict[str, NDArray[Any]]:
     OSError where the file is not such an .npz or a CRC differs."""
     with zipfile.ZipFile(path) as z:
         infos = {info.filename: info for info in z.infolist()}
+    if names is None:
+        names = tuple(n[:-4] for n in infos if n.endswith(".npy"))
     out: dict[str, NDArray[Any]] = {}
     with open(path, "rb") as f:
         for name in names:
@@ -336,18 +345,21 @@ def mapped_npz(path: Path, names: tuple[str, ...]) -> dict[str, NDArray[Any]]:
     return out
 
 
-def _read_tiles(path: Path, level: int, margin: int) -> TileLevel:
-    """A stored level, its arrays mapped from the file (:func:`mapped_npz`, each
-    member's CRC checked) and checked against each other."""
-    a = mapped_npz(path, _ARRAYS)
+def _read_tiles(path: Path, level: int, margin: int
+                ) -> tuple[TileLevel, dict[str, NDArray[Any]]]:
+    """A stored level and the arrays derived with it, mapped from the file
+    (:func:`mapped_npz`, each member's CRC checked), the tiles' checked against each
+    other."""
+    a = mapped_npz(path)
     h, w = (int(x) for x in a["shape"])
     n = h * w
-    flat = ("owner", "count", "mm_u", "mm_v")
+    flat = ("owner", "count")
     rows, xy = a["rows"], a["xy"]
     if any(a[name].shape not in ((n,), (h, w)) for name in flat) or a["shift"].ndim != 2 \
             or rows.shape != (n + 1,) or rows.dtype != np.int32 or xy.dtype != np.float32 \
             or xy.shape[1:] != (2,) or int(rows[0]) != 0 or int(rows[-1]) != xy.shape[0] \
             or bool((np.diff(rows) < 0).any()):
         raise ValueError("arrays of inconsistent shapes")
+    derived = {k[len(_DERIVED):]: v for k, v in a.items() if k.startswith(_DERIVED)}
     return TileLevel(level, margin, (h, w), a["shift"], a["owner"], a["count"],
-                     SeamReads((h, w), level, rows, xy), a["mm_u"], a["mm_v"])
+                     SeamReads((h, w), level, rows, xy), None, None), derived

@@ -15,7 +15,7 @@ import pytest
 from pipeline.cli import main
 from pipeline.profile.reference_data import DEON_2007_SKIN
 from pipeline.render import tile_store
-from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
+from pipeline.render.diffusion import LEVEL_ARRAYS, DiffusionLayout, LevelGrid, diffuse_prepared
 from pipeline.render.renderer import Renderer, RenderOptions
 from pipeline.render.tile_store import TileStore
 from pipeline.usd.io import open_stage_guarded
@@ -47,7 +47,8 @@ def _diffused(patch_layout, store: TileStore | None) -> tuple[np.ndarray, Diffus
 
 def test_stored_tiles_read_back_give_the_same_diffusion(patch_layout, tmp_path: Path) -> None:
     """Made and saved by one layout, read by a second (another process's): the same
-    tiles, arrays and reads, and the same diffused light bit for bit."""
+    tiles, arrays and reads, the same blur indices and steps derived from the texel
+    sizes (stored in their place), and the same diffused light bit for bit."""
     reference, made = _diffused(patch_layout, None)
     first = TileStore(tmp_path, "patch")
     out1, _ = _diffused(patch_layout, first)
@@ -64,8 +65,12 @@ def test_stored_tiles_read_back_give_the_same_diffusion(patch_layout, tmp_path: 
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
         for name in ("rows", "xy"):
             np.testing.assert_array_equal(getattr(a.reads, name), getattr(b.reads, name))
-        for qa, qb in zip(grid._q, layout2._grids[key]._q, strict=True):
-            np.testing.assert_array_equal(qa, qb)
+        made_derived, read_derived = grid.derived(), layout2._grids[key].derived()
+        assert set(made_derived) == set(read_derived) == set(LEVEL_ARRAYS)
+        for name in LEVEL_ARRAYS:
+            np.testing.assert_array_equal(made_derived[name], read_derived[name],
+                                          err_msg=name)
+            assert made_derived[name].dtype == read_derived[name].dtype, name
 
 
 def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Path) -> None:
@@ -79,11 +84,11 @@ def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Pat
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
                        maps.mm_per_texel_v, level, margin + 2, charts.geometry,
                        charts.coverage)
-    store.save(tiles)
+    store.save(tiles, LevelGrid(tiles).derived())
     store.flush()
-    assert store.load(level, margin).margin == margin + 2
-    assert store.load(level, margin + 3) is None
-    assert store.load(level + 1, margin) is None
+    assert store.load(level, margin, LevelGrid).tiles.margin == margin + 2
+    assert store.load(level, margin + 3, LevelGrid) is None
+    assert store.load(level + 1, margin, LevelGrid) is None
 
 
 def test_a_damaged_file_is_removed_and_the_tiles_made_again(patch_layout,
@@ -261,9 +266,10 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
                        maps.mm_per_texel_v, 0, 6, charts.geometry, charts.coverage)
+    derived = LevelGrid(tiles).derived()
     stores = [TileStore(tmp_path, "patch") for _ in range(4)]
     for store in stores:
-        store.save(tiles)  # each on its own writer thread, all at once
+        store.save(tiles, derived)  # each on its own writer thread, all at once
     for store in stores:
         store.flush()
         assert store.saved == [(0, 6)] and not store.notes
@@ -273,7 +279,7 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
     os.umask(umask)
     # readable as the umask allows (mkstemp's 0600 would shut out a farm's other users)
     assert (entry / "L0_M6.npz").stat().st_mode & 0o777 == 0o666 & ~umask
-    back = TileStore(tmp_path, "patch").load(0, 6)
+    back = TileStore(tmp_path, "patch").load(0, 6, LevelGrid).tiles
     np.testing.assert_array_equal(back.owner, tiles.owner)
     np.testing.assert_array_equal(back.reads.rows, tiles.reads.rows)
     np.testing.assert_array_equal(back.reads.xy, tiles.reads.xy)
@@ -326,3 +332,46 @@ def test_aligned_npz_is_an_npz_whose_arrays_map_in_place(tmp_path: Path) -> None
     path.write_bytes(bytes(data))
     with pytest.raises(ValueError, match="xy: its CRC-32 differs"):
         tile_store.mapped_npz(path, tuple(arrays))
+
+
+def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
+                                                           tmp_path: Path) -> None:
+    """A level's blur indices, stored with its tiles in place of their texel sizes, are
+    read by the device as they are: LevelGrid refuses indices past their steps (a
+    kernel would read beyond its table) or of another shape, and the store removes a
+    file whose arrays are refused (the tiles are made again)."""
+    from pipeline.render.chart_tiles import tile_level
+
+    maps, charts = patch_layout
+    tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
+                       maps.mm_per_texel_v, 0, 6, charts.geometry, charts.coverage)
+    derived = LevelGrid(tiles).derived()
+    h, w = tiles.shape
+    # the flat patch has one texel size: a varying level's arrays, written out here
+    varying = {**derived, "uniform": np.zeros(1, np.int8),
+               "index_bounds": np.array([10, 13, 20, 21], np.int64),
+               "index_u": np.zeros((h, w), np.int32), "index_v": np.ones((w, h), np.int32),
+               "steps_u": np.arange(10, 14, dtype=np.int32),
+               "steps_v": np.arange(20, 22, dtype=np.int32),
+               "texel_u": np.full((h, w), 3, np.uint16), "texel_v": np.ones((h, w), np.uint16),
+               "smaller": np.array([7], np.int64)}
+    grid = LevelGrid(tiles, varying)
+    assert not grid.uniform and grid.index()[:4] == (10, 13, 20, 21)
+    assert grid.texel_steps().smaller == 7
+    for name, bad in (("index_u", np.full((h, w), 4, np.int32)),
+                      ("index_v", np.zeros((h, w), np.int32) if h != w else
+                       np.zeros((h, w + 1), np.int32)),
+                      ("texel_u", np.full((h, w), 4, np.uint16)),
+                      ("texel_v", np.ones((h, w), np.int32))):
+        with pytest.raises(ValueError, match="level grid"):
+            LevelGrid(tiles, {**varying, name: bad})
+    store = TileStore(tmp_path, "patch")
+    store.save(tiles, derived)
+    store.flush()
+
+    def refuse(*_: object) -> None:
+        raise ValueError("refused")
+
+    assert store.load(0, 6, refuse) is None
+    assert store.stored() == [] and any("did not read back (refused)" in n
+                                        for n in store.notes)
