@@ -45,7 +45,7 @@ LAYOUT_CACHE_ENV = "SKINPIPE_LAYOUT_CACHE"
 LAYOUT_CACHE_HELP = (
     "folder that keeps each skin mesh's seam layout (the diffusion's chart tiles, which "
     "depend on geometry, UVs and texture size only) for the next render of the same asset "
-    "and texture size: at texture 4096 most of a first render's time, 0.65 GB on disk for "
+    "and texture size: at texture 4096 most of a first render's time, 0.8 GB on disk for "
     "the demo face; least recently used layouts go past $SKINPIPE_LAYOUT_CACHE_GB "
     f"(default 8); 'off': none (default ${LAYOUT_CACHE_ENV}, else "
     "$XDG_CACHE_HOME/skinpipe/layouts or ~/.cache/skinpipe/layouts)")

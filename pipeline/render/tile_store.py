@@ -3,14 +3,15 @@
 A skin mesh's chart tiles (:class:`~.chart_tiles.TileLevel`, one per pyramid level and
 margin) depend on its geometry, UVs and texture size only, never on the lights, the
 camera or the fits' weights; they are most of a first render's work at large textures
-(the demo face at texture 4096: 32-34 s of a 46-48 s render, against 0.65 GB on disk).
+(the demo face at texture 4096: 32-34 s of a 46-48 s render, against 0.8 GB on disk).
 A look-development loop renders the same asset again and again under other lights, and
 a farm renders its frames in separate processes, so the tiles are kept on disk as one
-uncompressed ``.npz`` per level and margin (each array's data 64-byte aligned in the
-file, so that a render maps it rather than reads it), under a key of everything they
-are made from: the mesh and texture maps' key, the scene's geometry, the skin mesh's place in it,
-the source of the modules that make them, the libraries whose arithmetic they use and
-the OpenCL device that computed their margin points.
+uncompressed ``.npz`` per level and margin, with what the level's blurs derive from its
+texel sizes (each array's data 64-byte aligned in the file, so that a render maps it
+rather than reads it), under a key of everything they are made from: the mesh and
+texture maps' key, the scene's geometry, the skin mesh's place in it, the source of the
+modules that make them, the libraries whose arithmetic they use and the OpenCL device
+that computed their margin points.
 
 Every file is written to a temporary name and renamed (processes may write the same key
 at once), never changed in place, so a render that maps one keeps it whole; a file that
@@ -49,7 +50,7 @@ from .options import LAYOUT_CACHE_ENV
 LIMIT_ENV = "SKINPIPE_LAYOUT_CACHE_GB"
 """Environment variable: the most the store's folder may hold, in GB (10^9 bytes)."""
 DEFAULT_LIMIT_GB = 8.0
-"""The demo face's tiles take 0.09 GB at texture 1024, 0.22 GB at 2048, 0.65 GB at 4096."""
+"""The demo face's tiles take 0.10 GB at texture 1024, 0.27 GB at 2048, 0.80 GB at 4096."""
 _SOURCES = ("chart_tiles.py", "diffusion.py", "texture_maps.py", "raytrace.py",
             "sorting.py", "opencl.py", "tile_store.py")
 """The modules whose code decides the tiles' content (a changed line is a new key)."""
