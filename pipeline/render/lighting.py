@@ -154,21 +154,24 @@ def interleaved_strata(n: int, period: int = 2) -> NDArray[np.int64]:
                      for qx in range(period)])
 
 
-def interleave_period(texels_per_pixel: float, points: int) -> int:
+def interleave_period(texels_per_pixel: float, points: int, at_most: int = 0) -> int:
     """The interleaving period p for a texture of ``texels_per_pixel`` texels across an
     image pixel at the skin and a light of ``points`` sample points: the largest of
     :data:`INTERLEAVE_PERIODS` whose reconstruction (the tent of :func:`filter_interleaved`,
     variance (p^2 - 1) / 6 texel^2 along each axis) is no wider in pixels than period 2's
     at one texel a pixel (0.5 pixel^2), i.e. p^2 <= 3 k^2 + 1, and whose p^2 classes each
     keep a sample (p^2 <= points); 2 when none is (a texture no finer than the image,
-    or too few samples, as before). Rays then go per pixel, not per texel: at 4 texels a
-    pixel (the demo face at texture 4096) period 4 traces a quarter of period 2's, 16 a
-    pixel and light at 16 samples where texture 1024 traces 4."""
+    or too few samples, as before). With ``at_most`` (a period asked for), the largest
+    up to it whose classes each keep a sample, whatever the texels per pixel. Rays then
+    go per pixel, not per texel: at 4 texels a pixel (the demo face at texture 4096)
+    period 4 traces a quarter of period 2's, 16 a pixel and light at 16 samples where
+    texture 1024 traces 4."""
     k = float(texels_per_pixel)
     k2 = k * k if math.isfinite(k) and k > 0 else 0.0
     best = INTERLEAVE_PERIODS[0]
     for p in INTERLEAVE_PERIODS:
-        if p * p <= 3.0 * k2 + 1.0 and p * p <= points:
+        narrow = p <= at_most if at_most else p * p <= 3.0 * k2 + 1.0
+        if narrow and p * p <= points:
             best = p
     return best
 

@@ -65,7 +65,7 @@ from .opencl import (
     start_prewarm,
     streams,
 )
-from .options import AOVS, DATA_AOVS, INTERLEAVE_PERIODS, RenderOptions
+from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
 from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
@@ -590,20 +590,16 @@ class Renderer:
 
     def _interleaving(self, scene: SceneData, mesh: SceneMesh, uv: NDArray[Any],
                       uv_tris: NDArray[Any], tris: NDArray[Any]) -> tuple[int, float]:
-        """The interleaving period of a skin mesh's shadow rays (the option's, or the
-        largest below it whose p^2 classes each keep one of the light samples' points;
-        else :func:`~.lighting.interleave_period` of its texels per pixel) and its
-        texels per pixel (0 without a camera)."""
+        """The interleaving period of a skin mesh's shadow rays
+        (:func:`~.lighting.interleave_period` of its texels per pixel, or up to the
+        option's period) and its texels per pixel (0 without a camera)."""
         opts = self.options
         per_pixel = 0.0 if scene.camera is None else texels_per_pixel(
             mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.camera,
             opts.resolution[0])
         points = sobol_points(opts.light_samples) if opts.light_sequence == "sobol" \
             else opts.light_samples
-        if opts.interleave_period:
-            return max((p for p in INTERLEAVE_PERIODS if p <= opts.interleave_period
-                        and p * p <= points), default=INTERLEAVE_PERIODS[0]), per_pixel
-        return interleave_period(per_pixel, points), per_pixel
+        return interleave_period(per_pixel, points, opts.interleave_period), per_pixel
 
     def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
         """``tex``'s albedo map: after the irradiance, which does not read it (a painted

@@ -136,6 +136,10 @@ def test_interleave_period_keeps_the_reconstruction_within_a_pixel() -> None:
     assert interleave_period(8.2, 8) == 2  # fewer points than 16 classes
     for unknown in (0.0, float("nan"), float("inf"), -3.0):
         assert interleave_period(unknown, 16) == 2
+    # a period asked for: up to it, as the samples allow, whatever the texels per pixel
+    assert interleave_period(1.0, 16, at_most=4) == 4
+    assert interleave_period(8.2, 64, at_most=4) == 4
+    assert interleave_period(1.0, 16, at_most=8) == 4 and interleave_period(1.0, 4, 8) == 2
     for p in INTERLEAVE_PERIODS:  # the bound itself, from the tent's weights
         t = p - np.abs(np.arange(1 - p, p))
         assert (t * np.arange(1 - p, p) ** 2).sum() / t.sum() == pytest.approx((p * p - 1) / 6)
