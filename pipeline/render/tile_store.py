@@ -305,12 +305,12 @@ def write_aligned_npz(f: IO[bytes], arrays: dict[str, Any]) -> None:
 def mapped_npz(path: Path, names: tuple[str, ...] | None = None
                ) -> dict[str, NDArray[Any]]:
     """The arrays ``names`` (None: every one) of an uncompressed ``.npz``, each a view
-    of the file mapped
-    copy-on-write (``np.load`` copies each member twice into new memory: 1.3 s for the
-    demo face's finest level at texture 4096, this 0.25 s), after the member's CRC-32
-    over the mapping equals the zip's. An array whose data is not aligned in the file
-    (a file :func:`write_aligned_npz` did not write) is copied. ValueError, KeyError or
-    OSError where the file is not such an .npz or a CRC differs."""
+    of the file mapped copy-on-write (``np.load`` copies each member twice into new
+    memory: 1.3 s for the demo face's finest level at texture 4096, this 0.25 s), after
+    the member's CRC-32 over the mapping equals the zip's. An array whose data is not
+    aligned in the file (a file :func:`write_aligned_npz` did not write) is copied.
+    ValueError, KeyError or OSError where the file is not such an .npz or a CRC
+    differs."""
     with zipfile.ZipFile(path) as z:
         infos = {info.filename: info for info in z.infolist()}
     if names is None:
