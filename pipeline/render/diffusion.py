@@ -60,7 +60,7 @@ from .recursive_blur import (
     iir_kernels,
     quantized_log2,
 )
-from .texture_maps import triangle_jacobians
+from .texture_maps import REGION_WEIGHT_DTYPE, triangle_jacobians
 from .tile_store import TileStore
 
 FloatImage = NDArray[np.float32]
@@ -219,6 +219,15 @@ def _region_presence(region_weights: NDArray[np.float32] | None) -> NDArray[np.b
     return np.concatenate(parts).max(axis=0, initial=0.0) > 0
 
 
+def unit_region_weights(region_weights: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(H, W, R) region weights scaled to sum to 1 at each texel (0 where they sum to
+    0), as the blurs read them: a texel is all skin, whatever rounding did to a
+    blend."""
+    total = region_weights.sum(axis=-1, keepdims=True)
+    return np.divide(region_weights, total, out=np.zeros_like(region_weights),
+                     where=total > 0)
+
+
 def _check_terms(
     shape: tuple[int, int], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
     region_weights: NDArray[Any] | None, present: NDArray[np.bool_] | None,
@@ -259,7 +268,8 @@ def _diffusion_inputs(
     """Checked arrays (E, v, term weights (R, K, 3), region weights or None), which
     terms any present region uses, and stats noting the regions no texel uses."""
     e = _check_irradiance(irradiance)
-    rw = None if region_weights is None else np.asarray(region_weights, dtype=np.float32)
+    rw = None if region_weights is None else \
+        unit_region_weights(np.asarray(region_weights, dtype=np.float32))
     v, tw, used, stats = _check_terms(e.shape[:2], variances_mm2, term_weights, rw,
                                       _region_presence(rw))
     return e, v, tw, rw, used, stats
@@ -350,9 +360,11 @@ _PYRAMID_KERNEL = r"""
 // chart's shift in that level's atlas, through a cubic B-spline (level 0: the texel).
 // Job n of the batch: jobs[6n .. 6n+5] = (offset of its texture in `terms` in float4;
 // job index into tw; level width; level height; its level, -1 for the unblurred
-// irradiance `e`; the level's first entry in `shift`). The region weights are read
-// once for the whole batch (a pass per term read them, 24 bytes a texel with six
-// regions, once per term). The sum goes to `rgb` (the result's own memory on a CPU
+// irradiance `e`; the level's first entry in `shift`). The region weights (half floats)
+// are read once for the whole batch (a pass per term read them, 24 bytes a texel with
+// six regions, once per term) and scaled to sum to 1 (a texel is all skin: half floats
+// round a blend's sum off 1 by up to 2.4e-4). The sum goes to `rgb` (the result's own
+// memory on a CPU
 // device); acc_in: added to what the previous batches left there.
 #define INL __attribute__((always_inline)) inline
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
@@ -394,7 +406,7 @@ INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw
 
 __kernel void accumulate_terms(__global const float4 *terms, __global const float *e,
                                __constant int *jobs, __global float *rgb,
-                               __global const float *cover, __global const float *rw,
+                               __global const float *cover, __global const half *rw,
                                __constant float4 *tw, __global const int *chart,
                                __global const float2 *shift, const int w, const int h,
                                const int n_jobs, const int acc_in)
@@ -413,7 +425,13 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 #if REGIONS > 0
     float r[REGIONS];
 #pragma unroll
-    for (int k = 0; k < REGIONS; ++k) r[k] = rw[(size_t)i * REGIONS + k];
+    for (int k = 0; k < REGIONS; ++k) r[k] = vload_half((size_t)i * REGIONS + k, rw);
+    float total = 0.0f;
+#pragma unroll
+    for (int k = 0; k < REGIONS; ++k) total += r[k];
+    const float unit = total > 0.0f ? 1.0f / total : 0.0f;
+#pragma unroll
+    for (int k = 0; k < REGIONS; ++k) r[k] *= unit;
 #endif
     for (int n = 0; n < n_jobs; ++n) {
         const int off = jobs[6 * n], job = jobs[6 * n + 1], level = jobs[6 * n + 4];
@@ -826,7 +844,7 @@ class DiffusionLayout:
             raise InputError(f"coverage and mm-per-texel maps must be ({h}, {w})")
         self.height, self.width = h, w
         self.region_weights = None if region_weights is None else \
-            np.asarray(region_weights, dtype=np.float32)
+            np.asarray(region_weights, dtype=REGION_WEIGHT_DTYPE)  # the maps' own: no copy
         if self.region_weights is not None and (self.region_weights.ndim != 3
                                                 or self.region_weights.shape[:2] != (h, w)):
             raise InputError(f"region weights must be ({h}, {w}, R), "
@@ -868,7 +886,7 @@ class DiffusionLayout:
                                      else charts.coverage)
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
         self.rw_buf = host_buffer(self.region_weights if self.region_weights is not None
-                                  else np.zeros(1, np.float32))
+                                  else np.zeros(1, REGION_WEIGHT_DTYPE))
 
     def margin(self, level: int, sigma_mm: float) -> int:
         """Texels of margin a tile at ``level`` needs for a blur of ``sigma_mm`` (the
@@ -1094,7 +1112,9 @@ def diffuse(
 
     ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
     each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
-    each region a texel is (None: one region everywhere). A texel's weights are the
+    each region a texel is (None: one region everywhere), read as half floats
+    (:data:`~.texture_maps.REGION_WEIGHT_DTYPE`) scaled to sum to 1 at each texel
+    (:func:`unit_region_weights`). A texel's weights are the
     region-blended ones, so borders between regions blend smoothly. ``charts``: the UV
     layout's charts and the surface across their seams (:class:`ChartLayout`). The
     layout is made for this call; :class:`DiffusionLayout` and :func:`diffuse_prepared`

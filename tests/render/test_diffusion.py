@@ -18,6 +18,7 @@ from pipeline.render.diffusion import (
     diffuse,
     diffuse_gather,
     ranked_step,
+    unit_region_weights,
 )
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
@@ -304,6 +305,8 @@ def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> No
     from scipy.ndimage import distance_transform_edt
 
     _, (ny, nx) = distance_transform_edt(cov == 0, return_indices=True)
+    # the weights as the layout reads them: half floats, summing to 1
+    held = unit_region_weights(rw.astype(np.float16).astype(np.float32))
     for i, var in enumerate(v):
         tables, rows = [], []
         for m in (mm_u, mm_v):
@@ -316,7 +319,7 @@ def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> No
             tables.append(fir_weight_table(sigma))
             rows.append(np.maximum(q - lo, 0))
         t = direct_texel_reference(rgba, tables[0], tables[1], rows[0], rows[1])
-        expect += (rw @ w[:, i]) * t[..., :3] / np.maximum(t[..., 3:], 1e-30)
+        expect += (held @ w[:, i]) * t[..., :3] / np.maximum(t[..., 3:], 1e-30)
     inside = cov > 0
     assert np.abs(got - expect)[inside].max() < 1e-5 * np.abs(expect).max()
     assert np.all(got[~inside] == 0)
@@ -399,3 +402,16 @@ def test_ranked_step_is_numpys_partition_and_count(n: int, spread: int) -> None:
     for rank in sorted({0, min(8, n - 1), n // 2, n - 1}):
         lo = int(np.partition(q, rank)[rank])
         assert ranked_step(q, rank) == (lo, int((q < lo).sum()))
+
+
+@pytest.mark.parametrize("path", ["prepared", "gather"])
+def test_region_weights_are_read_as_a_partition_of_unity(path: str) -> None:
+    # weights that sum to 0.5 or 2 at every texel blur as the ones that sum to 1
+    e, mm_u, mm_v, cov, rw = _stretched_layout(40)
+    v = np.array([0.004, 0.02])
+    w = np.array([[[0.3, 0.5, 0.6], [0.7, 0.5, 0.4]], [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]])
+    blur = diffuse if path == "prepared" else diffuse_gather
+    ones, _ = blur(e, mm_u, mm_v, cov, v, w, rw)
+    for scale in (0.5, 2.0):
+        scaled, _ = blur(e, mm_u, mm_v, cov, v, w, rw * np.float32(scale))
+        np.testing.assert_allclose(scaled, ones, rtol=1e-6, atol=1e-7)

@@ -69,9 +69,21 @@ def test_region_weights_are_interpolated() -> None:
     w = np.stack([uv[:, 0], 1 - uv[:, 0]], axis=1)
     maps = rasterize(pts, tris, uv, tris, 32, 0.001, region_weights=w)
     assert maps.region_weights is not None
-    np.testing.assert_allclose(maps.region_weights.sum(axis=2), 1.0, atol=1e-6)
+    assert maps.region_weights.dtype == np.float16  # half floats: within 2^-12 of 1
+    np.testing.assert_allclose(maps.region_weights.sum(axis=2, dtype=np.float64), 1.0,
+                               atol=2 * 2.0**-12)
     np.testing.assert_allclose(maps.region_weights[:, :, 0][0], (np.arange(32) + 0.5) / 32,
-                               atol=1e-6)
+                               atol=2.0**-12)
+
+
+def test_one_region_texels_keep_weights_of_exactly_one_and_zero() -> None:
+    pts, tris, uv = _grid(2, 10.0)
+    w = np.zeros((pts.shape[0], 3))
+    w[:, 1] = 1.0
+    maps = rasterize(pts, tris, uv, tris, 32, 0.001, region_weights=w)
+    assert maps.region_weights is not None
+    assert set(np.unique(maps.region_weights[..., 1]).tolist()) == {1.0}
+    assert not maps.region_weights[..., [0, 2]].any()
 
 
 def test_bad_inputs() -> None:
