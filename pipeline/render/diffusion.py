@@ -204,19 +204,23 @@ def _check_irradiance(irradiance: NDArray[Any]) -> NDArray[np.float32]:
     return e
 
 
-def _region_presence(region_weights: NDArray[np.float32] | None) -> NDArray[np.bool_] | None:
-    """Which regions any texel uses (None: one region everywhere)."""
+def _region_presence(region_weights: NDArray[Any] | None) -> NDArray[np.bool_] | None:
+    """Which regions any texel gives a weight other than +0 (None: one region
+    everywhere)."""
     if region_weights is None:
         return None
     n = region_weights.shape[-1]
-    flat = region_weights.reshape(-1, n)
+    # half floats by their bits (non-zero bits: a non-zero weight, or -0): numpy's
+    # float16 maximum took 0.27 s at texture 4096
+    flat = (region_weights.view(np.uint16) if region_weights.dtype == np.float16
+            else region_weights).reshape(-1, n)
     # 64 texels a row: numpy's reduction over rows of only R values took 0.88 s at
     # texture 4096 (the maximum is the same whatever the grouping)
     whole = flat.shape[0] - flat.shape[0] % 64
     parts = [flat[whole:]]
     if whole:
         parts.append(flat[:whole].reshape(-1, 64 * n).max(axis=0).reshape(64, n))
-    return np.concatenate(parts).max(axis=0, initial=0.0) > 0
+    return np.concatenate(parts).max(axis=0, initial=0) > 0
 
 
 def unit_region_weights(region_weights: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -352,6 +356,23 @@ MARGIN_SIGMAS = 3.0
 which the normalised convolution spreads over what it does reach."""
 MARGIN_TEXEL_QUANTILE = 0.01
 
+HALF_BITS_TO_FLOAT = r"""
+// A half float's value from its bits (finite ones): vload_half is a call on PoCL, which
+// took the level-0 batches of a texture-4096 diffusion from 70 to 120 ms. The exponent
+// and mantissa shifted into a float's place, the exponent rebased from half's bias (15)
+// to float's (127); a subnormal half (exponent 0, m 2^-24) read as the normal number
+// 2^-14 (1 + m 2^-10), less 2^-14: both exact.
+__attribute__((always_inline)) inline float half_bits_to_float(ushort h)
+{
+    const uint b = (uint)(h & 0x7fff) << 13;
+    const float v = (h & 0x7c00) ? as_float(b + (112u << 23))
+                                 : as_float(b + (113u << 23)) - 6.103515625e-05f;
+    return (h & 0x8000) ? -v : v;
+}
+"""
+"""OpenCL C: ``half_bits_to_float(ushort)``, a half float's value (as numpy's float16 ->
+float32 gives it) from its bits, without the ``vload_half`` call."""
+
 _PYRAMID_KERNEL = r"""
 // One batch of blurred terms added up at each texel, each (sum_r rw[r] tw[job, r]) times
 // rgb / alpha of its blurred (E cov, cov) texture (normalised convolution: texels off
@@ -370,6 +391,7 @@ _PYRAMID_KERNEL = r"""
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
 // from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
 // them).
+""" + HALF_BITS_TO_FLOAT + r"""
 // the cubic B-spline's four weights at phase t in [0, 1) (cells -1 .. 2): their spread
 // about the read position is 1/3 cell^2 at every phase
 INL float4 bspline3(float t)
@@ -380,7 +402,10 @@ INL float4 bspline3(float t)
 }
 INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw, int lh)
 {
-    const float ffx = floor(fx), ffy = floor(fy);
+    // floor as a conversion and a comparison: PoCL calls its floor(), not inlined (a batch
+    // of six coarse terms at texture 4096: 0.73-0.75 -> 0.66-0.68 s)
+    const int ix = (int)fx, iy = (int)fy;
+    const float ffx = (float)(ix - (fx < (float)ix)), ffy = (float)(iy - (fy < (float)iy));
     const int x0 = (int)ffx - 1, y0 = (int)ffy - 1;
     const float4 wx = bspline3(fx - ffx), wy = bspline3(fy - ffy);
     const float ax[4] = {wx.x, wx.y, wx.z, wx.w}, ay[4] = {wy.x, wy.y, wy.z, wy.w};
@@ -406,7 +431,7 @@ INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw
 
 __kernel void accumulate_terms(__global const float4 *terms, __global const float *e,
                                __constant int *jobs, __global float *rgb,
-                               __global const float *cover, __global const half *rw,
+                               __global const float *cover, __global const ushort *rw,
                                __constant float4 *tw, __global const int *chart,
                                __global const float2 *shift, const int w, const int h,
                                const int n_jobs, const int acc_in)
@@ -425,7 +450,7 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 #if REGIONS > 0
     float r[REGIONS];
 #pragma unroll
-    for (int k = 0; k < REGIONS; ++k) r[k] = vload_half((size_t)i * REGIONS + k, rw);
+    for (int k = 0; k < REGIONS; ++k) r[k] = half_bits_to_float(rw[(size_t)i * REGIONS + k]);
     float total = 0.0f;
 #pragma unroll
     for (int k = 0; k < REGIONS; ++k) total += r[k];

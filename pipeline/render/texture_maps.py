@@ -220,7 +220,7 @@ def rasterize_reference(
     regions = None
     if region_weights is not None:
         regions = np.zeros((size, size, region_weights.shape[1]), REGION_WEIGHT_DTYPE)
-        regions[covered] = attrs[:, 6:]
+        regions[covered] = np.maximum(attrs[:, 6:], np.float32(0.0))
     return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions)
 
 
@@ -300,9 +300,12 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
     const float len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
     const float scale = 1.0f / (len > 1e-12f ? len : 1e-12f);
     for (int c = 0; c < 3; ++c) normal[3 * i + c] = n[c] * scale;
-    for (int r = 0; r < n_regions; ++r)
-        vstore_half(p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2, i * n_regions + r,
-                    regions);  // rounded to nearest even, as numpy's astype
+    for (int r = 0; r < n_regions; ++r) {
+        // >= 0: the barycentrics' slack leaves -1e-9 at edges (a plain comparison: PoCL
+        // calls its fmax); rounded to nearest even, as numpy's astype
+        const float v = p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2;
+        vstore_half(v > 0.0f ? v : 0.0f, i * n_regions + r, regions);
+    }
     mm_u[i] = tri_mm[2 * t]; mm_v[i] = tri_mm[2 * t + 1];
 }
 """
