@@ -407,6 +407,19 @@ def resample_bilinear(image: NDArray[Any], size: int) -> NDArray[np.float32]:
 # ------------------------------------------------------------------------ renderer
 
 
+def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -> float:
+    """The flux of a texture of irradiance or radiance exitance ``rgb`` (H, W, 3) over its
+    charts, summed over channels: sum of value x texel area in mm^2 (mm per texel along u
+    times along v) x coverage. In bands of ``rows`` rows: the areas of the whole texture
+    at once were 67 MB of new memory at texture 4096, at the diffusion's peak."""
+    total = 0.0
+    for y in range(0, rgb.shape[0], rows):
+        band = slice(y, y + rows)
+        area = maps.mm_per_texel_u[band] * maps.mm_per_texel_v[band] * maps.coverage[band]
+        total += float((area.ravel() @ rgb[band].reshape(-1, 3)).sum(dtype=np.float64))
+    return total
+
+
 @dataclass
 class TaskLog:
     seconds: dict[str, float] = field(default_factory=dict)
@@ -781,8 +794,7 @@ class Renderer:
             del before  # made again after the blur: not held through its peak (texture-sized)
             cov = maps.coverage
             # the blur moves flux, it must not create or lose it (chart borders included)
-            area = (maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage).ravel()
-            flux_in = float((area @ pre.reshape(-1, 3)).sum())
+            flux_in = surface_flux(pre, maps)
             skipped: list[str] = []
             if opts.scattering:
                 if prepared is not None:
@@ -799,7 +811,7 @@ class Renderer:
             else:
                 out, passes, work = pre, 0, {}
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
-            flux_out = float((area @ out.reshape(-1, 3)).sum())
+            flux_out = surface_flux(out, maps)
             energy = flux_out / flux_in if flux_in > 0 else 1.0
             after = np.sqrt(albedo) if a == 0.5 else np.power(albedo, 1.0 - a)
             out *= after  # out is this task's own array: in place

@@ -693,3 +693,15 @@ def test_display_image_is_ocios_display_view_applied_at_once() -> None:
     whole = np.nan_to_num(beauty[..., :3], nan=0.0, posinf=1e4).astype(np.float32)
     proc.applyRGB(whole.reshape(-1, 3))
     np.testing.assert_array_equal(pixels, np.clip(whole, 0, 1))
+
+
+def test_surface_flux_in_bands_is_the_whole_textures_sum() -> None:
+    from pipeline.render.renderer import surface_flux
+
+    pts, tris, uv = grid_patch(6, 30.0)
+    maps = rasterize(pts, tris, uv * 0.8 + 0.1, tris, 50, 0.001)
+    rgb = np.random.default_rng(3).random((50, 50, 3)).astype(np.float32)
+    area = maps.mm_per_texel_u * maps.mm_per_texel_v * maps.coverage
+    whole = float((area[..., None].astype(np.float64) * rgb).sum())
+    for rows in (1, 7, 50, 256):  # bands that do and do not divide the rows
+        assert surface_flux(rgb, maps, rows) == pytest.approx(whole, rel=1e-6)
