@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import special
 
 from .reference_data import ScatteringCoefficients
 
@@ -238,6 +237,14 @@ class TailExtrapolation:
     which is its eq. 2c error one for one)."""
 
 
+def _exp1(x: float) -> float:
+    """The exponential integral E1(x) (scipy.special, imported here: 0.14 s of every
+    command's start, a render's included, for the one tail model that uses it)."""
+    from scipy import special
+
+    return float(special.exp1(x))
+
+
 TAIL_MODELS = {
     # name: (power k of r in p = A exp(c1 x) / r^k, x = r^2 or r, flux beyond R)
     "gaussian": (0, 2, lambda amp, c1, edge: 2 * math.pi * amp * (-0.5 / c1)
@@ -247,7 +254,7 @@ TAIL_MODELS = {
     "exponential/r": (1, 1, lambda amp, c1, edge: 2 * math.pi * amp * (-1 / c1)
                       * math.exp(c1 * edge)),
     "exponential/r^2": (2, 1, lambda amp, c1, edge: 2 * math.pi * amp
-                        * float(special.exp1(-c1 * edge))),
+                        * _exp1(-c1 * edge)),
 }
 """Tail models fitted as straight lines in log space: a Gaussian (the sum-of-Gaussians
 model's widest term), an exponential, and exp(-s r) / r^k with k = 1, 2 (the diffusion

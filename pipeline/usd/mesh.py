@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pymeshlab
 from numpy.typing import NDArray
 from pxr import Usd, UsdGeom
 
@@ -149,6 +148,8 @@ def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int 
     every piece but the largest, close the holes inside the scan (up to
     ``max_hole_edges`` boundary edges), decimate to ``target_faces`` (quadric edge
     collapse). The scan's outer rim stays open: :func:`seal_scan` closes it."""
+    import pymeshlab  # here: 0.07 s of every command's start, a render's included
+
     if np.any(mesh.face_counts != 3):
         raise InputError("prepare_scan needs a triangle mesh", mesh.source)
     ms = pymeshlab.MeshSet()
@@ -206,6 +207,8 @@ def seal_scan(mesh: MeshData) -> MeshData | None:
 
     The skin keeps its texture space; the seal is a separate occluder so that no shadow
     or camera ray passes through the scan. ``None`` when the mesh is already closed."""
+    import pymeshlab  # here: 0.07 s of every command's start, a render's included
+
     faces = mesh.face_indices.reshape(-1, 3)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
@@ -293,6 +296,8 @@ class ScanPreparation:
 
 def pymeshlab_face_scan() -> Path:
     """The real face range scan shipped in pymeshlab's wheel (mm units, holes, noise)."""
+    import pymeshlab  # here: 0.07 s of every command's start, a render's included
+
     path = Path(os.path.dirname(pymeshlab.__file__)) / "tests" / "sample_meshes" / \
         "rangemaps" / "face000.ply"
     if not path.is_file():
