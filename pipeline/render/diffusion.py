@@ -43,6 +43,7 @@ from .chart_tiles import (
 )
 from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter
 from .opencl import (
+    HALF_BITS,
     DeviceTexture,
     Kernel,
     build,
@@ -356,23 +357,6 @@ MARGIN_SIGMAS = 3.0
 which the normalised convolution spreads over what it does reach."""
 MARGIN_TEXEL_QUANTILE = 0.01
 
-HALF_BITS_TO_FLOAT = r"""
-// A half float's value from its bits (finite ones): vload_half is a call on PoCL, which
-// took the level-0 batches of a texture-4096 diffusion from 70 to 120 ms. The exponent
-// and mantissa shifted into a float's place, the exponent rebased from half's bias (15)
-// to float's (127); a subnormal half (exponent 0, m 2^-24) read as the normal number
-// 2^-14 (1 + m 2^-10), less 2^-14: both exact.
-__attribute__((always_inline)) inline float half_bits_to_float(ushort h)
-{
-    const uint b = (uint)(h & 0x7fff) << 13;
-    const float v = (h & 0x7c00) ? as_float(b + (112u << 23))
-                                 : as_float(b + (113u << 23)) - 6.103515625e-05f;
-    return (h & 0x8000) ? -v : v;
-}
-"""
-"""OpenCL C: ``half_bits_to_float(ushort)``, a half float's value (as numpy's float16 ->
-float32 gives it) from its bits, without the ``vload_half`` call."""
-
 _PYRAMID_KERNEL = r"""
 // One batch of blurred terms added up at each texel, each (sum_r rw[r] tw[job, r]) times
 // rgb / alpha of its blurred (E cov, cov) texture (normalised convolution: texels off
@@ -391,7 +375,7 @@ _PYRAMID_KERNEL = r"""
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
 // from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
 // them).
-""" + HALF_BITS_TO_FLOAT + r"""
+""" + HALF_BITS + r"""
 // the cubic B-spline's four weights at phase t in [0, 1) (cells -1 .. 2): their spread
 // about the read position is 1/3 cell^2 at every phase
 INL float4 bspline3(float t)

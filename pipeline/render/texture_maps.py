@@ -22,7 +22,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .opencl import Kernel, build, cl_context, device_cache, host_buffer, host_output, read_output
+from .opencl import (
+    HALF_BITS,
+    Kernel,
+    build,
+    cl_context,
+    device_cache,
+    host_buffer,
+    host_output,
+    read_output,
+)
 
 CHUNK_CANDIDATES = 4_000_000
 
@@ -227,6 +236,7 @@ def rasterize_reference(
 _KERNEL = r"""
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
+""" + HALF_BITS + r"""
 // the numpy reference's arithmetic, in the same order: no fused multiply-adds
 #define CORNERS(t) \
     const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
@@ -270,7 +280,7 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
                                __global const float *table, __global const float *tri_mm,
                                __global float *position, __global float *normal,
                                __global float *mm_u, __global float *mm_v,
-                               __global half *regions, const int size, const int n_regions)
+                               __global ushort *regions, const int size, const int n_regions)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= size || y >= size) return;
@@ -279,7 +289,7 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
     const int channels = 6 + n_regions;
     if (t < 0) {
         for (int c = 0; c < 3; ++c) { position[3 * i + c] = 0.0f; normal[3 * i + c] = 0.0f; }
-        for (int r = 0; r < n_regions; ++r) vstore_half(0.0f, i * n_regions + r, regions);
+        for (int r = 0; r < n_regions; ++r) regions[i * n_regions + r] = 0;
         mm_u[i] = 0.0f; mm_v[i] = 0.0f;
         return;
     }
@@ -304,7 +314,7 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
         // >= 0: the barycentrics' slack leaves -1e-9 at edges (a plain comparison: PoCL
         // calls its fmax); rounded to nearest even, as numpy's astype
         const float v = p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2;
-        vstore_half(v > 0.0f ? v : 0.0f, i * n_regions + r, regions);
+        regions[i * n_regions + r] = float_to_half_bits(v > 0.0f ? v : 0.0f);
     }
     mm_u[i] = tri_mm[2 * t]; mm_v[i] = tri_mm[2 * t + 1];
 }

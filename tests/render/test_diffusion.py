@@ -416,24 +416,3 @@ def test_region_weights_are_read_as_a_partition_of_unity(path: str) -> None:
         scaled, _ = blur(e, mm_u, mm_v, cov, v, w, rw * np.float32(scale))
         np.testing.assert_allclose(scaled, ones, rtol=1e-6, atol=1e-7)
 
-
-def test_half_bits_decode_as_numpy_reads_every_finite_half() -> None:
-    # the accumulation reads region weights' bits itself (vload_half is a call on PoCL)
-    from pipeline.render.diffusion import HALF_BITS_TO_FLOAT
-    from pipeline.render.opencl import Kernel, build, cl_context, run_on_host_arrays
-
-    source = HALF_BITS_TO_FLOAT + r"""
-__kernel void decode(__global const ushort *h, const int n, __global float *out)
-{
-    const int i = get_global_id(0);
-    if (i < n) out[i] = half_bits_to_float(h[i]);
-}
-"""
-    bits = np.arange(1 << 16, dtype=np.uint16)
-    bits = bits[np.isfinite(bits.view(np.float16))]
-    out = np.empty(bits.size, np.float32)
-    _, queue = cl_context()
-    run_on_host_arrays(Kernel(build(source), "decode", 1), queue, (bits.size,),
-                       [bits, np.int32(bits.size)], [out])
-    np.testing.assert_array_equal(out.view(np.uint32),
-                                  bits.view(np.float16).astype(np.float32).view(np.uint32))

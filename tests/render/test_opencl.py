@@ -174,3 +174,57 @@ def test_an_empty_output_reads_back_without_a_map(cl_device: Candidate) -> None:
     empty = np.empty((0, 3), np.float32)
     opencl.read_output(queue, opencl.host_output(empty), empty)
     assert empty.shape == (0, 3)
+
+
+_HALF_TEST_KERNELS = r"""
+__kernel void decode(__global const ushort *h, const int n, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i < n) out[i] = half_bits_to_float(h[i]);
+}
+__kernel void encode(__global const float *f, const int n, __global ushort *out)
+{
+    const int i = get_global_id(0);
+    if (i < n) out[i] = float_to_half_bits(f[i]);
+}
+"""
+
+
+def _half_kernel(name: str) -> object:
+    from pipeline.render.opencl import HALF_BITS, Kernel, build
+
+    return Kernel(build(HALF_BITS + _HALF_TEST_KERNELS), name, 1)
+
+
+@pytest.mark.usefixtures("cl_device")
+def test_half_bits_decode_as_numpy_does_every_finite_half() -> None:
+    from pipeline.render.opencl import cl_context, run_on_host_arrays
+
+    bits = np.arange(1 << 16, dtype=np.uint16)
+    bits = bits[np.isfinite(bits.view(np.float16))]
+    out = np.empty(bits.size, np.float32)
+    run_on_host_arrays(_half_kernel("decode"), cl_context()[1], (bits.size,),
+                       [bits, np.int32(bits.size)], [out])
+    np.testing.assert_array_equal(out.view(np.uint32),
+                                  bits.view(np.float16).astype(np.float32).view(np.uint32))
+
+
+@pytest.mark.usefixtures("cl_device")
+def test_half_bits_encode_rounds_as_numpy_does() -> None:
+    # every half's value, the midpoints between neighbours (ties: to even) and one float
+    # ulp either side of them, and random floats across half's normal and subnormal range
+    from pipeline.render.opencl import cl_context, run_on_host_arrays
+
+    halves = np.arange(0x7bff + 1, dtype=np.uint16).view(np.float16).astype(np.float32)
+    mid = (halves[:-1] + halves[1:]) / np.float32(2)
+    rng = np.random.default_rng(4)
+    f = np.concatenate([halves, mid, np.nextafter(mid, np.float32(0)),
+                        np.nextafter(mid, np.float32(np.inf)),
+                        rng.random(200_000, np.float32) * np.float32(2),
+                        rng.random(200_000, np.float32) * np.float32(2e-4),
+                        np.float32(10.0) ** rng.uniform(-9, 4.8, 200_000).astype(np.float32)])
+    f = np.concatenate([f, -f])
+    out = np.empty(f.size, np.uint16)
+    run_on_host_arrays(_half_kernel("encode"), cl_context()[1], (f.size,),
+                       [f, np.int32(f.size)], [out])
+    np.testing.assert_array_equal(out, f.astype(np.float16).view(np.uint16))
