@@ -407,6 +407,22 @@ def resample_bilinear(image: NDArray[Any], size: int) -> NDArray[np.float32]:
 # ------------------------------------------------------------------------ renderer
 
 
+def ray_owners(camera_rays: RayScene, prim: NDArray[Any]) -> NDArray[Any]:
+    """Per ray the (mesh, triangle) of the scene its hit ``prim`` in ``camera_rays``
+    belongs to, (-1, -1) for a miss."""
+    return np.where(prim[:, None] >= 0, camera_rays.owner[np.maximum(prim, 0)], -1)
+
+
+def mesh_hits(owner: NDArray[Any], hits: tuple[NDArray[Any], ...], mesh: int
+              ) -> tuple[NDArray[np.intp], NDArray[Any], NDArray[np.float64]]:
+    """The rays whose first hit is on scene mesh ``mesh`` (indices), their triangles
+    and barycentrics (N, 3, 1), from :func:`ray_owners` and the hits (prim, u, v, t)."""
+    _, bu, bv, _ = hits
+    sel = np.flatnonzero(owner[:, 0] == mesh)
+    b = np.stack([1 - bu[sel] - bv[sel], bu[sel], bv[sel]], axis=1)[:, :, None]
+    return sel, owner[sel, 1], b
+
+
 def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -> float:
     """The flux of a texture of irradiance or radiance exitance ``rgb`` (H, W, 3) over its
     charts, summed over channels: sum of value x texel area in mm^2 (mm per texel along u
@@ -463,6 +479,11 @@ class SkinTextures:
     keys: dict[str, str] = field(default_factory=dict)
     """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
     instead of hashing the maps themselves."""
+    at_hits: dict[str, dict[str, NDArray[np.float32]]] | None = None
+    """The irradiance (N, 3) and each light's visibility (N,) looked up at the camera's
+    hits on this mesh, 'center' and 'edge' rays (:meth:`Renderer._look_up_at_hits`):
+    taken before the diffusion in a render's last frame, so that the maps could go
+    (None: the shading looks them up in the maps)."""
 
     @property
     def irradiance(self) -> NDArray[np.float32] | None:
@@ -690,6 +711,36 @@ class Renderer:
                                       != "full" else None,
                                       "texels_per_pixel": round(tex.texels_per_pixel, 3)}
 
+    def _look_up_at_hits(self, scene: SceneData, tex: SkinTextures, cam: CameraHits,
+                         camera_rays: RayScene) -> None:
+        """``tex.at_hits``: what the shading reads of the irradiance and the lights'
+        visibility maps (their push-pulled planes: 268 MB at texture 4096 with one
+        shadowed light) at the camera's hits on ``tex``'s mesh, the same bilinear
+        lookups, so that the diffusion lets the maps go once it has read the irradiance
+        (:meth:`_release_irradiance`) rather than hold them through its peak."""
+        wanted = set(self.options.aovs)
+        mesh = scene.meshes.index(tex.mesh)
+        at: dict[str, dict[str, NDArray[np.float32]]] = {}
+        for part, hits in (("center", cam.hits), ("edge", cam.edge_hits)):
+            _, tri_idx, b = mesh_hits(ray_owners(camera_rays, hits[0]), hits, mesh)
+            uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
+            got = at[part] = {}
+            if "irradiance" in wanted:
+                assert tex.irradiance_filled is not None
+                got["irradiance"] = bilinear(tex.irradiance_filled, uv)
+            if wanted & {"beauty", "specular"}:
+                for path, plane in tex.visibility.items():
+                    got[path] = bilinear(plane, uv)[:, 0]
+        tex.at_hits = at
+
+    def _release_irradiance(self, tex: SkinTextures) -> None:
+        """Let ``tex``'s filled irradiance and visibility maps go (out of the cache too:
+        a later render makes them again) once the shading's lookups of them are taken
+        (:meth:`_look_up_at_hits`) and the diffusion has read the irradiance."""
+        with self._cache_lock:
+            self._cache.pop(f"irradiance:{tex.keys['irradiance']}", None)
+        tex.irradiance_filled, tex.visibility = None, {}
+
     def _release_surface(self, tex: SkinTextures, layout: DiffusionLayout | None) -> None:
         """Let ``tex``'s position and normal maps go, and ``layout``'s surface, once the
         irradiance and the seam layout that read them are made, in a render's last frame
@@ -790,6 +841,8 @@ class Renderer:
             before = np.sqrt(albedo) if a == 0.5 else np.power(albedo, a)
             pre = tex.irradiance  # a new array: weighted in place
             assert pre is not None
+            if tex.at_hits is not None:  # the shading's lookups are taken
+                self._release_irradiance(tex)
             pre *= before
             del before  # made again after the blur: not held through its peak (texture-sized)
             cov = maps.coverage
@@ -834,12 +887,15 @@ class Renderer:
         }
 
     def texture_space(self, log: TaskLog, scene: SceneData, mesh: SceneMesh, rays: RayScene,
-                      dome_textures: dict[str, NDArray[np.float32]] | None = None
-                      ) -> SkinTextures:
+                      dome_textures: dict[str, NDArray[np.float32]] | None = None,
+                      camera: tuple[CameraHits, RayScene] | None = None) -> SkinTextures:
         """A skin mesh's texture-space tasks for a frame of ``scene`` (the ray scene
         ``rays`` holds every mesh of it): texture maps, irradiance, albedo and the
         diffused radiance, the seam layout made beside the irradiance; each task's
-        seconds, cached tasks and measures go to ``log``."""
+        seconds, cached tasks and measures go to ``log``. With ``camera`` (its hits and
+        the ray scene they are in), a last frame that writes no irradiance texture looks
+        the irradiance and visibility up at the hits before the diffusion and lets the
+        maps go (:meth:`_look_up_at_hits`)."""
         tex = self._textures(log, scene, mesh)
         terms, texel_mm = self._terms(tex)
         layout = self._layout_beside(log, tex, terms, rays, scene.meshes.index(mesh),
@@ -851,6 +907,9 @@ class Renderer:
                 wait([layout])
             raise
         self._albedo(log, scene, tex)
+        if camera is not None and self.last_frame and \
+                "irradiance" not in self.options.texture_outputs:
+            self._look_up_at_hits(scene, tex, *camera)
         self._diffusion(log, tex, terms, texel_mm, layout)
         store = None if layout is None else layout.result().store
         if store is not None:  # its writes ran beside the diffusion
@@ -885,9 +944,6 @@ class Renderer:
             if light.kind == "dome" and light.texture:
                 domes[light.path] = self._cached(log, f"dome:{light.path}", str(light.texture),
                                                  lambda lt=light: read_image(lt.texture).pixels)
-        # the last frame's texture-space results, for outputs
-        skins = self.textures = [self.texture_space(log, scene, mesh, rays, domes)
-                                 for mesh in scene.skin]
         seen = [i for i, m in enumerate(scene.meshes) if m.camera_visible]
         if not seen:
             raise InputError("every mesh on the stage is hidden from the camera")
@@ -902,9 +958,16 @@ class Renderer:
                 scene_geometry_key(scene), seen), build)
             log.skipped.append("camera rays: " + ", ".join(
                 m.path for m in scene.meshes if not m.camera_visible) + " cast shadows only")
+        # the camera's hits before the texture-space tasks: a last frame looks up what
+        # it needs of the irradiance there before the diffusion (Renderer._look_up_at_hits)
+        cam = self._camera_hits(scene, log, camera_rays)
+        # the last frame's texture-space results, for outputs
+        skins = self.textures = [self.texture_space(log, scene, mesh, rays, domes,
+                                                    (cam, camera_rays))
+                                 for mesh in scene.skin]
         self.progress("shade")
         t0 = time.perf_counter()
-        images = self._shade(scene, skins, rays, log, camera_rays)
+        images = self._shade(scene, skins, rays, log, camera_rays, cam)
         log.seconds["shade"] = time.perf_counter() - t0
         log.measures["rays"] = {"counts": rays.stats.rays,
                                 "mrays_per_s": rays.stats.mrays_per_s()}
@@ -941,21 +1004,21 @@ class Renderer:
             cam.key(), width, height, scene_geometry_key(scene), seen), compute)
 
     def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
-               log: TaskLog, camera_rays: RayScene) -> dict[str, NDArray[np.float32]]:
+               log: TaskLog, camera_rays: RayScene, cam: CameraHits
+               ) -> dict[str, NDArray[np.float32]]:
         """The AOV images: one camera ray through each pixel centre, and where a pixel's
         3 x 3 neighbourhood holds both geometry and background (a silhouette), the
         pixel is shaded again at :data:`EDGE_SAMPLES` (a rotated grid) and its alpha is
         their coverage, its colours their mean (premultiplied)."""
         opts = self.options
         width, height = opts.resolution
-        cam = self._camera_hits(scene, log, camera_rays)
         out, hit = self._shade_rays(scene, skins, rays, camera_rays, cam.origins, cam.dirs,
-                                    cam.hits, log)
+                                    cam.hits, log, "center")
         alpha = hit.astype(np.float32)
         edge = cam.edge
         if edge.size:
             sub, sub_hit = self._shade_rays(scene, skins, rays, camera_rays, cam.edge_origins,
-                                            cam.edge_dirs, cam.edge_hits, log)
+                                            cam.edge_dirs, cam.edge_hits, log, "edge")
             k = len(EDGE_SAMPLES)
             for a in AOVS:  # colours: the samples' mean; a region index stays the centre's
                 out[a][edge] = sub[a].reshape(edge.size, k, 3).mean(axis=1)
@@ -974,26 +1037,25 @@ class Renderer:
 
     def _shade_rays(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
                     camera_rays: RayScene, origins: NDArray[Any], dirs: NDArray[Any],
-                    hits: tuple[NDArray[Any], ...], log: TaskLog
+                    hits: tuple[NDArray[Any], ...], log: TaskLog, part: str
                     ) -> tuple[dict[str, NDArray[np.float32]], NDArray[np.bool_]]:
         """The AOVs asked for (the others stay zero) for camera rays (origins, dirs) and
         their ``hits`` in ``camera_rays`` (the meshes the camera sees; shadow rays against
-        ``rays``, every mesh), and which rays hit."""
+        ``rays``, every mesh), and which rays hit. ``part``: which of the camera's rays
+        they are ('center' or 'edge'), for lookups taken before (``at_hits``)."""
         opts = self.options
         wanted = set(opts.aovs)
-        prim, bu, bv, dist = hits
+        prim, _, _, dist = hits
         n_pix = origins.shape[0]
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
         out["region"] = np.full((n_pix, 1), -1.0, np.float32)
         mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
-        owner = np.where(prim[:, None] >= 0, camera_rays.owner[np.maximum(prim, 0)], -1)
+        owner = ray_owners(camera_rays, prim)
         for m_i, mesh in enumerate(scene.meshes):
-            sel = np.flatnonzero(owner[:, 0] == m_i)
+            sel, tri_idx, b = mesh_hits(owner, hits, m_i)
             if sel.size == 0:
                 continue
-            tri_idx = owner[sel, 1]
             tris = triangulate(mesh.mesh)
-            b = np.stack([1 - bu[sel] - bv[sel], bu[sel], bv[sel]], axis=1)[:, :, None]
             pos = origins[sel] + dirs[sel] * dist[sel, None]
             normals = self._cached(log, f"normals:{mesh.path}", mesh.geometry_key(),
                                    lambda m=mesh, t=tris: vertex_normals(m.mesh.points, t))
@@ -1018,23 +1080,32 @@ class Renderer:
             if "albedo" in wanted:
                 assert tex.albedo is not None
                 out["albedo"][sel] = bilinear(tex.albedo, uv)
+            at = None if tex.at_hits is None else tex.at_hits[part]
             if "irradiance" in wanted:
-                assert tex.irradiance_filled is not None
-                out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
+                if at is not None:
+                    out["irradiance"][sel] = at["irradiance"]
+                else:
+                    assert tex.irradiance_filled is not None
+                    out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
             if "region" in wanted and mesh.region_weights is not None:
                 weights = (mesh.region_weights[tris[tri_idx]] * b).sum(axis=1)
                 out["region"][sel, 0] = np.argmax(weights, axis=1)
             if wanted & {"beauty", "specular"}:
-                out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv)
+                out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv, at)
         out["beauty"] = out["diffuse"] + out["specular"]
         return out, prim >= 0
 
     def _specular(self, scene: SceneData, tex: SkinTextures, pos: NDArray[Any],
-                  n: NDArray[Any], view: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
+                  n: NDArray[Any], view: NDArray[Any], uv: NDArray[Any],
+                  at: dict[str, NDArray[np.float32]] | None = None) -> NDArray[np.float32]:
+        """The specular lobe of each light but domes at the hits ``pos`` (normals ``n``,
+        towards the camera ``view``), shadowed by its visibility map at ``uv`` or as
+        looked up before (``at``: :attr:`SkinTextures.at_hits` of these hits)."""
         opts = self.options
         spec = np.zeros((pos.shape[0], 3))
         for light in scene.lights:
-            if light.path not in tex.visibility or light.kind == "dome":
+            if light.path not in (tex.visibility if at is None else at) or \
+                    light.kind == "dome":
                 continue
             l_dir, e_perp = light_direction(light, pos)
             h = l_dir + view
@@ -1042,7 +1113,8 @@ class Renderer:
             nl = np.einsum("ij,ij->i", n, l_dir)
             f = torrance_sparrow(nl, np.einsum("ij,ij->i", n, view), np.einsum("ij,ij->i", n, h),
                                  np.einsum("ij,ij->i", view, h), opts.roughness, opts.rho_s)
-            vis = bilinear(tex.visibility[light.path], uv)[:, 0]
+            vis = bilinear(tex.visibility[light.path], uv)[:, 0] if at is None else \
+                at[light.path]
             spec += (f * np.maximum(nl, 0) * vis)[:, None] * e_perp
         return spec.astype(np.float32)
 

@@ -364,14 +364,17 @@ def test_a_render_without_scattering_keeps_the_seam_layout(lit_patch: Path) -> N
 def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: Path
                                                                      ) -> None:
     """A render's last frame lets the position and normal maps, and its seam layout's
-    surface, go once the irradiance and the layout are made: the same images bit for
-    bit as a frame that keeps them; a later frame of the same renderer makes them again
-    (the same images), and the let-go layout makes no tiles without its surface."""
+    surface, go once the irradiance and the layout are made, and the irradiance and
+    visibility maps once the diffusion has read them (the shading's lookups taken
+    before): the same images bit for bit as a frame that keeps them; a later frame of
+    the same renderer makes them again (the same images), and the let-go layout makes
+    no tiles without its surface."""
     from dataclasses import replace
 
     kept = Renderer(open_stage_guarded(lit_patch), SMALL)
     want, _ = kept.render()
     assert kept.textures[0].maps.position is not None
+    assert kept.textures[0].irradiance_filled is not None and kept.textures[0].at_hits is None
     kept.close()
     renderer = Renderer(open_stage_guarded(lit_patch), SMALL)
     renderer.last_frame = True
@@ -387,6 +390,8 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
         got, _ = renderer.render()
     maps = renderer.textures[0].maps
     assert maps.position is None and maps.normal is None
+    assert renderer.textures[0].irradiance_filled is None and not renderer.textures[0].visibility
+    assert renderer.textures[0].at_hits is not None
     with pytest.raises(RuntimeError, match="let go"):
         _ = maps.surface
     with pytest.raises(RuntimeError, match="let go"):
@@ -395,7 +400,8 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
         np.testing.assert_array_equal(got[aov], image, err_msg=aov)
     renderer.last_frame = False
     again, log = renderer.render()
-    assert "texture_maps" in log.seconds and "diffusion" in log.cached
+    assert "texture_maps" in log.seconds and "irradiance" in log.seconds
+    assert "diffusion" in log.cached and renderer.textures[0].irradiance_filled is not None
     assert renderer.textures[0].maps.position is not None
     for aov, image in want.items():
         np.testing.assert_array_equal(again[aov], image, err_msg=aov)
@@ -705,3 +711,15 @@ def test_surface_flux_in_bands_is_the_whole_textures_sum() -> None:
     whole = float((area[..., None].astype(np.float64) * rgb).sum())
     for rows in (1, 7, 50, 256):  # bands that do and do not divide the rows
         assert surface_flux(rgb, maps, rows) == pytest.approx(whole, rel=1e-6)
+
+
+def test_a_last_frame_writing_the_irradiance_texture_keeps_its_map(lit_patch: Path) -> None:
+    from dataclasses import replace
+
+    renderer = Renderer(open_stage_guarded(lit_patch),
+                        replace(SMALL, texture_outputs=("irradiance",)))
+    renderer.last_frame = True
+    renderer.render()
+    renderer.close()
+    assert renderer.textures[0].irradiance_filled is not None
+    assert renderer.textures[0].at_hits is None
