@@ -723,3 +723,16 @@ def test_a_last_frame_writing_the_irradiance_texture_keeps_its_map(lit_patch: Pa
     renderer.close()
     assert renderer.textures[0].irradiance_filled is not None
     assert renderer.textures[0].at_hits is None
+
+
+@pytest.mark.parametrize("power", [0.5, 0.3, 0.0])
+def test_albedo_weights_in_bands_are_the_whole_textures(power: float) -> None:
+    from pipeline.render.renderer import times_albedo_power
+
+    rng = np.random.default_rng(5)
+    albedo = rng.random((37, 11, 3)).astype(np.float32)
+    rgb = rng.random((37, 11, 3)).astype(np.float32)
+    want = rgb * (np.sqrt(albedo) if power == 0.5 else np.power(albedo, power))
+    got = rgb.copy()
+    times_albedo_power(got, albedo, power, rows=5)
+    np.testing.assert_array_equal(got, want)
