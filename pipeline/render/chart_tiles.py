@@ -303,11 +303,32 @@ _SEAM_READ_KERNEL = r"""
 #pragma OPENCL FP_CONTRACT OFF
 
 #define ADD_TAP(at, weight)                                                            \
-    {                                                                                  \
-        const float a = (float)(weight);                                               \
-        __global const float *x = src + 4 * (size_t)(at);                              \
-        for (int k = 0; k < 4; ++k) y[k] = y[k] + a * x[k];                            \
-    }
+    y = y + (float)(weight) * *(__global const float4 *)(src + 4 * (size_t)(at));
+
+// floor as a conversion and a comparison, for atlas positions (within an int): PoCL
+// calls its floor(); the arrays of weights and sums written out as vectors (PoCL kept
+// them on the stack). The same arithmetic lane by lane; warm, at texture 4096: level 0
+// (20 M texels, 7.9 M reading) 0.13-0.14 -> 0.08 s, level 1 0.086 -> 0.044 s.
+__attribute__((always_inline)) inline int floor_int(double v)
+{
+    const int i = (int)v;
+    return i - (v < (double)i);
+}
+
+// _cubic_weights at phase t, clamped to [0, 1]
+__attribute__((always_inline)) inline double4 cubic_weights(double t)
+{
+    t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
+    const double t2 = t * t, t3 = t * t * t;
+    return (double4)((-t3 + 2.0 * t2 - t) / 2.0, (3.0 * t3 - 5.0 * t2 + 2.0) / 2.0,
+                     (-3.0 * t3 + 4.0 * t2 + t) / 2.0, (t3 - t2) / 2.0);
+}
+
+#define CUBIC_ROW(dy, wyd)                                                             \
+    ADD_TAP((y0 + dy - 1) * w + x0 - 1, (wyd) * wx.x);                                  \
+    ADD_TAP((y0 + dy - 1) * w + x0, (wyd) * wx.y);                                      \
+    ADD_TAP((y0 + dy - 1) * w + x0 + 1, (wyd) * wx.z);                                  \
+    ADD_TAP((y0 + dy - 1) * w + x0 + 2, (wyd) * wx.w);
 
 __kernel void read_seams(__global const int *rows, __global const float *xy, const int h,
                          const int w, const int cubic, __global const float *src,
@@ -315,11 +336,11 @@ __kernel void read_seams(__global const int *rows, __global const float *xy, con
 {
     const int i = get_global_id(0);
     if (i >= n) return;
-    float y[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    float4 y = (float4)(0.0f);
     for (int r = rows[i]; r < rows[i + 1]; ++r) {
         const double px = (double)xy[2 * (size_t)r], py = (double)xy[2 * (size_t)r + 1];
         if (!cubic) {
-            int x0 = (int)floor(px), y0 = (int)floor(py);
+            int x0 = floor_int(px), y0 = floor_int(py);
             x0 = x0 < 0 ? 0 : (x0 > w - 2 ? w - 2 : x0);
             y0 = y0 < 0 ? 0 : (y0 > h - 2 ? h - 2 : y0);
             double ax = px - (double)x0, ay = py - (double)y0;
@@ -332,25 +353,17 @@ __kernel void read_seams(__global const int *rows, __global const float *xy, con
             ADD_TAP(at + w + 1, ax * ay);
             continue;
         }
-        int x0 = (int)floor(px), y0 = (int)floor(py);
+        int x0 = floor_int(px), y0 = floor_int(py);
         x0 = x0 < 1 ? 1 : (x0 > w - 3 ? w - 3 : x0);
         y0 = y0 < 1 ? 1 : (y0 > h - 3 ? h - 3 : y0);
-        double wx[4], wy[4];
-        for (int axis = 0; axis < 2; ++axis) {  // _cubic_weights
-            double t = axis == 0 ? px - (double)x0 : py - (double)y0;
-            t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
-            const double t2 = t * t, t3 = t * t * t;
-            double *c = axis == 0 ? wx : wy;
-            c[0] = (-t3 + 2.0 * t2 - t) / 2.0;
-            c[1] = (3.0 * t3 - 5.0 * t2 + 2.0) / 2.0;
-            c[2] = (-3.0 * t3 + 4.0 * t2 + t) / 2.0;
-            c[3] = (t3 - t2) / 2.0;
-        }
-        for (int dy = 0; dy < 4; ++dy)
-            for (int dx = 0; dx < 4; ++dx)
-                ADD_TAP((y0 + dy - 1) * w + x0 + dx - 1, wy[dy] * wx[dx]);
+        const double4 wx = cubic_weights(px - (double)x0), wy = cubic_weights(py - (double)y0);
+        CUBIC_ROW(0, wy.x)
+        CUBIC_ROW(1, wy.y)
+        CUBIC_ROW(2, wy.z)
+        CUBIC_ROW(3, wy.w)
     }
-    for (int k = 0; k < 4; ++k) out[4 * (size_t)i + k] = src[4 * (size_t)i + k] + y[k];
+    *(__global float4 *)(out + 4 * (size_t)i) =
+        *(__global const float4 *)(src + 4 * (size_t)i) + y;
 }
 """
 
