@@ -369,8 +369,7 @@ _PYRAMID_KERNEL = r"""
 // are read once for the whole batch (a pass per term read them, 24 bytes a texel with
 // six regions, once per term) and scaled to sum to 1 (a texel is all skin: half floats
 // round a blend's sum off 1 by up to 2.4e-4). The sum goes to `rgb` (the result's own
-// memory on a CPU
-// device); acc_in: added to what the previous batches left there.
+// memory on a CPU device); acc_in: added to what the previous batches left there.
 #define INL __attribute__((always_inline)) inline
 // Plain comparisons, not clamp/min: PoCL leaves those builtins as calls, which keep it
 // from vectorising the work items (measured: one bilinear term 47-53 ms at 2048^2 with
