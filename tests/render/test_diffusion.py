@@ -416,3 +416,14 @@ def test_region_weights_are_read_as_a_partition_of_unity(path: str) -> None:
         scaled, _ = blur(e, mm_u, mm_v, cov, v, w, rw * np.float32(scale))
         np.testing.assert_allclose(scaled, ones, rtol=1e-6, atol=1e-7)
 
+
+
+def test_region_presence_reads_half_weights_by_their_bits() -> None:
+    from pipeline.render.diffusion import _region_presence
+
+    rw = np.zeros((130, 70, 4), np.float16)  # rows past a whole number of 64-texel groups
+    rw[..., 0] = 1.0
+    rw[129, 69, 2] = np.float16(6e-8)  # one texel, a subnormal half
+    np.testing.assert_array_equal(_region_presence(rw), [True, False, True, False])
+    np.testing.assert_array_equal(_region_presence(rw.astype(np.float32)),
+                                  [True, False, True, False])
