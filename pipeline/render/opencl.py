@@ -29,6 +29,7 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from .huge_pages import huge_pages_choice
 from .opencl_runtimes import SETUP, cache_root
 from .options import DEVICE_ENV
 
@@ -674,9 +675,10 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
     """A read-write device buffer: of that many bytes, or holding that array.
 
     On a CPU device under Linux, one of :data:`HUGE_PAGE_MIN_BYTES` or more is anonymous
-    memory of its own, which the kernel is asked to back with 2 MiB pages
-    (``madvise(MADV_HUGEPAGE)``: transparent huge pages are often enabled for madvised
-    memory only), used in place (``USE_HOST_PTR``). A recursive pass writes its output
+    memory of its own, used in place (``USE_HOST_PTR``), which the kernel is asked to
+    back with 2 MiB pages unless their first touch is dearer here
+    (:func:`~.huge_pages.huge_pages_choice`; ``madvise(MADV_HUGEPAGE)``: transparent huge
+    pages are often enabled for madvised memory only). A recursive pass writes its output
     transposed, one 64-byte line every row-length bytes, so with 4 KiB pages nearly
     every write misses the TLB (measured at 2048^2, the one-sigma recursive blur in one
     process: 47-69 ms with 4 KiB pages, 31-54 ms with 2 MiB pages); and the memory goes
@@ -696,7 +698,8 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
             return cl.Buffer(ctx, flags, size)
         return cl.Buffer(ctx, flags | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
     region = mmap.mmap(-1, size + _HUGE_PAGE, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
-    region.madvise(mmap.MADV_HUGEPAGE)
+    if huge_pages_choice().use:
+        region.madvise(mmap.MADV_HUGEPAGE)
     raw = np.frombuffer(region, dtype=np.uint8)
     start = (-raw.ctypes.data) % _HUGE_PAGE  # whole huge pages from the first byte
     view = raw[start:start + size]

@@ -42,6 +42,7 @@ from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
 from .blur_switch import TUNE_STREAM, direct_limits
 from .diffusion import DiffusionLayout, chart_layout, diffuse_gather, diffuse_prepared
+from .huge_pages import apply_to_numpy, huge_pages_choice
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -518,6 +519,11 @@ class Renderer:
             set_device(options.device)
         self.delegate = SceneDelegate(stage, options.camera)
         self.progress = progress or (lambda _msg: None)
+        # large buffers ask for huge pages only where their first touch is not dearer
+        # (huge_pages); numpy's arrays too, unless the user set numpy's own switch
+        self.huge_pages = huge_pages_choice()
+        if not self.huge_pages.use and "NUMPY_MADVISE_HUGEPAGE" not in os.environ:
+            apply_to_numpy(False)
         self._cache: dict[str, Any] = {}
         self._cache_lock = threading.Lock()  # the diffusion layout's task runs on a thread
         self.textures: list[SkinTextures] = []
@@ -982,6 +988,7 @@ class Renderer:
         t0 = time.perf_counter()
         images = self._shade(scene, skins, rays, log, camera_rays, camera()[0])
         log.seconds["shade"] = time.perf_counter() - t0
+        log.measures["huge_pages"] = asdict(self.huge_pages)
         log.measures["rays"] = {"counts": rays.stats.rays,
                                 "mrays_per_s": rays.stats.mrays_per_s()}
         return images, log
