@@ -424,6 +424,12 @@ def mesh_hits(owner: NDArray[Any], hits: tuple[NDArray[Any], ...], mesh: int
     return sel, owner[sel, 1], b
 
 
+def hit_uvs(tex: SkinTextures, tri_idx: NDArray[Any], b: NDArray[Any]) -> NDArray[np.float64]:
+    """Texture coordinates (N, 2) of hits on ``tex``'s mesh: triangles ``tri_idx``,
+    barycentrics ``b`` (N, 3, 1), as :func:`mesh_hits` gives them."""
+    return (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
+
+
 def times_albedo_power(rgb: NDArray[np.float32], albedo: NDArray[np.float32], power: float,
                        rows: int = 256) -> None:
     """``rgb *= albedo ** power`` in place (the albedo split's weights before and after
@@ -735,20 +741,28 @@ class Renderer:
         shadowed light) at the camera's hits on ``tex``'s mesh, the same bilinear
         lookups, so that the diffusion lets the maps go once it has read the irradiance
         (:meth:`_release_irradiance`) rather than hold them through its peak."""
-        wanted = set(self.options.aovs)
         mesh = scene.meshes.index(tex.mesh)
         at: dict[str, dict[str, NDArray[np.float32]]] = {}
         for part, hits in (("center", cam.hits), ("edge", cam.edge_hits)):
             _, tri_idx, b = mesh_hits(ray_owners(camera_rays, hits[0]), hits, mesh)
-            uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
-            got = at[part] = {}
-            if "irradiance" in wanted:
-                assert tex.irradiance_filled is not None
-                got["irradiance"] = bilinear(tex.irradiance_filled, uv)
-            if wanted & {"beauty", "specular"}:
-                for path, plane in tex.visibility.items():
-                    got[path] = bilinear(plane, uv)[:, 0]
+            at[part] = self._irradiance_lookups(tex, hit_uvs(tex, tri_idx, b))
         tex.at_hits = at
+
+    def _irradiance_lookups(self, tex: SkinTextures, uv: NDArray[Any]
+                            ) -> dict[str, NDArray[np.float32]]:
+        """What the shading reads of ``tex``'s irradiance ('irradiance', (N, 3), for its
+        AOV) and each light's visibility (by light path, (N,), for the specular lobe) at
+        texture coordinates ``uv`` (N, 2): the AOVs asked for need, bilinear lookups in
+        the push-pulled maps."""
+        wanted = set(self.options.aovs)
+        got: dict[str, NDArray[np.float32]] = {}
+        if "irradiance" in wanted:
+            assert tex.irradiance_filled is not None
+            got["irradiance"] = bilinear(tex.irradiance_filled, uv)
+        if wanted & {"beauty", "specular"}:
+            for path, plane in tex.visibility.items():
+                got[path] = bilinear(plane, uv)[:, 0]
+        return got
 
     def _release_irradiance(self, tex: SkinTextures) -> None:
         """Let ``tex``'s filled irradiance and visibility maps go (out of the cache too:
@@ -1089,7 +1103,7 @@ class Renderer:
             if tex is None:
                 self._shade_plain(scene, mesh, pos, n, sel, rays, out)
                 continue
-            uv = (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
+            uv = hit_uvs(tex, tri_idx, b)
             # only the AOVs asked for (the demo's comparison renders ask for beauty alone:
             # the albedo, irradiance and region lookups were 0.35 s of a 1.1 s shade)
             if wanted & {"beauty", "diffuse"}:
@@ -1100,32 +1114,28 @@ class Renderer:
             if "albedo" in wanted:
                 assert tex.albedo is not None
                 out["albedo"][sel] = bilinear(tex.albedo, uv)
-            at = None if tex.at_hits is None else tex.at_hits[part]
+            at = self._irradiance_lookups(tex, uv) if tex.at_hits is None else \
+                tex.at_hits[part]
             if "irradiance" in wanted:
-                if at is not None:
-                    out["irradiance"][sel] = at["irradiance"]
-                else:
-                    assert tex.irradiance_filled is not None
-                    out["irradiance"][sel] = bilinear(tex.irradiance_filled, uv)
+                out["irradiance"][sel] = at["irradiance"]
             if "region" in wanted and mesh.region_weights is not None:
                 weights = (mesh.region_weights[tris[tri_idx]] * b).sum(axis=1)
                 out["region"][sel, 0] = np.argmax(weights, axis=1)
             if wanted & {"beauty", "specular"}:
-                out["specular"][sel] = self._specular(scene, tex, pos, n, view, uv, at)
+                out["specular"][sel] = self._specular(scene, pos, n, view, at)
         out["beauty"] = out["diffuse"] + out["specular"]
         return out, prim >= 0
 
-    def _specular(self, scene: SceneData, tex: SkinTextures, pos: NDArray[Any],
-                  n: NDArray[Any], view: NDArray[Any], uv: NDArray[Any],
-                  at: dict[str, NDArray[np.float32]] | None = None) -> NDArray[np.float32]:
+    def _specular(self, scene: SceneData, pos: NDArray[Any], n: NDArray[Any],
+                  view: NDArray[Any], at: dict[str, NDArray[np.float32]]
+                  ) -> NDArray[np.float32]:
         """The specular lobe of each light but domes at the hits ``pos`` (normals ``n``,
-        towards the camera ``view``), shadowed by its visibility map at ``uv`` or as
-        looked up before (``at``: :attr:`SkinTextures.at_hits` of these hits)."""
+        towards the camera ``view``), shadowed by its visibility there (``at``: by light
+        path, :meth:`_irradiance_lookups` of these hits)."""
         opts = self.options
         spec = np.zeros((pos.shape[0], 3))
         for light in scene.lights:
-            if light.path not in (tex.visibility if at is None else at) or \
-                    light.kind == "dome":
+            if light.path not in at or light.kind == "dome":
                 continue
             l_dir, e_perp = light_direction(light, pos)
             h = l_dir + view
@@ -1133,8 +1143,7 @@ class Renderer:
             nl = np.einsum("ij,ij->i", n, l_dir)
             f = torrance_sparrow(nl, np.einsum("ij,ij->i", n, view), np.einsum("ij,ij->i", n, h),
                                  np.einsum("ij,ij->i", view, h), opts.roughness, opts.rho_s)
-            vis = bilinear(tex.visibility[light.path], uv)[:, 0] if at is None else \
-                at[light.path]
+            vis = at[light.path]
             spec += (f * np.maximum(nl, 0) * vis)[:, None] * e_perp
         return spec.astype(np.float32)
 

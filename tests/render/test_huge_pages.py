@@ -24,6 +24,10 @@ def test_a_balloon_that_reports_free_pages_is_found_in_sysfs(tmp_path: Path) -> 
     assert not reports_free_pages(tmp_path)
     _virtio(tmp_path, "virtio1", "0x0005", "0110000" + "0" * 57)  # a balloon, no reporting
     assert not reports_free_pages(tmp_path)
+    _virtio(tmp_path, "virtio3", "not hex", "0110010")  # unreadable entries are passed over
+    (tmp_path / "virtio4").mkdir()
+    _virtio(tmp_path, "virtio5", "0x0005", "01")  # too few feature bits
+    assert not reports_free_pages(tmp_path)
     _virtio(tmp_path, "virtio2", "0x0005", "0110010" + "0" * 57)
     assert reports_free_pages(tmp_path)
     assert not reports_free_pages(tmp_path / "missing")
