@@ -24,6 +24,7 @@ entries go when the folder passes its limit (:data:`LIMIT_ENV`, default
 from __future__ import annotations
 
 import hashlib
+import mmap
 import os
 import re
 import secrets
@@ -33,7 +34,7 @@ import threading
 import time
 import zipfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
 from importlib.metadata import PackageNotFoundError, version
@@ -302,21 +303,50 @@ def write_aligned_npz(f: IO[bytes], arrays: dict[str, Any]) -> None:
                 np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
+class _StoreMapping(mmap.mmap):
+    """A store file mapped copy-on-write by :func:`mapped_npz` (its own type, so that
+    :func:`drop_resident_pages` takes the pages of these mappings only, never those of
+    memory a program writes)."""
+
+
+_CRC_CHUNK = 4 << 20
+"""Bytes a member's CRC-32 reads at a time."""
+
+
+def _crc32(f: IO[bytes], start: int, size: int, chunk: bytearray) -> int:
+    """The CRC-32 of ``size`` bytes of ``f`` from ``start``, read a chunk at a time
+    through the page cache rather than over the mapping: a CRC over the mapping made
+    every page of the file part of the render's memory (the demo face's tiles at texture
+    4096: 0.77 GB through its diffusion), where its kernels read only some of them."""
+    f.seek(start)
+    view, crc, left = memoryview(chunk), 0, size
+    while left > 0:
+        got = f.readinto(view[:min(left, len(chunk))])
+        if not got:
+            raise ValueError(f"the file ends {left} bytes early")
+        crc = zlib.crc32(view[:got], crc)
+        left -= got
+    return crc
+
+
 def mapped_npz(path: Path, names: tuple[str, ...] | None = None
                ) -> dict[str, NDArray[Any]]:
-    """The arrays ``names`` (None: every one) of an uncompressed ``.npz``, each a view
-    of the file mapped copy-on-write (``np.load`` copies each member twice into new
-    memory: 1.3 s for the demo face's finest level at texture 4096, this 0.25 s), after
-    the member's CRC-32 over the mapping equals the zip's. An array whose data is not
-    aligned in the file (a file :func:`write_aligned_npz` did not write) is copied.
-    ValueError, KeyError or OSError where the file is not such an .npz or a CRC
-    differs."""
+    """The arrays ``names`` (None: every one) of an uncompressed ``.npz``, each a
+    read-only view of the file mapped copy-on-write (``np.load`` copies each member
+    twice into new memory: 1.3 s for the demo face's finest level at texture 4096, this
+    0.25 s), after the member's CRC-32 (read from the file, not the mapping) equals the
+    zip's: the mapping's pages become memory of the process only as they are read. An
+    array whose data is not aligned in the file (a file :func:`write_aligned_npz` did
+    not write) is copied. ValueError, KeyError or OSError where the file is not such an
+    .npz or a CRC differs."""
     with zipfile.ZipFile(path) as z:
         infos = {info.filename: info for info in z.infolist()}
     if names is None:
         names = tuple(n[:-4] for n in infos if n.endswith(".npy"))
     out: dict[str, NDArray[Any]] = {}
+    chunk = bytearray(_CRC_CHUNK)
     with open(path, "rb") as f:
+        whole = _StoreMapping(f.fileno(), 0, access=mmap.ACCESS_COPY)
         for name in names:
             info = infos[f"{name}.npy"]
             if info.compress_type != zipfile.ZIP_STORED:
@@ -327,8 +357,9 @@ def mapped_npz(path: Path, names: tuple[str, ...] | None = None
                 raise ValueError(f"{name}: no local header at {info.header_offset}")
             name_len, extra_len = struct.unpack("<HH", local[26:30])
             start = info.header_offset + 30 + name_len + extra_len
-            raw = np.memmap(path, np.uint8, "c", offset=start, shape=(info.file_size,))
-            if zlib.crc32(raw) != info.CRC:
+            if start + info.file_size > len(whole):
+                raise ValueError(f"{name}: past the file's end")
+            if _crc32(f, start, info.file_size, chunk) != info.CRC:
                 raise ValueError(f"{name}: its CRC-32 differs from the zip's")
             f.seek(start)
             major, _ = np.lib.format.read_magic(f)
@@ -338,12 +369,35 @@ def mapped_npz(path: Path, names: tuple[str, ...] | None = None
                 raise ValueError(f"{name}: .npy format version {major}")
             shape, fortran, dtype = read_header(f)
             data = f.tell() - start
-            if dtype.hasobject or data + int(np.prod(shape)) * dtype.itemsize != raw.size:
+            if dtype.hasobject or \
+                    data + int(np.prod(shape)) * dtype.itemsize != info.file_size:
                 raise ValueError(f"{name}: its header does not describe its bytes")
-            array = np.ndarray(shape, dtype, buffer=raw, offset=data,
+            array = np.ndarray(shape, dtype, buffer=whole, offset=start + data,
                                order="F" if fortran else "C")
-            out[name] = array if array.flags.aligned else array.copy()
+            if not array.flags.aligned:
+                array = array.copy()
+            # read-only: drop_resident_pages would take a write back to the file's bytes
+            array.flags.writeable = False
+            out[name] = array
     return out
+
+
+def drop_resident_pages(arrays: Iterable[NDArray[Any]]) -> None:
+    """Take the pages of the store files that ``arrays`` view (:func:`mapped_npz`) out of
+    this process's memory (``madvise(MADV_DONTNEED)``): they stay in the system's page
+    cache, and a kernel that reads them again maps them back from there (a minor fault,
+    no disk read), so a level's tiles are the render's memory only while its kernels
+    read them. Arrays of other memory, or where the call is missing, are left alone."""
+    if not hasattr(mmap, "MADV_DONTNEED"):
+        return
+    done: list[_StoreMapping] = []
+    for array in arrays:
+        base: Any = array
+        while isinstance(base, np.ndarray):
+            base = base.base
+        if isinstance(base, _StoreMapping) and not any(base is m for m in done):
+            base.madvise(mmap.MADV_DONTNEED)
+            done.append(base)
 
 
 def _read_tiles(path: Path, level: int, margin: int

@@ -6,7 +6,9 @@ never a render."""
 from __future__ import annotations
 
 import json
+import mmap
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -289,8 +291,8 @@ def test_aligned_npz_is_an_npz_whose_arrays_map_in_place(tmp_path: Path) -> None
     """write_aligned_npz: numpy's np.load and zipfile's own CRC check read it; each
     member's array data starts at a multiple of ALIGN bytes in the file (from the zip's
     local headers and numpy's .npy header); mapped_npz gives the same arrays as views
-    of the mapping (copy-on-write: a write leaves the file), np.savez's unaligned file
-    the same arrays copied, and a flipped byte a ValueError naming its member."""
+    of the mapping (read-only: dropping its pages must not lose a write), np.savez's
+    unaligned file the same arrays copied, and a flipped byte a ValueError naming its member."""
     import struct
     import zipfile
 
@@ -319,9 +321,8 @@ def test_aligned_npz_is_an_npz_whose_arrays_map_in_place(tmp_path: Path) -> None
         np.testing.assert_array_equal(mapped[name], want)
         assert type(mapped[name]) is np.ndarray and mapped[name].flags.aligned
         assert mapped[name].ctypes.data % tile_store.ALIGN == 0 or not mapped[name].size
-    mapped["xy"][0, 0] = -1.0
-    with np.load(path) as z:
-        assert z["xy"][0, 0] == arrays["xy"][0, 0]
+    with pytest.raises(ValueError, match="read-only"):
+        mapped["xy"][0, 0] = -1.0
     plain = tmp_path / "plain.npz"
     np.savez(plain, **arrays)
     for name, got in tile_store.mapped_npz(plain, tuple(arrays)).items():
@@ -375,3 +376,44 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
     assert store.load(0, 6, refuse) is None
     assert store.stored() == [] and any("did not read back (refused)" in n
                                         for n in store.notes)
+
+
+def _resident_bytes(path: Path) -> int:
+    """Resident bytes of this process's mappings of ``path`` (/proc/self/smaps)."""
+    total, inside = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if re.match(r"^[0-9a-f]+-[0-9a-f]+ ", line):
+            inside = line.rstrip().endswith(str(path))
+        elif inside and line.startswith("Rss:"):
+            total += int(line.split()[1]) * 1024
+    return total
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists() or
+                    not hasattr(mmap, "MADV_DONTNEED"), reason="Linux's smaps and madvise")
+def test_dropped_pages_leave_memory_not_values(tmp_path: Path) -> None:
+    """mapped_npz's CRC reads the file, not the mapping: no page of it is resident until
+    read; drop_resident_pages takes the read pages out of the process's memory (smaps'
+    Rss of the file) and the arrays read the same after it. Arrays of other memory
+    (numpy's own, an anonymous mapping as device_buffer's) keep their values: dropping
+    an anonymous page would zero it."""
+    rng = np.random.default_rng(3)
+    arrays = {"big": rng.random(2 << 20).astype(np.float32), "small": np.arange(7)}
+    path = tmp_path / "t.npz"
+    with path.open("wb") as f:
+        tile_store.write_aligned_npz(f, arrays)
+    mapped = tile_store.mapped_npz(path)
+    assert _resident_bytes(path) < 1 << 20
+    assert float(mapped["big"].sum(dtype=np.float64)) == pytest.approx(
+        float(arrays["big"].sum(dtype=np.float64)))
+    assert _resident_bytes(path) >= arrays["big"].nbytes
+    tile_store.drop_resident_pages([mapped["big"][::2], mapped["small"]])
+    assert _resident_bytes(path) < 1 << 20
+    np.testing.assert_array_equal(mapped["big"], arrays["big"])
+    np.testing.assert_array_equal(mapped["small"], arrays["small"])
+    anon = mmap.mmap(-1, 1 << 16)
+    held = np.frombuffer(anon, np.uint8)
+    held[:] = 7
+    own = np.full(1 << 16, 5, np.uint8)
+    tile_store.drop_resident_pages([held, own])
+    assert (held == 7).all() and (own == 5).all()
