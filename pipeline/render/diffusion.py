@@ -1094,44 +1094,88 @@ def _job_sigma_mm(layout: DiffusionLayout, variance: float, k: int) -> list[floa
             for t in layout.typical]
 
 
+def _direct_sigmas(layout: DiffusionLayout, grid: LevelGrid, variance: float
+                   ) -> list[Any] | None:
+    """Per axis the sigma (texels) of the direct blur of a term of ``variance`` mm^2 on
+    ``grid``'s level where :func:`_blur_job` runs that one (narrow: its one pass is
+    cheaper), else None (the recursive blur): a float each on a level of one texel
+    size, else one per step of the level's texel sizes (:class:`TexelSteps`)."""
+    sigma_mm = _job_sigma_mm(layout, variance, grid.level)
+    if grid.uniform:
+        su, sv = (sg / t for sg, t in zip(sigma_mm, grid.typical, strict=True))
+        return [su, sv] if prefers_direct(su, sv) else None
+    steps = grid.texel_steps()
+    if steps is None:
+        return None
+    # per-texel sigma (level texels) on each axis's log2 grid; the widest at its smallest
+    # texel sets the radius
+    sigmas = [sg / 2.0 ** (q / QUANT_STEPS_PER_OCTAVE)
+              for sg, q in zip(sigma_mm, (steps.u, steps.v), strict=True)]
+    return sigmas if prefers_direct(float(sigmas[0][0]), float(sigmas[1][0]),
+                                    per_texel=True) else None
+
+
 def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst: Any,
               variance: float, stats: BlurStats) -> None:
     """Enqueue the blur of one term (``variance`` mm^2) of one level's tile atlas
     (``src``) into ``dst``: sigma per axis less what the tile level and its B-spline read
-    add; the direct kernel for narrow uniform blurs, else the recursive one (per texel
-    where the layout's texel sizes vary)."""
+    add; the direct kernel for narrow blurs (:func:`_direct_sigmas`: ``tmp`` unused),
+    else the recursive one (per texel where the layout's texel sizes vary; ``dst`` may
+    be ``src``)."""
     iir = layout.iir
     lh, lw = grid.shape
+    direct = _direct_sigmas(layout, grid, variance)
+    if direct is not None:
+        if grid.uniform:
+            direct_kernels().blur(src, dst, lh, lw, *direct)
+        else:
+            steps = grid.texel_steps()
+            assert steps is not None
+            direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(direct[0]),
+                                            fir_weight_table(direct[1]), steps.index_u,
+                                            steps.index_v)
+            note = (f"level {grid.level}: {steps.smaller} texel sizes below the "
+                    f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
+            if steps.smaller and note not in stats.skipped:
+                stats.skipped.append(note)
+        stats.passes += 1
+        return
     sigma_mm = _job_sigma_mm(layout, variance, grid.level)
     if grid.uniform:
         su, sv = (sg / t for sg, t in zip(sigma_mm, grid.typical, strict=True))
-        if prefers_direct(su, sv):  # narrow: one pass of the direct kernel is cheaper
-            direct_kernels().blur(src, dst, lh, lw, su, sv)
-            stats.passes += 1
-            return
         iir.blur(src, tmp, dst, lh, lw, iir.coefficients(su), iir.coefficients(sv))
     else:
-        steps = grid.texel_steps()
-        if steps is not None:
-            # per-texel sigma (level texels) on each axis's log2 grid; the widest at its
-            # smallest texel sets the radius
-            sigmas = [sg / 2.0 ** (q / QUANT_STEPS_PER_OCTAVE)
-                      for sg, q in zip(sigma_mm, (steps.u, steps.v), strict=True)]
-            if prefers_direct(float(sigmas[0][0]), float(sigmas[1][0]), per_texel=True):
-                direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(sigmas[0]),
-                                                fir_weight_table(sigmas[1]), steps.index_u,
-                                                steps.index_v)
-                stats.passes += 1
-                note = (f"level {grid.level}: {steps.smaller} texel sizes below the "
-                        f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
-                if steps.smaller and note not in stats.skipped:
-                    stats.skipped.append(note)
-                return
         lo_u, hi_u, lo_v, hi_v, index_u, index_v = grid.index()
         coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
                  for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
         iir.blur(src, tmp, dst, lh, lw, coefs[0], coefs[1], index_u, index_v)
     stats.passes += 2
+
+
+def _alone_into(layout: DiffusionLayout, grids: dict[int, LevelGrid],
+                jobs: list[tuple[float, int]], batches: list[dict[int, tuple[int, int]]]
+                ) -> dict[int, str]:
+    """The jobs whose blurred term needs no room in the term buffer, and the work buffer
+    it goes to instead: a job alone in its batch (a level-0 term fills the buffer alone)
+    is added up before anything else is blurred, so one pass of the direct kernel
+    writes it to ``tmp`` (free once the level's fill is done), the recursive blur of
+    its level's last job over ``source`` (no later job reads it; where the device fills
+    it, not the host). The demo face at texture 4096: its three level-0 terms then take
+    no third 0.32 GB buffer beside ``tmp`` and ``source``."""
+    last_at_level = {k: j for j, (_, k) in enumerate(jobs)}  # jobs come level by level
+    into: dict[int, str] = {}
+    for batch in batches:
+        if len(batch) != 1:
+            continue
+        (j,) = batch
+        variance, k = jobs[j]
+        if variance == 0.0:
+            continue
+        if _direct_sigmas(layout, grids[k], variance) is not None:
+            into[j] = "tmp"
+        elif last_at_level[k] == j and grids[k].seam_buffers() is not None:
+            into[j] = "source"
+    return into
 
 
 def diffuse(
@@ -1245,13 +1289,16 @@ def diffuse_prepared(
                            [np.zeros((1, 2), np.float32)]).astype(np.float32)
     shift_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shift)
     shift_at = {k: n * layout.charts.n_charts for n, k in enumerate(levels)}
-    terms = layout.buffer("terms", max(end for batch in batches for _, end in batch.values()))
+    into = _alone_into(layout, grids, jobs, batches)
+    terms = layout.buffer("terms", max((end for batch in batches for j, (_, end)
+                                        in batch.items() if j not in into), default=16))
     out = np.empty((h, w, 3), np.float32)
     out_buf = host_output(out)  # every batch adds its terms there
 
     blurred_texels = 0.0
     for b, batch in enumerate(batches):
         table = np.zeros((len(batch), 6), np.int32)
+        batch_terms = terms
         for n, (j, (start, end)) in enumerate(batch.items()):
             variance, k = jobs[j]
             if variance == 0.0:
@@ -1260,17 +1307,20 @@ def diffuse_prepared(
             grid = grids[k]
             lh, lw = grid.shape
             table[n] = (start // 16, j, lw, lh, k, shift_at[k])
-            work = terms.get_sub_region(start, end - start)
             if k != source_level:
                 if source_level >= 0:  # the level before is done with its tiles
                     _release_level(queue, grids[source_level])
                 source, source_level = _fill_level(layout, grid, e_buf, tmp, source_buf), k
                 _release_level(queue, grid)  # the fill is done with the splat and reads
+            work = {"tmp": tmp, "source": source}[into[j]] if j in into else \
+                terms.get_sub_region(start, end - start)
             _blur_job(layout, grid, source, tmp, work, variance, stats)
+            if j in into:
+                batch_terms = work
             stats.levels.append(k)
             blurred_texels += lh * lw
         kernels["accumulate_terms"](
-            queue, (w, h), None, terms, e_buf,
+            queue, (w, h), None, batch_terms, e_buf,
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
             out_buf, layout.cover_buf, layout.rw_buf, tw_buf, layout.chart_buf, shift_buf,
             np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))

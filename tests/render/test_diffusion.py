@@ -427,3 +427,29 @@ def test_region_presence_reads_half_weights_by_their_bits() -> None:
     np.testing.assert_array_equal(_region_presence(rw), [True, False, True, False])
     np.testing.assert_array_equal(_region_presence(rw.astype(np.float32)),
                                   [True, False, True, False])
+
+
+def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # a term alone in its batch goes to the work buffer `tmp` (one direct pass) or over
+    # its level's `source` (the level's last term, recursive) instead of the term
+    # buffer; the sum is the same bit for bit as through the term buffer
+    import pipeline.render.diffusion as d
+
+    n = 160
+    e, mm_u, mm_v, cov, rw = _stretched_layout(n)
+    v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
+    monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
+    plan = d._alone_into
+    chosen: list[dict[int, str]] = []
+
+    def spy(*args: object) -> dict[int, str]:
+        chosen.append(plan(*args))  # type: ignore[arg-type]
+        return chosen[-1]
+
+    monkeypatch.setattr(d, "_alone_into", spy)
+    alone, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    assert {"tmp", "source"} <= set(chosen[0].values())
+    monkeypatch.setattr(d, "_alone_into", lambda *args: {})
+    through_terms, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    np.testing.assert_array_equal(alone, through_terms)
