@@ -1063,9 +1063,10 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
 
 def _release_level(queue: Any, grid: LevelGrid) -> None:
     """For tiles mapped from the store: wait for ``queue``, then let ``grid``'s pages go
-    (:meth:`LevelGrid.release_pages`), so that each level's tiles are the diffusion's
-    memory while its kernels read them, not through its peak (the demo face at texture
-    4096: 0.77 GB of mapped tiles, 0.52 GB of them level 0's)."""
+    (:meth:`LevelGrid.release_pages`), after the level's fill and after each of its
+    blurs, so that the diffusion holds only what its kernel at work reads of the tiles
+    (the demo face at texture 4096: 0.77 GB of mapped tiles, 0.52 GB of them level
+    0's; its one recursive blur there reads 0.15 GB of them, its direct ones 0.08)."""
     if grid.stored:
         queue.finish()
         grid.release_pages()
@@ -1176,6 +1177,28 @@ def _alone_into(layout: DiffusionLayout, grids: dict[int, LevelGrid],
         elif last_at_level[k] == j and grids[k].seam_buffers() is not None:
             into[j] = "source"
     return into
+
+
+def _term_buffer(layout: DiffusionLayout, grids: dict[int, LevelGrid],
+                 jobs: list[tuple[float, int]], batches: list[dict[int, tuple[int, int]]],
+                 into: dict[int, str], tmp: Any, tmp_bytes: int) -> tuple[Any, int]:
+    """(buffer, byte offset) of the blurred terms that go to no work buffer
+    (:func:`_alone_into`): the room in ``tmp`` (``tmp_bytes``) past what the fills and
+    recursive blurs of those terms' levels use there, where they fit (a term there is
+    added up before a later fill or blur of a larger level writes over it: the queue is
+    in order), else the layout's own from 0 (OpenCL makes no sub-buffer of a
+    sub-buffer: the terms' are made from the buffer at the offset). The demo face at
+    texture 4096: its six coarse terms (0.19 GB) beside level 1's 0.09 GB in tmp's 0.32
+    GB."""
+    rest = [j for batch in batches for j in batch if j not in into]
+    need = max((end for batch in batches for j, (_, end) in batch.items() if j not in into),
+               default=16)
+    used = max((grids[jobs[j][1]].shape[0] * grids[jobs[j][1]].shape[1] * 16
+                for j in rest if jobs[j][0] > 0), default=0)
+    at = -(-used // _TERM_ALIGN) * _TERM_ALIGN
+    if at + need <= tmp_bytes:
+        return tmp, at
+    return layout.buffer("terms", need), 0
 
 
 def diffuse(
@@ -1290,8 +1313,7 @@ def diffuse_prepared(
     shift_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shift)
     shift_at = {k: n * layout.charts.n_charts for n, k in enumerate(levels)}
     into = _alone_into(layout, grids, jobs, batches)
-    terms = layout.buffer("terms", max((end for batch in batches for j, (_, end)
-                                        in batch.items() if j not in into), default=16))
+    terms, terms_at = _term_buffer(layout, grids, jobs, batches, into, tmp, nbytes)
     out = np.empty((h, w, 3), np.float32)
     out_buf = host_output(out)  # every batch adds its terms there
 
@@ -1302,19 +1324,19 @@ def diffuse_prepared(
         for n, (j, (start, end)) in enumerate(batch.items()):
             variance, k = jobs[j]
             if variance == 0.0:
-                table[n] = (start // 16, j, 1, 1, -1, 0)
+                table[n] = (0, j, 1, 1, -1, 0)
                 continue
             grid = grids[k]
             lh, lw = grid.shape
-            table[n] = (start // 16, j, lw, lh, k, shift_at[k])
+            table[n] = ((0 if j in into else terms_at + start) // 16, j, lw, lh, k,
+                        shift_at[k])
             if k != source_level:
-                if source_level >= 0:  # the level before is done with its tiles
-                    _release_level(queue, grids[source_level])
                 source, source_level = _fill_level(layout, grid, e_buf, tmp, source_buf), k
                 _release_level(queue, grid)  # the fill is done with the splat and reads
             work = {"tmp": tmp, "source": source}[into[j]] if j in into else \
-                terms.get_sub_region(start, end - start)
+                terms.get_sub_region(terms_at + start, end - start)
             _blur_job(layout, grid, source, tmp, work, variance, stats)
+            _release_level(queue, grid)  # the next job may read other steps
             if j in into:
                 batch_terms = work
             stats.levels.append(k)
@@ -1325,7 +1347,5 @@ def diffuse_prepared(
             out_buf, layout.cover_buf, layout.rw_buf, tw_buf, layout.chart_buf, shift_buf,
             np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))
     read_output(queue, out_buf, out)
-    if source_level >= 0:
-        _release_level(queue, grids[source_level])
     stats.full_blurs = blurred_texels / (h * w)
     return out, stats

@@ -433,10 +433,11 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # a term alone in its batch goes to the work buffer `tmp` (one direct pass) or over
     # its level's `source` (the level's last term, recursive) instead of the term
-    # buffer; the sum is the same bit for bit as through the term buffer
+    # buffer, and the other terms to tmp's room past their levels' atlases; the sum is
+    # the same bit for bit as through a term buffer of its own
     import pipeline.render.diffusion as d
 
-    n = 160
+    n = 256  # coarse terms beside level 1 in tmp's room (not at 160: margins)
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
     v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
     monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
@@ -447,9 +448,21 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
         chosen.append(plan(*args))  # type: ignore[arg-type]
         return chosen[-1]
 
+    asked: list[str] = []
+    own_buffer = d.DiffusionLayout.buffer
+
+    def buffer(self: d.DiffusionLayout, name: str, nbytes: int) -> object:
+        asked.append(name)
+        return own_buffer(self, name, nbytes)
+
     monkeypatch.setattr(d, "_alone_into", spy)
+    monkeypatch.setattr(d.DiffusionLayout, "buffer", buffer)
     alone, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     assert {"tmp", "source"} <= set(chosen[0].values())
+    # the other terms (coarser levels') in tmp's room past their levels' atlases
+    assert "terms" not in asked and len(chosen[0]) < len(v)
     monkeypatch.setattr(d, "_alone_into", lambda *args: {})
+    asked.clear()
     through_terms, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
+    assert "terms" in asked
     np.testing.assert_array_equal(alone, through_terms)
