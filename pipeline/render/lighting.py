@@ -641,9 +641,12 @@ class LightSampler:
 
 _INTERLEAVE_KERNEL = r"""
 // one work-item per texel (AT: per texel of the list at, flat indices); planes (light,
-// y, x) with traced = 0 or 1; normals packed xyz per texel, read as floats (vload3, dot
-// and abs are calls or vector values to PoCL, which then does not vectorise the
-// work-item loop). The tent spans PERIOD - 1 texels each side, weights
+// y, x) of the visibility, its sign bit set where the texel traced no ray toward the
+// light (-0.0 for 0: visibility_plane): one load a light and tap where a plane of its
+// own was two, and the host made that plane as floats (texture 4096, period 4, two
+// lights: the kernel 0.53-0.56 -> 0.46 s); normals packed xyz per texel, read as
+// floats (vload3, dot and abs are calls or vector values to PoCL, which then does not
+// vectorise the work-item loop). The tent spans PERIOD - 1 texels each side, weights
 // (PERIOD - |dx|)(PERIOD - |dy|): each class of the period weighs the same.
 // A light's sums are scalars of their own (FOR_LIGHTS) and a tap beyond the texture's
 // edge or across a crease weighs 0 rather than being skipped: with arrays of LIGHTS
@@ -659,7 +662,7 @@ _INTERLEAVE_KERNEL = r"""
 #else
 #define FOR_LIGHTS(M) M(0) M(1) M(2) M(3)
 #endif
-__kernel void filter_interleaved(__global const float *vis, __global const float *traced,
+__kernel void filter_interleaved(__global const float *vis,
                                  __global const float *normal, __global float *out,
                                  const int h, const int w, const float min_cos
 #if AT
@@ -692,12 +695,17 @@ __kernel void filter_interleaved(__global const float *vis, __global const float
                                 nz * normal[3 * j + 2];
             const float tent = in && !(cos_n < min_cos) ?
                                ty * (float)(PERIOD - (dx < 0 ? -dx : dx)) : 0.0f;
-#define TAP(l) { const float kt = tent * traced[l * plane + j]; \
-                 num##l += kt * vis[l * plane + j]; den##l += kt; }
+// an untraced tap weighs 0 (its value is -v: 0 x -v adds -0 to sums of non-negative
+// terms, which leaves them as they were)
+#define TAP(l) { const float v = vis[l * plane + j]; \
+                 const float kt = as_int(v) >= 0 ? tent : 0.0f; \
+                 num##l += kt * v; den##l += kt; }
             FOR_LIGHTS(TAP)
         }
     }
-#define OUT(l) out[l * stride + o] = den##l > 0.0f ? num##l / den##l : vis[l * plane + i];
+// no tap weighed: the texel's own visibility, its sign bit cleared (fabs is a call)
+#define OUT(l) out[l * stride + o] = den##l > 0.0f ? num##l / den##l : \
+                                     as_float(as_uint(vis[l * plane + i]) & 0x7fffffffu);
     FOR_LIGHTS(OUT)
 }
 """
@@ -807,7 +815,23 @@ def light_planes(visibility: NDArray[Any], unshadowed: NDArray[Any], texel: NDAr
     np.put(traced_plane, texel, sum_axis1(unshadowed) > 0)
 
 
-def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
+def visibility_planes(lights: int, shape: tuple[int, int]) -> NDArray[np.float32]:
+    """(lights, H, W) planes for :func:`visibility_plane`, every texel untraced (-0.0)."""
+    return np.full((lights, *shape), -0.0, np.float32)
+
+
+def visibility_plane(visibility: NDArray[Any], unshadowed: NDArray[Any], texel: NDArray[Any],
+                     plane: NDArray[np.float32]) -> None:
+    """One light's visibility per point (>= 0) put into its (H, W) ``plane`` (of
+    :func:`visibility_planes`) at the points' flat texel indices ``texel``, as
+    :func:`filter_interleaved` reads it without ``traced``: negated (its sign bit set,
+    -0.0 for 0) where the point's rays could carry no light (unshadowed irradiance
+    (N, 3) = 0)."""
+    np.put(plane, texel, np.where(sum_axis1(unshadowed) > 0, visibility,
+                                  np.negative(visibility)))
+
+
+def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any] | None,
                        normal: NDArray[Any], min_cos: float = 0.9,
                        at: NDArray[Any] | None = None, period: int = 2
                        ) -> NDArray[np.float32]:
@@ -820,12 +844,20 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
     of the texel's, so that a crease or a chart that happens to touch does not bleed.
     OpenCL, one work-item per texel; with ``at`` (flat texel indices, N), only at those
     texels, returned as (L, N) (the renderer's covered texels: the demo face covers 46%
-    of its texture)."""
-    vis = np.ascontiguousarray(visibility, dtype=np.float32)
-    if vis.ndim != 3 or np.shape(traced) != vis.shape or \
+    of its texture). The visibility is a fraction (>= 0); with ``traced`` None, its
+    planes say it themselves, negated where a texel traced nothing
+    (:func:`visibility_plane`)."""
+    vis = np.asarray(visibility, dtype=np.float32)
+    if vis.ndim != 3 or (traced is not None and np.shape(traced) != vis.shape) or \
             np.shape(normal) != (*vis.shape[1:], 3):
         raise InputError(f"visibility (L, H, W), traced (L, H, W) and normal (H, W, 3) must "
                          f"agree; got {vis.shape}, {np.shape(traced)}, {np.shape(normal)}")
+    if traced is not None:
+        if not (vis >= 0).all():
+            raise InputError("visibility must be a fraction >= 0 where traced is given; "
+                             f"got {float(np.nanmin(vis))}")
+        vis = np.where(np.asarray(traced) > 0, vis, np.negative(vis))
+    vis = np.ascontiguousarray(vis)
     lights, h, w = vis.shape
     points = None if at is None else flat_texels(at, h, w)
     if points is not None and not points.size:
@@ -842,11 +874,10 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any],
         out_part = out[part]
         # the buffers (and the arrays they hold) stay referenced until the read
         vis_buf = host_buffer(vis[part])
-        traced_buf = host_buffer((np.asarray(traced[part]) > 0).astype(np.float32))
         out_buf = host_output(out_part)
         grid = (w, h) if points is None else (points.size,)
         _interleave_kernel(part.stop - start, points is not None, period)(
-            queue, grid, None, vis_buf, traced_buf, nrm_buf, out_buf, np.int32(h),
+            queue, grid, None, vis_buf, nrm_buf, out_buf, np.int32(h),
             np.int32(w), np.float32(min_cos), *at_args)
         read_output(queue, out_buf, out_part)
     return out

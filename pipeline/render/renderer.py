@@ -50,11 +50,12 @@ from .lighting import (
     irradiance_kernels,
     irradiance_texture,
     light_direction,
-    light_planes,
     refine_penumbrae,
     sobol_points,
     specular_albedo,
     torrance_sparrow,
+    visibility_plane,
+    visibility_planes,
 )
 from .opencl import (
     LEDGER,
@@ -216,11 +217,10 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     paths = [p for p in res.visibility if p in res.interleaved]
     if not paths:  # no light was interleaved: nothing to reconstruct
         return dict(res.visibility)
-    vis = np.zeros((len(paths), *covered.shape), np.float32)
-    traced = np.zeros(vis.shape, bool)
+    vis = visibility_planes(len(paths), covered.shape)
     for i, p in enumerate(paths):
-        light_planes(res.visibility[p], res.unshadowed[p], texel, vis[i], traced[i])
-    filtered = filter_interleaved(vis, traced, maps.surface[1], at=texel, period=period)
+        visibility_plane(res.visibility[p], res.unshadowed[p], texel, vis[i])
+    filtered = filter_interleaved(vis, None, maps.surface[1], at=texel, period=period)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
 

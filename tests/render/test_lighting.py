@@ -27,6 +27,8 @@ from pipeline.render.lighting import (
     sobol_points,
     specular_albedo,
     sum_axis1,
+    visibility_plane,
+    visibility_planes,
 )
 from pipeline.render.options import INTERLEAVE_PERIODS
 from pipeline.render.raytrace import OFFSET_ROWS, RayScene, morton_order, offset_ray_origin
@@ -239,6 +241,40 @@ def test_filter_interleaved_matches_its_definition(period: int) -> None:
     assert filter_interleaved(vis, traced, nrm, at=at[:0], period=period).shape == (6, 0)
     with pytest.raises(InputError, match="flat texel indices"):
         filter_interleaved(vis, traced, nrm, at=np.array([15 * 11]))
+
+
+@pytest.mark.parametrize("period", [2, 4])
+def test_visibility_planes_say_what_was_traced_by_their_sign(period: int) -> None:
+    # the renderer's planes (visibility_plane: negated where no ray could carry light,
+    # -0.0 for 0, untouched texels -0.0) filter bit for bit as the visibility with a
+    # traced plane of its own; a negative visibility beside `traced` is refused
+    rng = np.random.default_rng(5)
+    h, w = 13, 17
+    texel = rng.permutation(h * w)[:150]
+    vis_pts = rng.random((2, texel.size)).astype(np.float32)
+    vis_pts[:, :20] = 0.0  # traced and dark: +0.0, not -0.0
+    unshadowed = rng.random((2, texel.size, 3)).astype(np.float32)
+    unshadowed[:, 140:] = 0.0  # these points' rays could carry nothing
+    nrm = np.zeros((h, w, 3), np.float32)
+    nrm[..., 2] = 1.0
+    nrm[:, 9:] = [0.0, 0.6, 0.8]
+    planes = visibility_planes(2, (h, w))
+    vis, traced = np.zeros((2, h, w), np.float32), np.zeros((2, h, w), bool)
+    for i in range(2):
+        visibility_plane(vis_pts[i], unshadowed[i], texel, planes[i])
+        np.put(vis[i], texel, vis_pts[i])
+        np.put(traced[i], texel, unshadowed[i].sum(axis=1) > 0)
+    assert np.signbit(planes).sum() == (~traced).sum()
+    # an untraced 0 (-0.0) weighs nothing: against the definition
+    np.testing.assert_allclose(filter_interleaved(planes, None, nrm, period=period),
+                               _filter_by_definition(vis, traced, nrm, period=period),
+                               atol=1e-6)
+    for at in (None, texel):
+        np.testing.assert_array_equal(
+            filter_interleaved(planes, None, nrm, at=at, period=period),
+            filter_interleaved(vis, traced, nrm, at=at, period=period))
+    with pytest.raises(InputError, match="fraction >= 0"):
+        filter_interleaved(-vis - 1, traced, nrm, period=period)
 
 
 @pytest.mark.parametrize("sequence", ["stratified", "sobol"])
