@@ -1081,9 +1081,10 @@ def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
         return w * (open_ if w.ndim == 1 else open_[:, None]), w, cast
 
     jobs = [(sampler, k) for sampler in samplers for k in range(sampler.count)]
-    with ThreadPoolExecutor(2) as pool:
+    pool = ThreadPoolExecutor(2)
+    try:
         results = pool.map(one, jobs)
-        for sampler in samplers:
+        for i, sampler in enumerate(samplers):
             n = sampler.origins.shape[0]
             lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
             unshadowed = np.zeros_like(lit)
@@ -1095,7 +1096,13 @@ def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
                     unshadowed += full
                     n_rays += cast
             sampler.close()
+            if i == len(samplers) - 1:
+                # the workers end, and their rays' arrays go with them, before the
+                # caller's sums of the last light (0.25 GB at texture 4096)
+                pool.shutdown(wait=True)
             yield sampler, lit, unshadowed, n_rays
+    finally:
+        pool.shutdown(wait=True)
 
 
 def light_visibility(lit: NDArray[Any], unshadowed: NDArray[Any]) -> NDArray[np.float32]:
