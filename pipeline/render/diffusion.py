@@ -765,7 +765,7 @@ class LevelGrid:
         """Let the pages of the level's arrays that were mapped from the tile store go
         from this process's memory (:func:`~.tile_store.drop_resident_pages`; a kernel
         that reads them maps them back): after their check on loading, after the fill
-        and after the level's blurs. Tiles made here are left alone."""
+        and after each of the level's blurs. Tiles made here are left alone."""
         t = self.tiles
         drop_resident_pages([t.owner, t.count, t.reads.rows, t.reads.xy,
                              *(self._index_arrays or ()), *(self._texel_arrays or ())])
