@@ -17,7 +17,7 @@ import zlib
 from collections.abc import Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -507,7 +507,6 @@ class LightSampler:
         # a textured dome's colour varies per direction and is carried by the weights
         self.colour = np.ones(3, np.float32) if light.kind == "dome" and dome_texture is not \
             None else surface_radiance(light).astype(np.float32)
-        self.inf = np.full(origins.shape[0], np.inf, np.float32)
         # the device kernel makes a sphere's cone and every frame per point itself
         on_device = device and light.kind in DEVICE_SAMPLED_KINDS and dome_texture is None
         radius = max(light.radius, 1e-9)
@@ -596,6 +595,13 @@ class LightSampler:
             read_output(queue, buffer, array)
         d, w, far = out
         return d, far, w
+
+    @cached_property
+    def inf(self) -> NDArray[np.float32]:
+        """The rays' length toward a light at infinity, per point, for the samples made in
+        numpy (:meth:`sample`), made on first use: the device's kernel writes its own
+        lengths (a light's 29 MB at texture 4096, held to the end of its rays)."""
+        return np.full(self.origins.shape[0], np.inf, np.float32)
 
     def sample(self, k: int) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
         """Sample k of every point: one stratum for all, or the point's k-th stratum (in
@@ -1037,7 +1043,11 @@ def irradiance_texture(
         if sampler.sets is not None:
             interleaved.add(light.path)
         colour = sampler.colour
-        entering += times_colour(lit, colour) if lit.ndim == 1 else lit * colour
+        if lit.ndim == 1:  # times_colour's products a column at a time, no (N, 3) of them
+            for c in range(3):
+                entering[:, c] += lit * colour[c]
+        else:
+            entering += lit * colour
         visibility[light.path] = back(light_visibility(lit, unshadowed))
         # back to the points' order before the colour: a third of the gathered bytes
         unshadowed_by_light[light.path] = coloured(sampler, back(unshadowed))
