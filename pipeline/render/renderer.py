@@ -70,7 +70,7 @@ from .opencl import (
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, push_pull
 from .raytrace import RayScene, offset_ray_origin
-from .resample import ResampledTexture
+from .resample import resample_bilinear
 from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
 from .tile_store import TileStore
@@ -225,8 +225,7 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
 
 
-def bilinear(texture: NDArray[Any] | ResampledTexture, uv: NDArray[Any]
-             ) -> NDArray[np.float32]:
+def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
     """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
     size_v, size_u = texture.shape[:2]
     x = np.clip(np.asarray(uv[:, 0], np.float32) * size_u - 0.5, 0, size_u - 1)
@@ -235,12 +234,10 @@ def bilinear(texture: NDArray[Any] | ResampledTexture, uv: NDArray[Any]
     y0 = np.minimum(y.astype(np.int64), size_v - 2 if size_v > 1 else 0)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     dx, dy = int(size_u > 1), (size_u if size_v > 1 else 0)
-    # a texture made on demand gives the texels read, not itself whole
-    at = texture.texels if isinstance(texture, ResampledTexture) else \
-        np.asarray(texture, np.float32).reshape(size_v * size_u, -1).__getitem__
+    flat = np.asarray(texture, np.float32).reshape(size_v * size_u, -1)
     i = y0 * size_u + x0
-    top = at(i) * (1 - fx) + at(i + dx) * fx
-    bottom = at(i + dy) * (1 - fx) + at(i + dy + dx) * fx
+    top = flat[i] * (1 - fx) + flat[i + dx] * fx
+    bottom = flat[i + dy] * (1 - fx) + flat[i + dy + dx] * fx
     return top * (1 - fy) + bottom * fy
 
 
@@ -360,20 +357,20 @@ def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) 
     return SkinUVs(stage, scene, mesh, uv, uv_tris, f"unwrapped ({why})")
 
 
-def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[ResampledTexture, str]:
-    """The albedo in texture space (S, S, 3), linear in the working space, made a band
-    of rows or a set of texels at a time (:class:`~.resample.ResampledTexture`), and
-    what it came from."""
+def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:
+    """The albedo in texture space (S, S, 3), linear in the working space, and what it
+    came from."""
     albedo = mesh.albedo
     if albedo.texture is None:
-        return ResampledTexture(np.asarray(albedo.constant, np.float32).reshape(1, 1, 3),
-                                size, low=None), "constant diffuseColor"
+        return np.broadcast_to(np.asarray(albedo.constant, np.float32),
+                               (size, size, 3)).copy(), "constant diffuseColor"
     img = read_image(albedo.texture)
     cs = albedo.colorspace or (working if img.is_float else "srgb_tx")
     px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
     # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
-    bottom_up = np.ascontiguousarray(px[::-1, :, :3], dtype=np.float32)
-    return ResampledTexture(bottom_up, size), f"{albedo.texture} ({cs})"
+    bottom_up = np.asarray(px[::-1, :, :3], dtype=np.float32)
+    albedo_tex = resample_bilinear(bottom_up, size)
+    return np.clip(albedo_tex, 0.0, None, out=albedo_tex), f"{albedo.texture} ({cs})"
 
 
 # ------------------------------------------------------------------------ renderer
@@ -401,14 +398,12 @@ def hit_uvs(tex: SkinTextures, tri_idx: NDArray[Any], b: NDArray[Any]) -> NDArra
     return (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
 
 
-def times_albedo_power(rgb: NDArray[np.float32],
-                       albedo: NDArray[np.float32] | ResampledTexture, power: float,
+def times_albedo_power(rgb: NDArray[np.float32], albedo: NDArray[np.float32], power: float,
                        rows: int = 256) -> None:
     """``rgb *= albedo ** power`` in place (the albedo split's weights before and after
     the blur, d'Eon et al. 2007), a square root for 0.5 (the default) rather than a
-    general power, in bands of ``rows`` rows (of a :class:`~.resample.ResampledTexture`,
-    made band by band): the whole texture's weights at once were 201 MB of new memory at
-    texture 4096, at the diffusion's peak."""
+    general power, in bands of ``rows`` rows: the whole texture's weights at once were
+    201 MB of new memory at texture 4096, at the diffusion's peak."""
     for y in range(0, rgb.shape[0], rows):
         band = albedo[y:y + rows]
         rgb[y:y + rows] *= np.sqrt(band) if power == 0.5 else np.power(band, power)
@@ -459,7 +454,7 @@ class SkinTextures:
     uv_tris: NDArray[np.int32]
     tris: NDArray[np.int32]
     maps: TextureMaps
-    albedo: ResampledTexture | None = None  # after the irradiance (Renderer._albedo)
+    albedo: NDArray[np.float32] | None = None  # after the irradiance (Renderer._albedo)
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
@@ -632,9 +627,8 @@ class Renderer:
         return interleave_period(per_pixel, points, opts.interleave_period), per_pixel
 
     def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
-        """``tex``'s albedo: its source image, resampled to the texture a band of rows or
-        a set of texels at a time (:class:`~.resample.ResampledTexture`; the map whole
-        was 201 MB at texture 4096, held through the diffusion's peak)."""
+        """``tex``'s albedo map: after the irradiance, which does not read it (a painted
+        albedo held 201 MB beside the irradiance's peak at texture 4096)."""
         albedo, source = self._cached(log, "albedo", tex.keys["albedo"], lambda: albedo_map(
             tex.mesh, self.options.texture_size, scene.working_colorspace))
         log.measures["albedo_source"] = source

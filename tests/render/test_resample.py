@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.render.renderer import bilinear
-from pipeline.render.resample import ResampledTexture, resample_bilinear
+from pipeline.render.resample import resample_bilinear
 
 
 def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
@@ -35,29 +35,3 @@ def test_resample_bilinear_equals_openimageio_at_texel_centres() -> None:
         want = np.array([[buf.interppixel_NDC(float(u), float(v), "clamp") for u in centres]
                          for v in centres], np.float32)
         np.testing.assert_allclose(resample_bilinear(image, size), want, atol=3e-6)
-
-
-def test_a_resampled_texture_is_the_resample_bit_for_bit_in_bands_and_texels() -> None:
-    # ResampledTexture (the renderer's albedo) made a band of rows or a set of texels at
-    # a time: resample_bilinear's values clipped at 0, bit for bit, up, down and the
-    # same size; a 1 x 1 source (a constant albedo) is its value everywhere, unclipped;
-    # bilinear lookups in it are those in the whole map
-    rng = np.random.default_rng(7)
-    for shape, size in (((37, 50, 3), 16), ((1, 5, 3), 8), ((64, 64, 3), 64),
-                        ((20, 20, 3), 51), ((128, 96, 3), 512)):
-        image = rng.random(shape).astype(np.float32) - np.float32(0.1)
-        whole = np.clip(resample_bilinear(image, size), 0, None)
-        tex = ResampledTexture(image, size)
-        assert tex.shape == whole.shape
-        np.testing.assert_array_equal(np.asarray(tex), whole)
-        np.testing.assert_array_equal(
-            np.concatenate([tex[y:y + 7] for y in range(0, size, 7)]), whole)
-        flat = rng.integers(0, size * size, 3000)
-        np.testing.assert_array_equal(tex.texels(flat), whole.reshape(-1, 3)[flat])
-        uv = rng.random((500, 2))
-        np.testing.assert_array_equal(bilinear(tex, uv), bilinear(whole, uv))
-    constant = ResampledTexture(np.array([[[-0.5, 0.25, np.inf]]], np.float32), 9, low=None)
-    np.testing.assert_array_equal(constant[2:5], np.broadcast_to([-0.5, 0.25, np.inf],
-                                                                   (3, 9, 3)))
-    np.testing.assert_array_equal(constant.texels(np.array([0, 80])),
-                                  [[-0.5, 0.25, np.inf]] * 2)
