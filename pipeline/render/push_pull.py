@@ -227,16 +227,32 @@ def _nearest_sources(covered_bytes: bytes, shape: tuple[int, int], ring: int
     return dst_all, source[dst_all].astype(np.int64)
 
 
+def _gutter(coverage: NDArray[Any], ring: int
+            ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
+    """:func:`_nearest_sources` of ``coverage`` (None where every texel or none is
+    covered: no gutter)."""
+    covered = np.asarray(coverage) > 0
+    if covered.all() or not covered.any():
+        return None
+    return _nearest_sources(np.ascontiguousarray(covered).tobytes(), covered.shape, ring)
+
+
+def prepare_dilation(coverage: NDArray[Any], ring: int = GUTTER_RING) -> None:
+    """Make what :func:`dilate_charts` reads of ``coverage`` (kept for the layout), say
+    on a thread beside other work: at texture 4096 it took 0.2-0.3 s on one core."""
+    _gutter(coverage, ring)
+
+
 def dilate_charts(values: NDArray[Any], coverage: NDArray[Any], ring: int = GUTTER_RING
                   ) -> NDArray[np.float32]:
     """``values`` (H, W[, C]) with each texel within ``ring`` texels of a chart (8-connected
     steps) set to a nearest covered texel's value; in place when ``values`` is float32,
     returned."""
     v = np.asarray(values, dtype=np.float32)
-    covered = np.asarray(coverage) > 0
-    if covered.all() or not covered.any():
+    gutter = _gutter(coverage, ring)
+    if gutter is None:
         return v
-    dst, src = _nearest_sources(np.ascontiguousarray(covered).tobytes(), covered.shape, ring)
-    flat = v.reshape(covered.size, -1)
+    dst, src = gutter
+    flat = v.reshape(np.size(coverage), -1)
     flat[dst] = flat[src]
     return v

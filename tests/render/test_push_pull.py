@@ -118,3 +118,23 @@ def test_dilation_ring_is_scipys_chessboard_distance(seed: int) -> None:
     dy, dx = np.divmod(dst, covered.shape[1])
     sy, sx = np.divmod(src, covered.shape[1])
     np.testing.assert_array_equal(np.maximum(abs(dy - sy), abs(dx - sx)), steps.ravel()[dst])
+
+
+def test_a_prepared_dilation_is_the_one_dilate_charts_reads() -> None:
+    """prepare_dilation (the renderer runs it on a thread beside the filter) makes the
+    gutter dilate_charts then reads for the same coverage, not another one; an all- or
+    none-covered layout has none."""
+    from pipeline.render.push_pull import _nearest_sources, dilate_charts, prepare_dilation
+
+    cov = np.zeros((16, 16), np.float32)
+    cov[3:9, 4:12] = 1
+    values = np.where(cov > 0, 2.0, 7.0).astype(np.float32)
+    _nearest_sources.cache_clear()
+    prepare_dilation(cov)
+    assert _nearest_sources.cache_info().misses == 1
+    out = dilate_charts(values.copy(), cov)
+    assert _nearest_sources.cache_info().hits == 1
+    assert out[2, 6] == 2 and out[0, 6] == 7
+    prepare_dilation(np.ones((4, 4), np.float32))
+    prepare_dilation(np.zeros((4, 4), np.float32))
+    assert _nearest_sources.cache_info().misses == 1
