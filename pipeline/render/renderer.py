@@ -470,6 +470,9 @@ class SkinTextures:
     hits on this mesh, 'center' and 'edge' rays (:meth:`Renderer._look_up_at_hits`):
     taken before the diffusion in a render's last frame, so that the maps could go
     (None: the shading looks them up in the maps)."""
+    hit_uv: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    """The texture coordinates of those hits, by part, where they were taken: the
+    shading reads them rather than making them again."""
 
     @property
     def irradiance(self) -> NDArray[np.float32] | None:
@@ -712,17 +715,20 @@ class Renderer:
                                       "texels_per_pixel": round(tex.texels_per_pixel, 3)}
 
     def _look_up_at_hits(self, scene: SceneData, tex: SkinTextures, cam: CameraHits,
-                         camera_rays: RayScene) -> None:
+                         owners: dict[str, NDArray[Any]]) -> None:
         """``tex.at_hits``: what the shading reads of the irradiance and the lights'
         visibility maps (their push-pulled planes: 268 MB at texture 4096 with one
         shadowed light) at the camera's hits on ``tex``'s mesh, the same bilinear
         lookups, so that the diffusion lets the maps go once it has read the irradiance
-        (:meth:`_release_irradiance`) rather than hold them through its peak."""
+        (:meth:`_release_irradiance`) rather than hold them through its peak. ``owners``:
+        each part's :func:`ray_owners`; the hits' texture coordinates are kept
+        (``tex.hit_uv``) for the shading."""
         mesh = scene.meshes.index(tex.mesh)
         at: dict[str, dict[str, NDArray[np.float32]]] = {}
         for part, hits in (("center", cam.hits), ("edge", cam.edge_hits)):
-            _, tri_idx, b = mesh_hits(ray_owners(camera_rays, hits[0]), hits, mesh)
-            at[part] = self._irradiance_lookups(tex, hit_uvs(tex, tri_idx, b))
+            _, tri_idx, b = mesh_hits(owners[part], hits, mesh)
+            uv = tex.hit_uv[part] = hit_uvs(tex, tri_idx, b)
+            at[part] = self._irradiance_lookups(tex, uv)
         tex.at_hits = at
 
     def _irradiance_lookups(self, tex: SkinTextures, uv: NDArray[Any]
@@ -891,13 +897,14 @@ class Renderer:
 
     def texture_space(self, log: TaskLog, scene: SceneData, mesh: SceneMesh, rays: RayScene,
                       dome_textures: dict[str, NDArray[np.float32]] | None = None,
-                      camera: Callable[[], tuple[CameraHits, RayScene]] | None = None
+                      camera: Callable[[], tuple[CameraHits, dict[str, NDArray[Any]]]]
+                      | None = None
                       ) -> SkinTextures:
         """A skin mesh's texture-space tasks for a frame of ``scene`` (the ray scene
         ``rays`` holds every mesh of it): texture maps, irradiance, albedo and the
         diffused radiance, the seam layout made beside the irradiance; each task's
         seconds, cached tasks and measures go to ``log``. With ``camera`` (which gives the
-        camera's hits and the ray scene they are in), a last frame that writes no
+        camera's hits and, per part, their :func:`ray_owners`), a last frame that writes no
         irradiance texture looks the irradiance and visibility up at the hits before the
         diffusion and lets the maps go (:meth:`_look_up_at_hits`)."""
         tex = self._textures(log, scene, mesh)
@@ -966,18 +973,22 @@ class Renderer:
         # made where a last frame looks up what it needs of the irradiance there, before
         # the diffusion (Renderer._look_up_at_hits): made first, they waited for the
         # kernels' prewarm (0.5-0.8 s against 0.16 at texture 4096)
-        made: list[tuple[CameraHits, RayScene]] = []
+        made: list[tuple[CameraHits, dict[str, NDArray[Any]]]] = []
 
-        def camera() -> tuple[CameraHits, RayScene]:
-            if not made:  # once a frame: the log counts the task once
-                made.append((self._camera_hits(scene, log, camera_rays), camera_rays))
+        def camera() -> tuple[CameraHits, dict[str, NDArray[Any]]]:
+            """The camera's hits and each part's (mesh, triangle) of them: once a frame
+            (the log counts the task once), for the lookups and the shading."""
+            if not made:
+                cam = self._camera_hits(scene, log, camera_rays)
+                made.append((cam, {part: ray_owners(camera_rays, hits[0]) for part, hits
+                                   in (("center", cam.hits), ("edge", cam.edge_hits))}))
             return made[0]
 
         skins = self.textures = [self.texture_space(log, scene, mesh, rays, domes, camera)
                                  for mesh in scene.skin]
         self.progress("shade")
         t0 = time.perf_counter()
-        images = self._shade(scene, skins, rays, log, camera_rays, camera()[0])
+        images = self._shade(scene, skins, rays, log, *camera())
         log.seconds["shade"] = time.perf_counter() - t0
         log.measures["huge_pages"] = asdict(self.huge_pages)
         log.measures["rays"] = {"counts": rays.stats.rays,
@@ -1015,21 +1026,23 @@ class Renderer:
             cam.key(), width, height, scene_geometry_key(scene), seen), compute)
 
     def _shade(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
-               log: TaskLog, camera_rays: RayScene, cam: CameraHits
+               log: TaskLog, cam: CameraHits, owners: dict[str, NDArray[Any]]
                ) -> dict[str, NDArray[np.float32]]:
         """The AOV images: one camera ray through each pixel centre, and where a pixel's
         3 x 3 neighbourhood holds both geometry and background (a silhouette), the
         pixel is shaded again at :data:`EDGE_SAMPLES` (a rotated grid) and its alpha is
-        their coverage, its colours their mean (premultiplied)."""
+        their coverage, its colours their mean (premultiplied). ``owners``: each part's
+        :func:`ray_owners` of the hits."""
         opts = self.options
         width, height = opts.resolution
-        out, hit = self._shade_rays(scene, skins, rays, camera_rays, cam.origins, cam.dirs,
-                                    cam.hits, log, "center")
+        out, hit = self._shade_rays(scene, skins, rays, owners["center"], cam.origins,
+                                    cam.dirs, cam.hits, log, "center")
         alpha = hit.astype(np.float32)
         edge = cam.edge
         if edge.size:
-            sub, sub_hit = self._shade_rays(scene, skins, rays, camera_rays, cam.edge_origins,
-                                            cam.edge_dirs, cam.edge_hits, log, "edge")
+            sub, sub_hit = self._shade_rays(scene, skins, rays, owners["edge"],
+                                            cam.edge_origins, cam.edge_dirs, cam.edge_hits,
+                                            log, "edge")
             k = len(EDGE_SAMPLES)
             for a in AOVS:  # colours: the samples' mean; a region index stays the centre's
                 out[a][edge] = sub[a].reshape(edge.size, k, 3).mean(axis=1)
@@ -1047,13 +1060,14 @@ class Renderer:
         return images
 
     def _shade_rays(self, scene: SceneData, skins: list[SkinTextures], rays: RayScene,
-                    camera_rays: RayScene, origins: NDArray[Any], dirs: NDArray[Any],
+                    owner: NDArray[Any], origins: NDArray[Any], dirs: NDArray[Any],
                     hits: tuple[NDArray[Any], ...], log: TaskLog, part: str
                     ) -> tuple[dict[str, NDArray[np.float32]], NDArray[np.bool_]]:
         """The AOVs asked for (the others stay zero) for camera rays (origins, dirs) and
-        their ``hits`` in ``camera_rays`` (the meshes the camera sees; shadow rays against
-        ``rays``, every mesh), and which rays hit. ``part``: which of the camera's rays
-        they are ('center' or 'edge'), for lookups taken before (``at_hits``)."""
+        their ``hits`` among the meshes the camera sees (``owner``: each hit's mesh and
+        triangle, :func:`ray_owners`; shadow rays against ``rays``, every mesh), and which
+        rays hit. ``part``: which of the camera's rays they are ('center' or 'edge'), for
+        what was taken of them before (``at_hits``, ``hit_uv``)."""
         opts = self.options
         wanted = set(opts.aovs)
         prim, _, _, dist = hits
@@ -1061,7 +1075,6 @@ class Renderer:
         out = {a: np.zeros((n_pix, 3), np.float32) for a in AOVS}
         out["region"] = np.full((n_pix, 1), -1.0, np.float32)
         mesh_index = {m.path: i for i, m in enumerate(scene.meshes)}
-        owner = ray_owners(camera_rays, prim)
         for m_i, mesh in enumerate(scene.meshes):
             sel, tri_idx, b = mesh_hits(owner, hits, m_i)
             if sel.size == 0:
@@ -1080,7 +1093,7 @@ class Renderer:
             if tex is None:
                 self._shade_plain(scene, mesh, pos, n, sel, rays, out)
                 continue
-            uv = hit_uvs(tex, tri_idx, b)
+            uv = tex.hit_uv[part] if part in tex.hit_uv else hit_uvs(tex, tri_idx, b)
             # only the AOVs asked for (the demo's comparison renders ask for beauty alone:
             # the albedo, irradiance and region lookups were 0.35 s of a 1.1 s shade)
             if wanted & {"beauty", "diffuse"}:
