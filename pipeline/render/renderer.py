@@ -1215,7 +1215,11 @@ def scene_geometry_key(scene: SceneData) -> str:
 
 def display_image(beauty: NDArray[Any], working: str, config_source: str
                   ) -> tuple[NDArray[np.float32], dict[str, str]]:
-    """Display-referred pixels through the config's default display and view."""
+    """Display-referred pixels through the config's default display and view, of the
+    colour itself (a premultiplied beauty with alpha is divided by its alpha first: the
+    view transform is not linear, and applied to colour times coverage it brightened the
+    demo face's 2526 silhouette pixels by 0.12 of the display's range on average, 0.46
+    at most, once the PNG's straight alpha was taken off)."""
     config = ocio_config(config_source)
     src = check_colorspace(working, config_source)
     display = config.getDefaultDisplay()
@@ -1223,6 +1227,9 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
     transform = OCIO.DisplayViewTransform(src=src, display=display, view=view)
     proc = config.getProcessor(transform).getDefaultCPUProcessor()
     rgb = np.nan_to_num(beauty[..., :3].astype(np.float32), copy=False, nan=0.0, posinf=1e4)
+    if beauty.shape[-1] == 4:
+        alpha = beauty[..., 3:4]
+        np.divide(rgb, alpha, out=rgb, where=alpha > 0)
     # in row bands on the cores: OCIO lets go of the GIL, and the default view's ACES 2.0
     # output transform took 0.45 s for a 768 x 768 image on one core (0.23 s on two); a
     # pixel's value does not depend on the band
@@ -1254,8 +1261,9 @@ def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32
         # tagged with the display's colour space, so the PNG carries its sRGB chunk
         space = ocio_config(config_source).getDisplayViewColorSpaceName(info["display"],
                                                                          info["view"])
+        # straight alpha, as PNG stores it: OpenImageIO is told so, or it divides again
         png = write_ldr(out_dir / f"{name}.png", np.concatenate([disp, alpha], axis=2), 8,
-                        {"oiio:ColorSpace": space,
+                        {"oiio:ColorSpace": space, "oiio:UnassociatedAlpha": 1,
                          "skinpipe:displayView": f"{info['display']} / {info['view']}"})
         return {"png": str(png), **info}
 

@@ -290,9 +290,10 @@ def side_by_side(left: Path, right: Path, out: Path, labels: tuple[str, str]) ->
         px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
         if buf.has_error or px.ndim != 3 or px.shape[2] < 4:
             raise InputError(f"cannot read {path}: {oiio_error(buf)}", path)
+        # OpenImageIO reads a PNG's colour premultiplied by its alpha: over the backdrop
         rgb, a = px[..., :3], px[..., 3:4]
         tile = oiio.ImageBuf(oiio.ImageSpec(px.shape[1], px.shape[0], 3, "float"))
-        tile.set_pixels(oiio.ROI(), np.ascontiguousarray(rgb * a + 0.18 * (1 - a)))
+        tile.set_pixels(oiio.ROI(), np.ascontiguousarray(rgb + 0.18 * (1 - a)))
         oiio.ImageBufAlgo.render_text(tile, 12, 28, label, 22, "", [1.0, 1.0, 1.0])
         tiles.append(np.asarray(tile.get_pixels(oiio.FLOAT)))
     return write_ldr(out, np.concatenate(tiles, axis=1), 8)

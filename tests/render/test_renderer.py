@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -668,6 +669,50 @@ def test_display_image_is_ocios_display_view_applied_at_once() -> None:
     whole = np.nan_to_num(beauty[..., :3], nan=0.0, posinf=1e4).astype(np.float32)
     proc.applyRGB(whole.reshape(-1, 3))
     np.testing.assert_array_equal(pixels, np.clip(whole, 0, 1))
+
+
+def test_written_exr_and_png_read_back_as_ocios_display_of_the_beauty(tmp_path: Path
+                                                                       ) -> None:
+    """write_outputs writes the PNG on a thread beside the EXR: OpenImageIO reads the EXR
+    back as the AOVs given, and the PNG (as stored: straight alpha) as OCIO's own display
+    view of the EXR's premultiplied beauty divided by its alpha (background: 0), clipped
+    and rounded to 8 bits, with the beauty's alpha; frames written at once into one
+    folder keep their own pixels."""
+    import OpenImageIO as oiio
+    import PyOpenColorIO as OCIO
+
+    from pipeline.render.renderer import ocio_config, write_outputs
+
+    rng = np.random.default_rng(4)
+    frames = {f"f{i}": {"beauty": np.concatenate([rng.random((23, 31, 3), np.float32) * 3,
+                                                  rng.random((23, 31, 1), np.float32)], 2),
+                        "albedo": rng.random((23, 31, 3), np.float32)} for i in range(3)}
+    for images in frames.values():
+        images["beauty"][:4] = 0.0  # background rows: no coverage, no colour
+    with ThreadPoolExecutor(3) as pool:
+        infos = dict(zip(frames, pool.map(
+            lambda kv: write_outputs(tmp_path, kv[0], kv[1], "lin_ap1_scene",
+                                     "ocio://default"), frames.items()), strict=True))
+    config = ocio_config("ocio://default")
+    for name, images in frames.items():
+        exr = oiio.ImageBuf(str(tmp_path / f"{name}.exr")).get_pixels(oiio.FLOAT)
+        np.testing.assert_array_equal(exr[..., :4], images["beauty"])
+        np.testing.assert_array_equal(exr[..., 4:], images["albedo"])
+        info = infos[name]
+        proc = config.getProcessor(OCIO.DisplayViewTransform(
+            src="lin_ap1_scene", display=info["display"],
+            view=info["view"])).getDefaultCPUProcessor()
+        alpha = exr[..., 3:4]
+        rgb = np.divide(exr[..., :3], alpha, out=np.zeros_like(exr[..., :3]),
+                        where=alpha > 0)  # the colour, not times coverage
+        proc.applyRGB(rgb.reshape(-1, 3))
+        want = np.rint(np.clip(np.concatenate([rgb, alpha], 2).astype(np.float64), 0, 1)
+                       * 255)
+        straight = oiio.ImageSpec()  # as stored: PNG's alpha is not premultiplied
+        straight.attribute("oiio:UnassociatedAlpha", 1)
+        png = oiio.ImageBuf(str(tmp_path / f"{name}.png"), 0, 0, straight).get_pixels(
+            oiio.UINT8)
+        np.testing.assert_array_equal(png, want.astype(np.uint8))
 
 
 def test_surface_flux_in_bands_is_the_whole_textures_sum() -> None:
