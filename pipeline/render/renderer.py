@@ -207,11 +207,13 @@ def texels_per_pixel(points: NDArray[Any], tris: NDArray[Any], uv: NDArray[Any],
 
 
 def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
-                           texel: NDArray[np.intp] | None = None, period: int = 2
+                           texel: NDArray[np.intp] | None = None, period: int = 2,
+                           normal: NDArray[np.float32] | None = None
                            ) -> dict[str, NDArray[np.float32]]:
     """Each light's per-texel visibility from interleaved shadow rays of ``period``,
     reconstructed in texture space (``filter_interleaved``) and returned per covered
-    texel (``texel``: the points' flat indices, in their order; by default row order)."""
+    texel (``texel``: the points' flat indices, in their order; by default row order).
+    ``normal``: the maps' normal map where they let it go (:func:`normal_map`)."""
     covered = maps.triangle >= 0
     if texel is None:
         texel = np.flatnonzero(covered)
@@ -221,8 +223,19 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     vis = visibility_planes(len(paths), covered.shape)
     for i, p in enumerate(paths):
         visibility_plane(res.visibility[p], res.unshadowed[p], texel, vis[i])
-    filtered = filter_interleaved(vis, None, maps.surface[1], at=texel, period=period)
+    filtered = filter_interleaved(vis, None, maps.surface[1] if normal is None else normal,
+                                  at=texel, period=period)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
+
+
+def normal_map(normals: NDArray[np.float32], texel: NDArray[np.intp],
+               shape: tuple[int, int]) -> NDArray[np.float32]:
+    """The (H, W, 3) normal map of ``shape`` from its covered texels' rows (``normals``
+    at flat indices ``texel``), zero elsewhere as :func:`~.texture_maps.rasterize` leaves
+    it: the same map, made again from the rows the irradiance keeps."""
+    out = np.zeros((*shape, 3), np.float32)
+    out.reshape(-1, 3)[texel] = normals
+    return out
 
 
 def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
@@ -638,7 +651,13 @@ class Renderer:
         tex.albedo = albedo
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
-                    rays: RayScene, dome_textures: dict[str, NDArray[np.float32]]) -> None:
+                    rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
+                    layout: Future[DiffusionLayout] | None = None) -> None:
+        """``tex``'s irradiance and visibility maps. In a render's last frame the
+        position and normal maps go once the texels' rows are taken and the seam layout
+        (``layout``, beside) is made (:meth:`_release_surface_after`): 0.4 GB at texture
+        4096 that the rays' peak held; the filter reads a normal map made again from the
+        rows (:func:`normal_map`)."""
         opts = self.options
         maps = tex.maps
         covered = maps.triangle >= 0
@@ -646,6 +665,7 @@ class Renderer:
         period = tex.period
 
         def compute() -> Any:
+            nonlocal maps
             # covered texels by flat index and np.take / np.put: a boolean mask over
             # (H, W, 3) maps gathers and scatters rows several times slower. In blocks,
             # so that their rays go to Embree in a coherent order as they are
@@ -653,6 +673,9 @@ class Renderer:
             interleave = np.take(interleave_classes(covered.shape, period), texel) \
                 if opts.shadow_sampling != "full" else None
             positions, normals = (texel_rows(m, texel) for m in maps.surface)
+            if self.last_frame:
+                maps = maps.without_surface()
+                self._release_surface_after(tex, layout)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
@@ -664,6 +687,10 @@ class Renderer:
                     opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
                     opts.light_sequence, texel, coherent=True, period=period)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
+            visibility, entering = res.visibility, res.entering
+            filtered = bool(interleave is not None and res.interleaved and visibility)
+            normal = None if not filtered or maps.normal is not None else \
+                normal_map(normals, texel, covered.shape)
             # the rays are cast: the points go before the filter's planes (0.18 GB at
             # texture 4096)
             del positions, normals
@@ -672,10 +699,10 @@ class Renderer:
             side = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-gutter")
             gutter = side.submit(prepare_dilation, maps.coverage)  # made here, not there
             side.shutdown(wait=False)
-            visibility, entering = res.visibility, res.entering
-            if interleave is not None and res.interleaved and visibility:
-                visibility = interleaved_visibility(res, maps, texel, period)
+            if filtered:
+                visibility = interleaved_visibility(res, maps, texel, period, normal)
                 entering = res.entering_with(visibility)
+            del normal
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the per-light sums go before the planes and their push-pull (0.3 GB at
             # texture 4096)
@@ -758,15 +785,28 @@ class Renderer:
     def _release_surface(self, tex: SkinTextures, layout: DiffusionLayout | None) -> None:
         """Let ``tex``'s position and normal maps go, and ``layout``'s surface, once the
         irradiance and the seam layout that read them are made, in a render's last frame
-        (0.4 GB at texture 4096, during the diffusion's peak): out of the cache too, so
-        that a later render makes them again."""
+        (0.4 GB at texture 4096): out of the cache too, so that a later render makes them
+        again. Safe from the layout's thread (:meth:`_release_surface_after`)."""
         with self._cache_lock:
             for k in [k for k in self._cache if k.startswith(("texture_maps:",
                                                               "diffusion_layout:"))]:
                 del self._cache[k]
-        tex.maps = tex.maps.without_surface()
-        if layout is not None:
-            layout.release_surface()
+            tex.maps = tex.maps.without_surface()
+            if layout is not None:
+                layout.release_surface()
+
+    def _release_surface_after(self, tex: SkinTextures,
+                               layout: Future[DiffusionLayout] | None) -> None:
+        """:meth:`_release_surface` now, or where the seam layout that reads the surface
+        is still being made beside, by its thread as it ends (before the rays' peak of a
+        render whose tiles come from the tile store: the layout takes 1.5 s of the
+        irradiance's 4 s at texture 4096). A failed layout keeps the surface: its error
+        stops the frame."""
+        if layout is None:
+            self._release_surface(tex, None)
+            return
+        layout.add_done_callback(lambda done: None if done.exception() is not None else
+                                 self._release_surface(tex, done.result()))
 
     def _terms(self, tex: SkinTextures) -> tuple[DiffusionTerms, float]:
         """The blur schedule of a skin mesh's fits at its texture's median texel size
@@ -912,7 +952,7 @@ class Renderer:
         layout = self._layout_beside(log, tex, terms, rays, scene.meshes.index(mesh),
                                      scene_geometry_key(scene))
         try:
-            self._irradiance(log, scene, tex, rays, dome_textures or {})
+            self._irradiance(log, scene, tex, rays, dome_textures or {}, layout)
         except BaseException:
             if layout is not None:  # no thread outlives its frame, not even on errors
                 wait([layout])

@@ -66,10 +66,10 @@ class TextureMaps:
     def without_surface(self) -> TextureMaps:
         """These maps less the position and normal maps, which only the irradiance and
         the seam layout read (0.4 GB at texture 4096): for a render's last frame once
-        both are made. The coverage array stays the same one."""
+        both are made. The coverage array stays the same one (made now if it was not:
+        each copy would make its own)."""
         out = replace(self, position=None, normal=None)
-        if "coverage" in self.__dict__:  # cached_property's value, not a field
-            out.__dict__["coverage"] = self.__dict__["coverage"]
+        out.__dict__["coverage"] = self.coverage  # cached_property's value, not a field
         return out
 
     @cached_property

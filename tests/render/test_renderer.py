@@ -7,6 +7,7 @@ import json
 import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,11 +25,12 @@ from pipeline.render.renderer import (
     RenderOptions,
     diffusion_terms,
     interleave_classes,
+    normal_map,
     render_files,
     texels_per_pixel,
 )
 from pipeline.render.scene import Camera, Light
-from pipeline.render.texture_maps import rasterize
+from pipeline.render.texture_maps import rasterize, texel_rows, texels_in_blocks
 from pipeline.render.unwrap import triangulate, unwrap
 from pipeline.usd.io import open_stage_guarded
 from pipeline.usd.mesh import MeshData
@@ -350,14 +352,29 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
     renderer.last_frame = True
     layouts: list[DiffusionLayout] = []
     release = DiffusionLayout.release_surface
+    beside, albedo = Renderer._layout_beside, Renderer._albedo
+    at_albedo: list[bool] = []
 
     def spy(layout: DiffusionLayout) -> None:
         layouts.append(layout)
         release(layout)
 
+    def layout_done_first(self: Renderer, *args: Any) -> Any:
+        made = beside(self, *args)
+        if made is not None:
+            made.result()  # made before the irradiance takes the texels' rows
+        return made
+
+    def albedo_after_irradiance(self: Renderer, log: Any, scene: Any, tex: Any) -> None:
+        at_albedo.append(tex.maps.position is None and tex.maps.normal is None)
+        albedo(self, log, scene, tex)
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(DiffusionLayout, "release_surface", spy)
+        mp.setattr(Renderer, "_layout_beside", layout_done_first)
+        mp.setattr(Renderer, "_albedo", albedo_after_irradiance)
         got, _ = renderer.render()
+    assert at_albedo == [True]  # let go by the irradiance, not at the diffusion
     maps = renderer.textures[0].maps
     assert maps.position is None and maps.normal is None
     assert renderer.textures[0].irradiance_filled is None and not renderer.textures[0].visibility
@@ -379,6 +396,21 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
     _, log = renderer.render()
     renderer.close()
     assert "diffusion_layout" in log.seconds
+
+
+def test_a_normal_map_made_from_its_covered_rows_is_the_rasterized_one(lit_patch: Path
+                                                                        ) -> None:
+    """:func:`normal_map` (the filter's, once the maps let theirs go) from the covered
+    texels' rows is the rasterizer's normal map bit for bit, zeros off the charts
+    included."""
+    renderer = Renderer(open_stage_guarded(lit_patch), SMALL)
+    renderer.render()
+    maps = renderer.textures[0].maps
+    renderer.close()
+    texel = texels_in_blocks(maps.triangle >= 0)
+    made = normal_map(texel_rows(maps.normal, texel), texel, maps.triangle.shape)
+    assert made.dtype == maps.normal.dtype
+    np.testing.assert_array_equal(made, maps.normal)
 
 
 def test_the_layout_beside_the_irradiance_reports_errors_and_ends_with_the_frame(
