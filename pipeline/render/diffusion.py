@@ -956,7 +956,7 @@ class DiffusionLayout:
 
             def make(level: int, margin: int) -> None:
                 self.grid(level, margin, finest)
-                _release_freed_heap()  # before the next level's intermediates
+                release_freed_heap()  # before the next level's intermediates
 
             with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
                 list(pool.map(lambda km: make(*km), wanted))
@@ -1018,12 +1018,14 @@ class DiffusionLayout:
         return self._buffers[name]
 
 
-def _release_freed_heap() -> None:
+def release_freed_heap() -> None:
     """Hand the memory the C heap keeps after freeing back to the system (glibc's
     ``malloc_trim``; a no-op elsewhere). The layout's threads free gigabytes of
     intermediates of under 32 MB each, which glibc keeps in per-thread arenas for the
     next allocation there: the diffusion that follows allocates on the main thread and
-    the kept memory stays on top of it (as Dask's workers trim theirs)."""
+    the kept memory stays on top of it (as Dask's workers trim theirs). The renderer
+    calls it too before a diffusion: the main thread's own arenas held 0.18 GB freed by
+    the irradiance at texture 4096 (12 ms to hand back)."""
     try:
         libc = ctypes.CDLL(None)
         trim = libc.malloc_trim

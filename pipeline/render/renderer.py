@@ -41,7 +41,13 @@ from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
 from .blur_switch import TUNE_STREAM, direct_limits
-from .diffusion import DiffusionLayout, chart_layout, diffuse_gather, diffuse_prepared
+from .diffusion import (
+    DiffusionLayout,
+    chart_layout,
+    diffuse_gather,
+    diffuse_prepared,
+    release_freed_heap,
+)
 from .huge_pages import apply_to_numpy, huge_pages_choice
 from .lighting import (
     IrradianceResult,
@@ -896,6 +902,9 @@ class Renderer:
             if tex.at_hits is not None:  # the shading's lookups are taken
                 self._release_irradiance(tex)
             times_albedo_power(pre, albedo, a)
+            # the heap the frame's earlier steps freed goes back to the system before
+            # the diffusion's work buffers come (0.18 GB at texture 4096)
+            release_freed_heap()
             cov = maps.coverage
             # the blur moves flux, it must not create or lose it (chart borders included)
             flux_in = surface_flux(pre, maps)
