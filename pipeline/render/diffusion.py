@@ -62,7 +62,7 @@ from .recursive_blur import (
     quantized_log2,
 )
 from .texture_maps import REGION_WEIGHT_DTYPE, triangle_jacobians
-from .tile_store import TileStore, drop_resident_pages
+from .tile_store import TileStore, drop_resident_pages, extremes
 
 FloatImage = NDArray[np.float32]
 MIN_SIGMA_TEXELS = 0.25
@@ -731,8 +731,11 @@ class LevelGrid:
                 qu.dtype != np.int32 or qv.dtype != np.int32:
             raise ValueError("a level grid's blur indices of another shape")
         lo_u, hi_u, lo_v, hi_v = (int(b) for b in bounds)
+        # the checks read the mapped arrays a chunk at a time, their pages let go after
+        # each (a level's at once were 0.25 GB more at the irradiance's peak)
         for q, top in ((qu, hi_u - lo_u), (qv, hi_v - lo_v)):
-            if q.size and (int(q.min()) < 0 or int(q.max()) > top):
+            low, high = extremes(q) if q.size else (0, 0)
+            if int(low) < 0 or int(high) > top:
                 raise ValueError("a level grid's blur indices past their steps")
         self._index_arrays = (qu, qv)
         self._index = (lo_u, hi_u, lo_v, hi_v, host_buffer(qu), host_buffer(qv))
@@ -743,7 +746,7 @@ class LevelGrid:
         tu, tv = derived["texel_u"], derived["texel_v"]
         if tu.shape != (h, w) or tv.shape != (h, w) or tu.dtype != np.uint16 or \
                 tv.dtype != np.uint16 or su.ndim != 1 or sv.ndim != 1 or \
-                int(tu.max()) >= su.size or int(tv.max()) >= sv.size:
+                int(extremes(tu)[1]) >= su.size or int(extremes(tv)[1]) >= sv.size:
             raise ValueError("a level grid's direct blur steps of another shape")
         self._texel_arrays = (tu, tv)
         self._texel = TexelSteps(su, sv, host_buffer(tu), host_buffer(tv),
@@ -887,7 +890,7 @@ class DiffusionLayout:
         self.levels = _max_level(h, w) + 1
         self._grids: dict[tuple[int, int], LevelGrid] = {}
         self._buffers: dict[str, Any] = {}
-        self._mm = mm
+        self._mm: list[NDArray[np.float32]] | None = mm
         if not self.any_covered:
             return
         on_chart = [m[covered] for m in mm]
@@ -947,11 +950,15 @@ class DiffusionLayout:
         needed = sorted(self.level_margins(variances_mm2).items()) if self.any_covered \
             else []
         wanted = [km for km in needed if self._made(*km) is None and not self._load(*km)]
+        if wanted and self._surface_released:
+            raise RuntimeError(f"the layout's surface was let go (release_surface): no new "
+                               f"tiles (levels, margins {wanted}) can be made")
         if wanted:
             # two levels at once: each level's single-threaded parts (splats, distance
             # transforms, read taps) run beside the other's ray casts (the layout alone
             # at texture 2048: 13.6 -> 10.3 s; the render's peak RSS 2.56 -> 2.80 GB)
             c = self.charts
+            assert self._mm is not None
             finest = finest_texels(c.chart, c.n_charts, self._mm[0], self._mm[1], c.coverage)
 
             def make(level: int, margin: int) -> None:
@@ -977,6 +984,7 @@ class DiffusionLayout:
             if c.geometry is None and self._surface_released:
                 raise RuntimeError(f"the layout's surface was let go (release_surface): no "
                                    f"new tiles (level {level}, margin {margin}) can be made")
+            assert self._mm is not None
             tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
                                c.geometry, c.coverage, finest)
             key = (level, margin)
@@ -987,10 +995,12 @@ class DiffusionLayout:
 
     def release_surface(self) -> None:
         """Let the surface the margins are read from go (the texture's position and
-        normal maps, 0.4 GB at texture 4096) once the tiles every diffusion to come needs
-        are made: a render's last frame. Asking for other tiles then is an error."""
+        normal maps, 0.4 GB at texture 4096), and the stretch maps the tiles are made
+        from, once the tiles every diffusion to come needs are made: a render's last
+        frame. Asking for other tiles then is an error."""
         self.charts = replace(self.charts, geometry=None)
         self._surface_released = True
+        self._mm = None  # no tiles are made any more: the stretch maps may go too
 
     def _load(self, level: int, margin: int) -> bool:
         """Whether the store (if any) held tiles for (``level``, ``margin``), now made a

@@ -436,7 +436,7 @@ def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -
     total = 0.0
     for y in range(0, rgb.shape[0], rows):
         band = slice(y, y + rows)
-        area = maps.mm_per_texel_u[band] * maps.mm_per_texel_v[band] * maps.coverage[band]
+        area = maps.texel_area_mm2(band) * maps.coverage[band]
         total += float((area.ravel() @ rgb[band].reshape(-1, 3)).sum(dtype=np.float64))
     return total
 
@@ -680,7 +680,7 @@ class Renderer:
                 if opts.shadow_sampling != "full" else None
             positions, normals = (texel_rows(m, texel) for m in maps.surface)
             if self.last_frame:
-                maps = maps.without_surface()
+                maps = maps.without_surface(self._keeps_stretch())
                 self._release_surface_after(tex, layout)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
@@ -797,9 +797,15 @@ class Renderer:
             for k in [k for k in self._cache if k.startswith(("texture_maps:",
                                                               "diffusion_layout:"))]:
                 del self._cache[k]
-            tex.maps = tex.maps.without_surface()
+            tex.maps = tex.maps.without_surface(self._keeps_stretch())
             if layout is not None:
                 layout.release_surface()
+
+    def _keeps_stretch(self) -> bool:
+        """Whether a last frame's maps keep their stretch maps past the irradiance: for
+        the gather blur, which reads them, and for the stretch texture output."""
+        opts = self.options
+        return opts.blur == "gather" or "stretch" in opts.texture_outputs
 
     def _release_surface_after(self, tex: SkinTextures,
                                layout: Future[DiffusionLayout] | None) -> None:

@@ -50,9 +50,12 @@ class TextureMaps:
     triangle: NDArray[np.int32]  # (H, W), -1 where no triangle
     position: NDArray[np.float32] | None  # (H, W, 3) scene units; None once let go
     normal: NDArray[np.float32] | None  # (H, W, 3) unit length where covered; likewise
-    mm_per_texel_u: NDArray[np.float32]  # (H, W)
+    mm_per_texel_u: NDArray[np.float32]  # (H, W); see without_surface
     mm_per_texel_v: NDArray[np.float32]  # (H, W)
     region_weights: NDArray[np.float16] | None  # (H, W, R), see REGION_WEIGHT_DTYPE
+    tri_mm: NDArray[np.float32] | None = None
+    """(T, 2): each triangle's mm per texel along u and v, which the stretch maps hold at
+    its texels (:meth:`texel_area_mm2` once the maps let them go)."""
 
     @property
     def surface(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -63,14 +66,34 @@ class TextureMaps:
                                "(TextureMaps.without_surface)")
         return self.position, self.normal
 
-    def without_surface(self) -> TextureMaps:
+    def without_surface(self, keep_stretch: bool = True) -> TextureMaps:
         """These maps less the position and normal maps, which only the irradiance and
-        the seam layout read (0.4 GB at texture 4096): for a render's last frame once
-        both are made. The coverage array stays the same one (made now if it was not:
-        each copy would make its own)."""
-        out = replace(self, position=None, normal=None)
+        the seam layout read (0.4 GB at texture 4096), and unless ``keep_stretch`` the
+        stretch maps, which the layout and the blur schedule read (0.13 GB; the texel
+        areas are then made from the triangles' own, :meth:`texel_area_mm2`): for a
+        render's last frame once those are made. The coverage array stays the same one
+        (made now if it was not: each copy would make its own)."""
+        if not keep_stretch and self.tri_mm is None:
+            raise ValueError("these texture maps have no per-triangle stretch to keep "
+                             "their texel areas by")
+        out = replace(self, position=None, normal=None) if keep_stretch else \
+            replace(self, position=None, normal=None, mm_per_texel_u=None,
+                    mm_per_texel_v=None)
         out.__dict__["coverage"] = self.coverage  # cached_property's value, not a field
         return out
+
+    def texel_area_mm2(self, rows: slice = slice(None)) -> NDArray[np.float32]:
+        """(rows, W) each texel's area in mm^2, mm per texel along u times along v (0 off
+        the charts), from the stretch maps or, once they are let go, from the
+        triangles' (the same float32 products)."""
+        if self.mm_per_texel_u is not None and self.mm_per_texel_v is not None:
+            return self.mm_per_texel_u[rows] * self.mm_per_texel_v[rows]
+        assert self.tri_mm is not None  # without_surface keeps one or the other
+        t = self.triangle[rows]
+        at = np.maximum(t, 0)
+        area = self.tri_mm[at, 0] * self.tri_mm[at, 1]
+        area[t < 0] = 0.0
+        return area
 
     @cached_property
     def coverage(self) -> NDArray[np.float32]:
@@ -230,7 +253,8 @@ def rasterize_reference(
     if region_weights is not None:
         regions = np.zeros((size, size, region_weights.shape[1]), REGION_WEIGHT_DTYPE)
         regions[covered] = np.maximum(attrs[:, 6:], np.float32(0.0))
-    return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions)
+    return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions,
+                       np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32))
 
 
 _KERNEL = r"""
@@ -347,7 +371,8 @@ def rasterize(
     tq_buf, det_buf = (host_buffer(np.asarray(a, np.float64)) for a in (tq, det))
     corner_buf = host_buffer(np.asarray(tris, np.int32))
     table_buf = host_buffer(_attribute_table(points, normals, region_weights))
-    tri_mm_buf = host_buffer(np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32))
+    tri_mm = np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32)
+    tri_mm_buf = host_buffer(tri_mm)
     triangle = np.full((size, size), -1, np.int32)
     tri_buf = host_output(triangle)
     if n_tris:
@@ -367,4 +392,4 @@ def rasterize(
     for k, v in out.items():
         read_output(queue, bufs[k], v)
     return TextureMaps(size, triangle, out["position"], out["normal"], out["mm_u"],
-                       out["mm_v"], out["regions"] if n_regions else None)
+                       out["mm_v"], out["regions"] if n_regions else None, tri_mm)

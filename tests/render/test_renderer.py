@@ -377,6 +377,7 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
     assert at_albedo == [True]  # let go by the irradiance, not at the diffusion
     maps = renderer.textures[0].maps
     assert maps.position is None and maps.normal is None
+    assert maps.mm_per_texel_u is None and maps.mm_per_texel_v is None  # recursive blur
     assert renderer.textures[0].irradiance_filled is None and not renderer.textures[0].visibility
     assert renderer.textures[0].at_hits is not None
     with pytest.raises(RuntimeError, match="let go"):
@@ -757,6 +758,9 @@ def test_surface_flux_in_bands_is_the_whole_textures_sum() -> None:
     whole = float((area[..., None].astype(np.float64) * rgb).sum())
     for rows in (1, 7, 50, 256):  # bands that do and do not divide the rows
         assert surface_flux(rgb, maps, rows) == pytest.approx(whole, rel=1e-6)
+        # with the stretch maps let go, the areas from the triangles': the same sum
+        assert surface_flux(rgb, maps.without_surface(keep_stretch=False), rows) == \
+            surface_flux(rgb, maps, rows)
 
 
 def test_a_last_frame_writing_the_irradiance_texture_keeps_its_map(lit_patch: Path) -> None:

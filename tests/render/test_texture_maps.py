@@ -198,3 +198,24 @@ def test_device_rasteriser_equals_the_numpy_reference_on_the_face_scan() -> None
     args = (mesh.points, triangulate(mesh), layout.uv, layout.uv_indices.reshape(-1, 3), 512,
             mesh.meters_per_unit)
     _same_maps(rasterize(*args), rasterize_reference(*args))
+
+
+def test_texel_areas_from_the_triangles_are_the_stretch_maps_product() -> None:
+    """TextureMaps.texel_area_mm2 once the stretch maps are let go (each triangle's mm
+    per texel, which the maps hold at its texels) is their product bit for bit, zero off
+    the charts, for the device's maps and the numpy reference's; the maps let their
+    surface go and keep or drop the stretch as asked."""
+    pts, tris, uv = _grid(6, 30.0)
+    for maps in (rasterize(pts, tris, uv * 0.8 + 0.1, tris, 64, 0.001),
+                 rasterize_reference(pts, tris, uv * 0.8 + 0.1, tris, 64, 0.001)):
+        want = maps.mm_per_texel_u * maps.mm_per_texel_v
+        kept = maps.without_surface()
+        assert kept.position is None and kept.mm_per_texel_u is maps.mm_per_texel_u
+        let_go = maps.without_surface(keep_stretch=False)
+        assert let_go.mm_per_texel_u is None and let_go.mm_per_texel_v is None
+        assert let_go.coverage is maps.coverage
+        for rows in (slice(None), slice(3, 40)):
+            got = let_go.texel_area_mm2(rows)
+            assert got.dtype == np.float32
+            np.testing.assert_array_equal(got, want[rows])
+        assert (let_go.texel_area_mm2()[maps.triangle < 0] == 0).all()

@@ -407,6 +407,8 @@ def test_dropped_pages_leave_memory_not_values(tmp_path: Path) -> None:
     assert float(mapped["big"].sum(dtype=np.float64)) == pytest.approx(
         float(arrays["big"].sum(dtype=np.float64)))
     assert _resident_bytes(path) >= arrays["big"].nbytes
+    tile_store.drop_resident_pages([mapped["small"]])  # its own pages, not big's
+    assert _resident_bytes(path) >= arrays["big"].nbytes
     tile_store.drop_resident_pages([mapped["big"][::2], mapped["small"]])
     assert _resident_bytes(path) < 1 << 20
     np.testing.assert_array_equal(mapped["big"], arrays["big"])
@@ -417,3 +419,33 @@ def test_dropped_pages_leave_memory_not_values(tmp_path: Path) -> None:
     own = np.full(1 << 16, 5, np.uint8)
     tile_store.drop_resident_pages([held, own])
     assert (held == 7).all() and (own == 5).all()
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists() or
+                    not hasattr(mmap, "MADV_DONTNEED"), reason="Linux's smaps and madvise")
+def test_checks_of_mapped_arrays_read_them_a_chunk_at_a_time(tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch
+                                                            ) -> None:
+    """extremes and nondecreasing give numpy's answers over chunks (a chunk's edge
+    included: a decrease across it is found) and leave at most a chunk of a mapped
+    array resident (reading them whole left all 20 MB); other arrays are read as they
+    are."""
+    monkeypatch.setattr(tile_store, "CHECK_CHUNK", 1 << 16)
+    rng = np.random.default_rng(5)
+    rows = np.cumsum(rng.integers(0, 3, 3 << 20)).astype(np.int32)
+    index = rng.integers(-7, 900, (1500, 1300)).astype(np.int32)
+    path = tmp_path / "c.npz"
+    with path.open("wb") as f:
+        tile_store.write_aligned_npz(f, {"rows": rows, "index": index})
+    mapped = tile_store.mapped_npz(path)
+    assert tile_store.extremes(mapped["index"]) == (index.min(), index.max())
+    assert tile_store.nondecreasing(mapped["rows"])
+    # a chunk, and what the kernel maps around a read beyond the arrays' own pages (its
+    # page cache's large folios: up to 2 MiB), not the arrays' 20 MB
+    assert _resident_bytes(path) < (rows.nbytes + index.nbytes) // 4
+    for at in (1 << 16, (1 << 16) - 1, 5, rows.size - 1):  # at, beside a chunk's edge
+        bad = rows.copy()
+        bad[at] = bad[at - 1] - 1
+        assert not tile_store.nondecreasing(bad), at
+    assert tile_store.extremes(np.array([[3.5, -1.0]])) == (-1.0, 3.5)
+    assert tile_store.nondecreasing(np.arange(3)) and tile_store.nondecreasing(np.zeros(1))
