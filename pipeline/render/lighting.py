@@ -358,12 +358,13 @@ __kernel void sample_entering(__global const float *origin, __global const float
                               const float lx, const float ly, const float lz,
                               const float radius, __global const float *table,
                               const int table_n, const int k, __global float *dir,
-                              __global float *weight, __global float *ray_far, const int n)
+                              __global float *weight, __global float *ray_far, const int n,
+                              const int first)
 {
     const int i0 = (int)get_global_id(0) * 8;
     if (i0 >= n) return;
-    size_t at[8];  // each lane's point
-#define AT(l) at[l] = (size_t)(i0 + l < n ? i0 + l : n - 1);
+    size_t at[8];  // each lane's point: n of them from `first`, written from 0
+#define AT(l) at[l] = (size_t)first + (size_t)(i0 + l < n ? i0 + l : n - 1);
     LANES(AT)
     // (u, cos 2 pi v, sin 2 pi v) of the stratum: the host takes the trigonometry
     float8 u, cv, sv;
@@ -425,9 +426,9 @@ __kernel void sample_entering(__global const float *origin, __global const float
     const float8 wi = 3.141592653589793f / (float)COUNT * enters;
     const float8 far = wi > 0.0f ? INFINITY : 0.0f;
 #endif
-#define STORE(l) if (i0 + l < n) { \
-        dir[3 * at[l]] = dx.s##l; dir[3 * at[l] + 1] = dy.s##l; dir[3 * at[l] + 2] = dz.s##l; \
-        weight[at[l]] = wi.s##l; ray_far[at[l]] = far.s##l; }
+#define STORE(l) if (i0 + l < n) { const size_t o = (size_t)(i0 + l); \
+        dir[3 * o] = dx.s##l; dir[3 * o + 1] = dy.s##l; dir[3 * o + 2] = dz.s##l; \
+        weight[o] = wi.s##l; ray_far[o] = far.s##l; }
     LANES(STORE)
 }
 """
@@ -561,22 +562,27 @@ class LightSampler:
         self.device = None
 
     def entering_sample(self, k: int, rays_into: tuple[NDArray[np.float32], NDArray[np.float32]]
-                        | None = None) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
+                        | None = None, span: tuple[int, int] | None = None
+                        ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
         """:meth:`sample` with the weight times the fraction entering the skin,
         1 - rho_dt(n . d), and the shadow ray's length 0 where the weight is
         (:meth:`~.raytrace.RayScene.occluded` does not trace it): on the device for
         :data:`DEVICE_SAMPLED_KINDS` (a dome only untextured), else in numpy. Safe to
         call from several threads. ``rays_into``: (N, 3) and (N,) float32 arrays the
         device writes the directions and lengths into (a caller's own from sample to
-        sample), else new ones."""
+        sample), else new ones. ``span``: (first, count), the sample of those points only
+        (on the device; None: every point)."""
         if self.device is None:
+            if span is not None and span != (0, self.origins.shape[0]):
+                raise InputError("a span of points is sampled on the device only")
             d, dist, w = self.sample(k)
             enters = 1 - specular_albedo(np.einsum("ij,ij->i", self.normals, d),
                                          self.roughness, self.rho_s)
             w = w * (enters if w.ndim == 1 else enters[:, None])
             return d, np.where((w if w.ndim == 1 else w.max(axis=1)) > 0, dist,
                                np.float32(0)), w
-        dev, n = self.device, self.origins.shape[0]
+        dev = self.device
+        first, n = (0, self.origins.shape[0]) if span is None else span
         d_into, far_into = rays_into if rays_into is not None else (
             np.empty((n, 3), np.float32), np.empty(n, np.float32))
         out = (d_into, np.empty(n, np.float32), far_into)
@@ -590,7 +596,7 @@ class LightSampler:
             dev["kernel"](queue, (-(-n // SAMPLE_POINTS_PER_ITEM),), None, dev["origin"],
                           dev["normal"], dev["strata_uv"], dev["classes"], dev["sets"],
                           *self._sphere, dev["table"], dev["table_n"], np.int32(k), *buffers,
-                          np.int32(n))
+                          np.int32(n), np.int32(first))
         for buffer, array in zip(buffers, out, strict=True):
             read_output(queue, buffer, array)
         d, w, far = out
@@ -1056,6 +1062,22 @@ def irradiance_texture(
                             time.perf_counter() - start, frozenset(interleaved))
 
 
+RAY_BLOCK_POINTS = 1 << 21
+"""Points whose shadow rays of one sample go to Embree as one job of
+:func:`cast_samples` (a sampler on the device; a numpy one's samples go whole): each
+worker's rays (16 bytes a point) were a whole sample's, 0.25 GB between the two at
+texture 4096, at the irradiance's peak."""
+
+
+def ray_blocks(sampler: LightSampler) -> list[tuple[int, int]]:
+    """(first point, count) of each job of one sample of ``sampler``
+    (:data:`RAY_BLOCK_POINTS` at a time on the device; every point at once in numpy)."""
+    n = sampler.origins.shape[0]
+    if sampler.device is None or n <= RAY_BLOCK_POINTS:
+        return [(0, n)]
+    return [(s, min(RAY_BLOCK_POINTS, n - s)) for s in range(0, n, RAY_BLOCK_POINTS)]
+
+
 def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
                  ) -> Iterator[tuple[LightSampler, NDArray[Any], NDArray[Any], int]]:
     """Every sample of every sampler (each over its own points), its shadow rays cast:
@@ -1067,30 +1089,33 @@ def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
     between lights were a tenth of the demo face's interleaved pass at texture 1024,
     and the adaptive pass's lights, one call each, left 60 ms of its 1.1 s idle."""
     worker = threading.local()
-    most = max((s.origins.shape[0] for s in samplers), default=0)
+    spans = {id(s): ray_blocks(s) for s in samplers}
+    most = max((count for s in samplers for _, count in spans[id(s)]), default=0)
 
-    def one(job: tuple[LightSampler, int]) -> tuple[Any, Any, int]:
+    def one(job: tuple[LightSampler, int, tuple[int, int]]) -> tuple[Any, Any, int]:
         # light the specular lobe reflects does not enter the skin; rays of points
         # the sample does not light end where they start (length 0) and are not
         # traced, where gathering the others and scattering their answers back took
         # 25 ms a sample at texture 1024
-        sampler, k = job
-        n = sampler.origins.shape[0]
+        sampler, k, (first, n) = job
         if not hasattr(worker, "rays"):
             # each worker's rays from sample to sample in the same arrays (their first
             # rows for fewer points): fresh ones were 0.12 GB of new pages a sample at
             # texture 4096 (zeroed by the kernel)
             worker.rays = (np.empty((most, 3), np.float32), np.empty(most, np.float32))
-        d, dist, w = sampler.entering_sample(k, (worker.rays[0][:n], worker.rays[1][:n]))
+        d, dist, w = sampler.entering_sample(k, (worker.rays[0][:n], worker.rays[1][:n]),
+                                             (first, n) if sampler.device is not None
+                                             else None)
         cast = int(np.count_nonzero((w if w.ndim == 1 else w.max(axis=1)) > 0))
         if cast == 0:
             return None, None, 0
-        open_ = ~rays.occluded(sampler.origins, d, dist)
+        open_ = ~rays.occluded(sampler.origins[first:first + n], d, dist)
         # a product, not np.where (2.5 ms a sample on a random mask, 0.3 ms): the
         # weights are finite
         return w * (open_ if w.ndim == 1 else open_[:, None]), w, cast
 
-    jobs = [(sampler, k) for sampler in samplers for k in range(sampler.count)]
+    jobs = [(sampler, k, span) for sampler in samplers for k in range(sampler.count)
+            for span in spans[id(sampler)]]
     pool = ThreadPoolExecutor(2)
     try:
         results = pool.map(one, jobs)
@@ -1099,11 +1124,12 @@ def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
             lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
             unshadowed = np.zeros_like(lit)
             n_rays = 0
-            for _ in range(sampler.count):
+            for _, (first, count) in ((k, span) for k in range(sampler.count)
+                                      for span in spans[id(sampler)]):
                 got, full, cast = next(results)
                 if got is not None:
-                    lit += got
-                    unshadowed += full
+                    lit[first:first + count] += got
+                    unshadowed[first:first + count] += full
                     n_rays += cast
             sampler.close()
             if i == len(samplers) - 1:

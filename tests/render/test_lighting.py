@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
+from pipeline.render import lighting
 from pipeline.render.lighting import (
     LightSampler,
     beckmann_ndf,
@@ -601,6 +602,37 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
         np.testing.assert_allclose(dist[agree], np.where(lit, dist_ref, 0)[agree], rtol=1e-6)
         assert np.all(dist[w == 0] == 0) and np.all(dist[w > 0] > 0)
     assert np.all(np.isfinite(w)) and np.all(w >= 0)
+    # a span of the points (a block of cast_samples' jobs) is those rows of the whole,
+    # into arrays of its own length; the last span's work-item holds fewer than eight
+    for first, count in ((0, 8), (13, 2990), (4999, 4)):
+        d, dist, w = sampler.entering_sample(sampler.count - 1)
+        into = (np.empty((count, 3), np.float32), np.empty(count, np.float32))
+        d_s, dist_s, w_s = sampler.entering_sample(sampler.count - 1, into, (first, count))
+        assert d_s is into[0] and dist_s is into[1]
+        for part, whole in ((d_s, d), (dist_s, dist), (w_s, w)):
+            np.testing.assert_array_equal(part, whole[first:first + count])
+    with pytest.raises(InputError, match="on the device only"):
+        numpy.entering_sample(0, None, (1, 3))
+
+
+def test_shadow_rays_cast_in_blocks_give_the_same_sums(monkeypatch: pytest.MonkeyPatch
+                                                       ) -> None:
+    """cast_samples' jobs of RAY_BLOCK_POINTS points of a sample each (the device's
+    samplers; a numpy one's samples whole) give every light the same sums and rays bit
+    for bit as whole samples."""
+    rays, key, pos, nrm, classes = _plate_over_floor()
+    lights = [key, Light("/Fill", "dome", np.full(3, 0.2), np.eye(4)),
+              Light("/Sun", "distant", np.full(3, 0.5), np.eye(4), angle_deg=2.0)]
+    whole = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
+    monkeypatch.setattr(lighting, "RAY_BLOCK_POINTS", 1000)
+    assert len(lighting.ray_blocks(LightSampler(
+        key, pos, nrm, 16, np.random.default_rng(0)))) == -(-pos.shape[0] // 1000)
+    blocks = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
+    assert blocks.rays == whole.rays
+    np.testing.assert_array_equal(blocks.entering, whole.entering)
+    for path in ("/Key", "/Fill", "/Sun"):
+        np.testing.assert_array_equal(blocks.visibility[path], whole.visibility[path])
+        np.testing.assert_array_equal(blocks.unshadowed[path], whole.unshadowed[path])
 
 
 def test_device_ray_origins_equal_the_listing_bit_for_bit() -> None:
