@@ -76,7 +76,7 @@ from .opencl import (
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, prepare_dilation, push_pull
 from .raytrace import RayScene, offset_ray_origin
-from .resample import resample_bilinear
+from .resample import EXACT_POWERS, resample_bilinear, times_resampled_power
 from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
 from .tile_store import TileStore
@@ -376,20 +376,24 @@ def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) 
     return SkinUVs(stage, scene, mesh, uv, uv_tris, f"unwrapped ({why})")
 
 
-def albedo_map(mesh: SceneMesh, size: int, working: str) -> tuple[NDArray[np.float32], str]:
-    """The albedo in texture space (S, S, 3), linear in the working space, and what it
-    came from."""
+def albedo_map(mesh: SceneMesh, size: int, working: str
+               ) -> tuple[NDArray[np.float32], str, NDArray[np.float32]]:
+    """The albedo in texture space (S, S, 3), linear in the working space; what it came
+    from; and its own image in texture row order (the bottom row first; (1, 1, 3) for a
+    constant), from which it is resampled (:func:`~.resample.times_resampled_power`)."""
     albedo = mesh.albedo
     if albedo.texture is None:
-        return np.broadcast_to(np.asarray(albedo.constant, np.float32),
-                               (size, size, 3)).copy(), "constant diffuseColor"
+        constant = np.asarray(albedo.constant, np.float32)
+        return np.broadcast_to(constant, (size, size, 3)).copy(), "constant diffuseColor", \
+            constant.reshape(1, 1, 3)
     img = read_image(albedo.texture)
     cs = albedo.colorspace or (working if img.is_float else "srgb_tx")
     px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
     # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
-    bottom_up = np.asarray(px[::-1, :, :3], dtype=np.float32)
+    bottom_up = np.ascontiguousarray(px[::-1, :, :3], dtype=np.float32)
     albedo_tex = resample_bilinear(bottom_up, size)
-    return np.clip(albedo_tex, 0.0, None, out=albedo_tex), f"{albedo.texture} ({cs})"
+    return np.clip(albedo_tex, 0.0, None, out=albedo_tex), f"{albedo.texture} ({cs})", \
+        bottom_up
 
 
 # ------------------------------------------------------------------------ renderer
@@ -474,6 +478,9 @@ class SkinTextures:
     tris: NDArray[np.int32]
     maps: TextureMaps
     albedo: NDArray[np.float32] | None = None  # after the irradiance (Renderer._albedo)
+    albedo_image: NDArray[np.float32] | None = None
+    """The albedo's own image it is resampled from (:func:`albedo_map`): the weight after
+    the blur is made from it where a last frame let the albedo map go."""
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
@@ -485,8 +492,9 @@ class SkinTextures:
     """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
     instead of hashing the maps themselves."""
     at_hits: dict[str, dict[str, NDArray[np.float32]]] | None = None
-    """The irradiance (N, 3) and each light's visibility (N,) looked up at the camera's
-    hits on this mesh, 'center' and 'edge' rays (:meth:`Renderer._look_up_at_hits`):
+    """The irradiance (N, 3), the albedo (N, 3) and each light's visibility (N,) looked up
+    at the camera's hits on this mesh, 'center' and 'edge' rays
+    (:meth:`Renderer._look_up_at_hits`; what the AOVs asked for need):
     taken before the diffusion in a render's last frame, so that the maps could go
     (None: the shading looks them up in the maps)."""
     hit_uv: dict[str, NDArray[np.float64]] = field(default_factory=dict)
@@ -651,10 +659,12 @@ class Renderer:
     def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
         """``tex``'s albedo map: after the irradiance, which does not read it (a painted
         albedo held 201 MB beside the irradiance's peak at texture 4096)."""
-        albedo, source = self._cached(log, "albedo", tex.keys["albedo"], lambda: albedo_map(
-            tex.mesh, self.options.texture_size, scene.working_colorspace))
+        albedo, source, image = self._cached(log, "albedo", tex.keys["albedo"],
+                                             lambda: albedo_map(tex.mesh,
+                                                                self.options.texture_size,
+                                                                scene.working_colorspace))
         log.measures["albedo_source"] = source
-        tex.albedo = albedo
+        tex.albedo, tex.albedo_image = albedo, image
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
@@ -767,11 +777,14 @@ class Renderer:
     def _irradiance_lookups(self, tex: SkinTextures, uv: NDArray[Any]
                             ) -> dict[str, NDArray[np.float32]]:
         """What the shading reads of ``tex``'s irradiance ('irradiance', (N, 3), for its
-        AOV) and each light's visibility (by light path, (N,), for the specular lobe) at
-        texture coordinates ``uv`` (N, 2): the AOVs asked for need, bilinear lookups in
-        the push-pulled maps."""
+        AOV), albedo ('albedo', (N, 3), likewise) and each light's visibility (by light
+        path, (N,), for the specular lobe) at texture coordinates ``uv`` (N, 2): the AOVs
+        asked for need, bilinear lookups in the push-pulled maps and the albedo map."""
         wanted = set(self.options.aovs)
         got: dict[str, NDArray[np.float32]] = {}
+        if "albedo" in wanted:
+            assert tex.albedo is not None
+            got["albedo"] = bilinear(tex.albedo, uv)
         if "irradiance" in wanted:
             assert tex.irradiance_filled is not None
             got["irradiance"] = bilinear(tex.irradiance_filled, uv)
@@ -779,6 +792,15 @@ class Renderer:
             for path, plane in tex.visibility.items():
                 got[path] = bilinear(plane, uv)[:, 0]
         return got
+
+    def _release_albedo(self, tex: SkinTextures) -> None:
+        """Let ``tex``'s albedo map go (out of the cache too: a later render makes it
+        again) once its weight before the blur is taken and the shading's lookups of it
+        (:meth:`_look_up_at_hits`); its image stays for the weight after the blur
+        (:func:`~.resample.times_resampled_power`)."""
+        with self._cache_lock:
+            self._cache.pop(f"albedo:{tex.keys['albedo']}", None)
+        tex.albedo = None
 
     def _release_irradiance(self, tex: SkinTextures) -> None:
         """Let ``tex``'s filled irradiance and visibility maps go (out of the cache too:
@@ -902,12 +924,18 @@ class Renderer:
         assert albedo is not None
 
         def compute() -> Any:
+            nonlocal albedo
             a = opts.albedo_split
             pre = tex.irradiance  # a new array: weighted in place
             assert pre is not None
             if tex.at_hits is not None:  # the shading's lookups are taken
                 self._release_irradiance(tex)
             times_albedo_power(pre, albedo, a)
+            if tex.at_hits is not None and 1.0 - a in EXACT_POWERS:
+                # the weight after the blur comes from the albedo's own image: the map
+                # goes before the diffusion's peak (201 MB at texture 4096)
+                albedo = None
+                self._release_albedo(tex)
             # the heap the frame's earlier steps freed goes back to the system before
             # the diffusion's work buffers come (0.18 GB at texture 4096)
             release_freed_heap()
@@ -932,7 +960,12 @@ class Renderer:
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             flux_out = surface_flux(out, maps)
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            times_albedo_power(out, albedo, 1.0 - a)  # out is this task's own array
+            # out is this task's own array
+            if albedo is not None:
+                times_albedo_power(out, albedo, 1.0 - a)
+            else:
+                assert tex.albedo_image is not None
+                times_resampled_power(out, tex.albedo_image, 1.0 - a)
             out *= np.float32(1.0 / math.pi)
             radiance = dilate_charts(push_pull(out, cov, in_place=True), cov)
             return radiance, skipped, passes, energy, work
@@ -1156,11 +1189,10 @@ class Renderer:
                 leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
                 assert tex.radiance is not None
                 out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
-            if "albedo" in wanted:
-                assert tex.albedo is not None
-                out["albedo"][sel] = bilinear(tex.albedo, uv)
             at = self._irradiance_lookups(tex, uv) if tex.at_hits is None else \
                 tex.at_hits[part]
+            if "albedo" in wanted:
+                out["albedo"][sel] = at["albedo"]
             if "irradiance" in wanted:
                 out["irradiance"][sel] = at["irradiance"]
             if "region" in wanted and mesh.region_weights is not None:

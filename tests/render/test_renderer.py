@@ -378,6 +378,11 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
     maps = renderer.textures[0].maps
     assert maps.position is None and maps.normal is None
     assert maps.mm_per_texel_u is None and maps.mm_per_texel_v is None  # recursive blur
+    # the albedo map went after its weight before the blur and the shading's lookups: the
+    # weight after it was made from the albedo's own image
+    assert renderer.textures[0].albedo is None
+    assert renderer.textures[0].albedo_image is not None
+    assert "albedo" in renderer.textures[0].at_hits["center"]
     assert renderer.textures[0].irradiance_filled is None and not renderer.textures[0].visibility
     assert renderer.textures[0].at_hits is not None
     with pytest.raises(RuntimeError, match="let go"):

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.render.renderer import bilinear
-from pipeline.render.resample import resample_bilinear
+from pipeline.render.resample import resample_bilinear, times_resampled_power
 
 
 def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
@@ -35,3 +36,33 @@ def test_resample_bilinear_equals_openimageio_at_texel_centres() -> None:
         want = np.array([[buf.interppixel_NDC(float(u), float(v), "clamp") for u in centres]
                          for v in centres], np.float32)
         np.testing.assert_allclose(resample_bilinear(image, size), want, atol=3e-6)
+
+
+def test_times_resampled_power_is_numpys_weight_of_the_resampled_image() -> None:
+    """The albedo's weight after the blur made on the device from the albedo's own image
+    (times_resampled_power) is numpy's max(resample_bilinear, 0) ** power times the
+    texture, bit for bit for powers 1 and 1/2 (up, down, the same size, a 1 x 1 constant,
+    values below 0 clipped), and within float32 rounding for another power (OpenCL's
+    pow, checked against OpenImageIO's bilinear lookup, not this module's)."""
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(7)
+    for (h, w), size in (((37, 50), 64), ((64, 64), 64), ((90, 70), 40), ((1, 1), 16)):
+        image = (rng.random((h, w, 3)) * 1.2 - 0.1).astype(np.float32)
+        rgb = rng.random((size, size, 3)).astype(np.float32)
+        albedo = np.clip(resample_bilinear(image, size), 0.0, None)
+        for power, weight in ((0.5, np.sqrt(albedo)), (1.0, albedo)):
+            got = rgb.copy()
+            times_resampled_power(got, image, power)
+            np.testing.assert_array_equal(got, rgb * weight)
+    image = rng.random((20, 30, 3)).astype(np.float32)
+    buf = oiio.ImageBuf(oiio.ImageSpec(30, 20, 3, oiio.FLOAT))
+    buf.set_pixels(oiio.ROI(), image)
+    centres = (np.arange(24) + 0.5) / 24
+    looked_up = np.array([[buf.interppixel_NDC(float(u), float(v), "clamp") for u in centres]
+                          for v in centres], np.float64)
+    got = np.ones((24, 24, 3), np.float32)
+    times_resampled_power(got, image, 0.3)
+    np.testing.assert_allclose(got, looked_up ** 0.3, rtol=1e-5)
+    with pytest.raises(ValueError, match="float32"):
+        times_resampled_power(np.ones((4, 4, 3)), image, 0.5)
