@@ -30,6 +30,7 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from . import chart_tiles
 from .blur_switch import prefers_direct
 from .chart_tiles import (
     FinestTexels,
@@ -61,7 +62,12 @@ from .recursive_blur import (
     iir_kernels,
     quantized_log2,
 )
-from .texture_maps import REGION_WEIGHT_DTYPE, triangle_jacobians
+from .texture_maps import (
+    REGION_WEIGHT_DTYPE,
+    TEXEL_BARYCENTRICS,
+    TexelRegions,
+    triangle_jacobians,
+)
 from .tile_store import TileStore, drop_resident_pages, extremes
 
 FloatImage = NDArray[np.float32]
@@ -235,10 +241,11 @@ def unit_region_weights(region_weights: NDArray[np.float32]) -> NDArray[np.float
 
 def _check_terms(
     shape: tuple[int, int], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
-    region_weights: NDArray[Any] | None, present: NDArray[np.bool_] | None,
+    region_shape: tuple[int, ...] | None, present: NDArray[np.bool_] | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.bool_], BlurStats]:
-    """Checked variances (K,) and term weights (R, K, 3) against a (H, W[, R]) layout,
-    which terms any present region uses, and stats noting the regions no texel uses."""
+    """Checked variances (K,) and term weights (R, K, 3) against a (H, W[, R]) layout
+    (``region_shape``: its region weight map's shape, None without one), which terms any
+    present region uses, and stats noting the regions no texel uses."""
     h, w = shape
     v = np.asarray(variances_mm2, dtype=np.float64)
     tw = np.asarray(term_weights, dtype=np.float32)
@@ -247,12 +254,12 @@ def _check_terms(
     n_regions = tw.shape[0]
     if v.ndim != 1 or tw.shape != (n_regions, v.size, 3):
         raise InputError(f"term weights must be (R, K, 3) with K = {v.size}, got {tw.shape}")
-    if region_weights is None:
+    if region_shape is None:
         if n_regions != 1:
             raise InputError(f"{n_regions} regions' weights but no region weight map")
-    elif region_weights.shape != (h, w, n_regions):
+    elif tuple(region_shape) != (h, w, n_regions):
         raise InputError(f"region weights must be ({h}, {w}, {n_regions}), "
-                         f"got {region_weights.shape}")
+                         f"got {tuple(region_shape)}")
     if np.any(np.diff(v) < 0) or np.any(v <= 0) or not np.all(np.isfinite(v)):
         raise InputError(f"variances must be finite, > 0 and ascending, got {v.tolist()}")
     stats = BlurStats()
@@ -275,8 +282,8 @@ def _diffusion_inputs(
     e = _check_irradiance(irradiance)
     rw = None if region_weights is None else \
         unit_region_weights(np.asarray(region_weights, dtype=np.float32))
-    v, tw, used, stats = _check_terms(e.shape[:2], variances_mm2, term_weights, rw,
-                                      _region_presence(rw))
+    v, tw, used, stats = _check_terms(e.shape[:2], variances_mm2, term_weights,
+                                      None if rw is None else rw.shape, _region_presence(rw))
     return e, v, tw, rw, used, stats
 
 
@@ -418,9 +425,37 @@ INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw
 #define E_ONE(e, i) ((float4)((e)[3 * (size_t)(i)], (e)[3 * (size_t)(i) + 1], \
                               (e)[3 * (size_t)(i) + 2], 1.0f))
 
+#if BY_TRIANGLE  // the texel's region weights made again from its triangle's
+#define REGION_ARGS __global const int *triangle, __global const double *tq, \
+                    __global const double *inv_det, __global const int *corners, \
+                    __global const float *vw
+#else
+#define REGION_ARGS __global const ushort *rw
+#endif
+#if BY_TRIANGLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+""" + TEXEL_BARYCENTRICS + r"""
+// Triangle t's REGIONS weights at texel (x, y) as the rasterizer stores them (half
+// floats: texture_maps.TEXEL_BARYCENTRICS), as floats into r
+INL void texel_region_weights(const int t, const int x, const int y,
+                              __global const double *tq, __global const double *inv_det,
+                              __global const int *corners, __global const float *vw,
+                              float *r)
+{
+#pragma OPENCL FP_CONTRACT OFF
+    TEXEL_BARYCENTRICS(t, x, y, inv_det[t])
+    __global const float *p0 = vw + (size_t)corners[3 * t] * REGIONS;
+    __global const float *p1 = vw + (size_t)corners[3 * t + 1] * REGIONS;
+    __global const float *p2 = vw + (size_t)corners[3 * t + 2] * REGIONS;
+#pragma unroll
+    for (int k = 0; k < REGIONS; ++k)
+        r[k] = half_bits_to_float(region_weight_bits(p0, p1, p2, k, w0, b1, b2));
+}
+#endif
+
 __kernel void accumulate_terms(__global const float4 *terms, __global const float *e,
                                __constant int *jobs, __global float *rgb,
-                               __global const float *cover, __global const ushort *rw,
+                               __global const float *cover, REGION_ARGS,
                                __constant float4 *tw, __global const int *chart,
                                __global const float2 *shift, const int w, const int h,
                                const int n_jobs, const int acc_in)
@@ -438,8 +473,12 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
                         : (float4)(0.0f);
 #if REGIONS > 0
     float r[REGIONS];
+#if BY_TRIANGLE
+    texel_region_weights(triangle[i], x, y, tq, inv_det, corners, vw, r);
+#else
 #pragma unroll
     for (int k = 0; k < REGIONS; ++k) r[k] = half_bits_to_float(rw[(size_t)i * REGIONS + k]);
+#endif
     float total = 0.0f;
 #pragma unroll
     for (int k = 0; k < REGIONS; ++k) total += r[k];
@@ -532,14 +571,17 @@ __kernel void splat_level(__global const float *e, __global const float *share,
 
 
 @device_cache(maxsize=8)
-def pyramid_kernels(regions: int) -> dict[str, Any]:
-    """The accumulation kernel for ``regions`` region weights a texel (0: one region),
-    and the one that splats the finest texels into a level's chart tiles.
+def pyramid_kernels(regions: int, by_triangle: bool = False) -> dict[str, Any]:
+    """The accumulation kernel for ``regions`` region weights a texel (0: one region;
+    ``by_triangle``: made again from the texel's triangle, :class:`TexelRegions`, rather
+    than read from a map), and the one that splats the finest texels into a level's
+    chart tiles.
     The jobs (their pyramid levels, whether to add to the output) are arguments, not
     compiled in: a program a batch cost a cold render a PoCL build (0.3 s) and a
     compilation per batch, for no measurable gain in the accumulation itself."""
 
-    program = build(_PYRAMID_KERNEL, [f"-DREGIONS={regions}"])
+    program = build(_PYRAMID_KERNEL, [f"-DREGIONS={regions}",
+                                      f"-DBY_TRIANGLE={int(by_triangle and regions > 0)}"])
     return {"accumulate_terms": Kernel(program, "accumulate_terms", 2),
             "splat_level": Kernel(program, "splat_level", 2)}
 
@@ -862,7 +904,8 @@ class DiffusionLayout:
 
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None,
-                 charts: ChartLayout | None = None, store: TileStore | None = None) -> None:
+                 charts: ChartLayout | None = None, store: TileStore | None = None,
+                 texel_regions: TexelRegions | None = None) -> None:
         cov = np.asarray(coverage, dtype=np.float32)
         if cov.ndim != 2:
             raise InputError(f"coverage must be (H, W), got {cov.shape}")
@@ -878,6 +921,7 @@ class DiffusionLayout:
             raise InputError(f"region weights must be ({h}, {w}, R), "
                              f"got {self.region_weights.shape}")
         self.present = _region_presence(self.region_weights)
+        self.region_shape = None if self.region_weights is None else self.region_weights.shape
         covered = cov > 0
         self.any_covered = bool(covered.any())
         if charts is None:
@@ -913,8 +957,22 @@ class DiffusionLayout:
         self.share_buf = host_buffer(covered.astype(np.float32) if charts.coverage is None
                                      else charts.coverage)
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
-        self.rw_buf = host_buffer(self.region_weights if self.region_weights is not None
-                                  else np.zeros(1, REGION_WEIGHT_DTYPE))
+        # with the rasterizer's arrays (and doubles on the device) each texel's region
+        # weights are made again where the accumulation reads them, the same half floats:
+        # the layout does not hold the map (0.2 GB at texture 4096 with six regions)
+        tr = texel_regions
+        self.by_triangle = bool(self.n_regions and tr is not None
+                                and chart_tiles._device_has_doubles()
+                                and tr.triangle.shape == (h, w)
+                                and tr.weights.shape[1:] == (self.n_regions,))
+        if self.by_triangle:
+            assert tr is not None
+            self.region_args = tuple(host_buffer(a) for a in (tr.triangle, tr.tq, tr.inv_det,
+                                                              tr.corners, tr.weights))
+            self.region_weights = None
+        else:
+            self.region_args = (host_buffer(self.region_weights if self.region_weights
+                                            is not None else np.zeros(1, REGION_WEIGHT_DTYPE)),)
 
     def margin(self, level: int, sigma_mm: float) -> int:
         """Texels of margin a tile at ``level`` needs for a blur of ``sigma_mm`` (the
@@ -1267,7 +1325,7 @@ def diffuse_prepared(
     if e.shape[:2] != (h, w):
         raise InputError(f"irradiance must be ({h}, {w}, 3) like its layout, got {e.shape}")
     v, tw, used, stats = _check_terms((h, w), variances_mm2, term_weights,
-                                      layout.region_weights, layout.present)
+                                      layout.region_shape, layout.present)
     if not layout.any_covered or not used.any():
         if not layout.any_covered:
             stats.skipped.append("diffusion: no covered texel")
@@ -1314,7 +1372,7 @@ def diffuse_prepared(
              for var, k in jobs]
     batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
                                        max(TERM_BUFFER_MAX_BYTES, nbytes)))
-    kernels = pyramid_kernels(layout.n_regions)
+    kernels = pyramid_kernels(layout.n_regions, layout.by_triangle)
     tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
     tw4[..., :3] = np.stack(job_weights)
     mf = cl.mem_flags
@@ -1356,7 +1414,7 @@ def diffuse_prepared(
         kernels["accumulate_terms"](
             queue, (w, h), None, batch_terms, e_buf,
             cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
-            out_buf, layout.cover_buf, layout.rw_buf, tw_buf, layout.chart_buf, shift_buf,
+            out_buf, layout.cover_buf, *layout.region_args, tw_buf, layout.chart_buf, shift_buf,
             np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))
     read_output(queue, out_buf, out)
     stats.full_blurs = blurred_texels / (h * w)

@@ -690,7 +690,7 @@ class Renderer:
                 if opts.shadow_sampling != "full" else None
             positions, normals = (texel_rows(m, texel) for m in maps.surface)
             if self.last_frame:
-                maps = maps.without_surface(self._keeps_stretch())
+                maps = maps.without_surface(*self._keeps())
                 self._release_surface_after(tex, layout)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
@@ -819,15 +819,19 @@ class Renderer:
             for k in [k for k in self._cache if k.startswith(("texture_maps:",
                                                               "diffusion_layout:"))]:
                 del self._cache[k]
-            tex.maps = tex.maps.without_surface(self._keeps_stretch())
+            tex.maps = tex.maps.without_surface(*self._keeps())
             if layout is not None:
                 layout.release_surface()
 
-    def _keeps_stretch(self) -> bool:
-        """Whether a last frame's maps keep their stretch maps past the irradiance: for
-        the gather blur, which reads them, and for the stretch texture output."""
+    def _keeps(self) -> tuple[bool, bool]:
+        """Whether a last frame's maps keep their stretch maps and their region weights
+        past the irradiance: both for the gather blur, which reads them, and each for
+        its texture output (the recursive blur's layout makes the region weights again
+        per texel, :class:`~.texture_maps.TexelRegions`)."""
         opts = self.options
-        return opts.blur == "gather" or "stretch" in opts.texture_outputs
+        gather = opts.blur == "gather"
+        return (gather or "stretch" in opts.texture_outputs,
+                gather or "region" in opts.texture_outputs)
 
     def _release_surface_after(self, tex: SkinTextures,
                                layout: Future[DiffusionLayout] | None) -> None:
@@ -887,7 +891,8 @@ class Renderer:
             return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                                    maps.region_weights,
                                    chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
-                                                tex.uv_tris, rays, mesh_index), store)
+                                                tex.uv_tris, rays, mesh_index), store,
+                                   maps.texel_regions)
 
         def make() -> DiffusionLayout:
             prepared = self._cached(log, "diffusion_layout", key, layout, report=False)

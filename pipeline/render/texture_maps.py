@@ -41,6 +41,56 @@ region) exactly, blends within 2.4e-4. Float32 held 403 MB of the render's peak 
 texture 4096 with six regions, and on the benchmark host new memory costs about 2 s of
 CPU a GB in the kernel on first touch (docs/benchmarks.md)."""
 
+TEXEL_BARYCENTRICS = r"""
+// Triangle t's corners in texels (tq: x, y of each of its three corners, doubles)
+#define CORNERS(t) \
+    const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
+    const double e1x = tq[6 * (t) + 2] - ax, e1y = tq[6 * (t) + 3] - ay; \
+    const double e2x = tq[6 * (t) + 4] - ax, e2y = tq[6 * (t) + 5] - ay;
+// Texel (x, y)'s barycentrics b1, b2 in triangle t (inv_det: 1 / its corners'
+// determinant) in doubles, stored as float32 with w0 = 1 - b1 - b2, as the numpy
+// reference stores them
+#define TEXEL_BARYCENTRICS(t, x, y, inv_det) \
+    CORNERS(t) \
+    const double inv = (inv_det); \
+    const double dx = (double)(x) - ax, dy = (double)(y) - ay; \
+    const float b1 = (float)((dx * e2y - dy * e2x) * inv); \
+    const float b2 = (float)((e1x * dy - e1y * dx) * inv); \
+    const float w0 = 1.0f - b1 - b2;
+// Entry r of the corners' rows of weights (p0, p1, p2) at barycentrics (w0, b1, b2),
+// >= 0 (the barycentrics' slack leaves -1e-9 at edges; a plain comparison: PoCL calls
+// its fmax), rounded to a half float's bits to nearest even, as numpy's astype
+inline ushort region_weight_bits(__global const float *p0, __global const float *p1,
+                                 __global const float *p2, const int r, const float w0,
+                                 const float b1, const float b2)
+{
+#pragma OPENCL FP_CONTRACT OFF
+    const float v = p0[r] * w0 + p1[r] * b1 + p2[r] * b2;
+    return float_to_half_bits(v > 0.0f ? v : 0.0f);
+}
+"""
+"""OpenCL C (with HALF_BITS before it; TEXEL_BARYCENTRICS where fused multiply-adds
+are off): the rasterizer's barycentrics and region weights, which the diffusion makes
+again per texel (:class:`TexelRegions`)."""
+
+
+@dataclass(frozen=True)
+class TexelRegions:
+    """What each texel's region weights are made from, the rasterizer's own arrays: the
+    triangle map, each triangle's corners in texels (``tq`` (T, 6) float64) and 1 over
+    their determinant (``inv_det`` (T,), as the rasterizer divides: correctly rounded,
+    an OpenCL double's division too), its vertices (``corners`` (T, 3) int32) and each
+    vertex's
+    weights (``weights`` (V, R) float32). The diffusion makes the weights per texel from
+    them (:data:`TEXEL_BARYCENTRICS`, the same half floats as the maps' region weights)
+    rather than read the maps' (201 MB at texture 4096 with six regions)."""
+
+    triangle: NDArray[np.int32]
+    tq: NDArray[np.float64]
+    inv_det: NDArray[np.float64]
+    corners: NDArray[np.int32]
+    weights: NDArray[np.float32]
+
 
 @dataclass(frozen=True)
 class TextureMaps:
@@ -56,6 +106,8 @@ class TextureMaps:
     tri_mm: NDArray[np.float32] | None = None
     """(T, 2): each triangle's mm per texel along u and v, which the stretch maps hold at
     its texels (:meth:`texel_area_mm2` once the maps let them go)."""
+    texel_regions: TexelRegions | None = None
+    """What the region weights are made from (None: no regions, or the maps' own only)."""
 
     @property
     def surface(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -66,19 +118,24 @@ class TextureMaps:
                                "(TextureMaps.without_surface)")
         return self.position, self.normal
 
-    def without_surface(self, keep_stretch: bool = True) -> TextureMaps:
+    def without_surface(self, keep_stretch: bool = True, keep_regions: bool = True
+                        ) -> TextureMaps:
         """These maps less the position and normal maps, which only the irradiance and
-        the seam layout read (0.4 GB at texture 4096), and unless ``keep_stretch`` the
+        the seam layout read (0.4 GB at texture 4096); unless ``keep_stretch`` the
         stretch maps, which the layout and the blur schedule read (0.13 GB; the texel
-        areas are then made from the triangles' own, :meth:`texel_area_mm2`): for a
-        render's last frame once those are made. The coverage array stays the same one
-        (made now if it was not: each copy would make its own)."""
+        areas are then made from the triangles' own, :meth:`texel_area_mm2`); unless
+        ``keep_regions`` the region weights, which a layout made with
+        :attr:`texel_regions` makes again per texel (0.2 GB): for a render's last frame
+        once those are made. The coverage array stays the same one (made now if it was
+        not: each copy would make its own)."""
         if not keep_stretch and self.tri_mm is None:
             raise ValueError("these texture maps have no per-triangle stretch to keep "
                              "their texel areas by")
-        out = replace(self, position=None, normal=None) if keep_stretch else \
-            replace(self, position=None, normal=None, mm_per_texel_u=None,
-                    mm_per_texel_v=None)
+        out = replace(self, position=None, normal=None)
+        if not keep_stretch:
+            out = replace(out, mm_per_texel_u=None, mm_per_texel_v=None)
+        if not keep_regions:
+            out = replace(out, region_weights=None)
         out.__dict__["coverage"] = self.coverage  # cached_property's value, not a field
         return out
 
@@ -254,7 +311,8 @@ def rasterize_reference(
         regions = np.zeros((size, size, region_weights.shape[1]), REGION_WEIGHT_DTYPE)
         regions[covered] = np.maximum(attrs[:, 6:], np.float32(0.0))
     return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions,
-                       np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32))
+                       np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32),
+                       _texel_regions(triangle, tq, det, tris, region_weights))
 
 
 _KERNEL = r"""
@@ -262,10 +320,7 @@ _KERNEL = r"""
 #pragma OPENCL FP_CONTRACT OFF
 """ + HALF_BITS + r"""
 // the numpy reference's arithmetic, in the same order: no fused multiply-adds
-#define CORNERS(t) \
-    const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
-    const double e1x = tq[6 * (t) + 2] - ax, e1y = tq[6 * (t) + 3] - ay; \
-    const double e2x = tq[6 * (t) + 4] - ax, e2y = tq[6 * (t) + 5] - ay;
+""" + TEXEL_BARYCENTRICS + r"""
 
 // One triangle: every texel centre of its bounding box (clipped to the texture) that
 // its barycentrics put inside, with 1e-9 of slack, takes the triangle's index unless
@@ -317,12 +372,7 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
         mm_u[i] = 0.0f; mm_v[i] = 0.0f;
         return;
     }
-    CORNERS(t)
-    const double inv = 1.0 / det[t];
-    const double dx = (double)x - ax, dy = (double)y - ay;
-    const float b1 = (float)((dx * e2y - dy * e2x) * inv);
-    const float b2 = (float)((e1x * dy - e1y * dx) * inv);
-    const float w0 = 1.0f - b1 - b2;
+    TEXEL_BARYCENTRICS(t, x, y, 1.0 / det[t])
     __global const float *p0 = table + (size_t)corners[3 * t] * channels;
     __global const float *p1 = table + (size_t)corners[3 * t + 1] * channels;
     __global const float *p2 = table + (size_t)corners[3 * t + 2] * channels;
@@ -334,12 +384,8 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
     const float len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
     const float scale = 1.0f / (len > 1e-12f ? len : 1e-12f);
     for (int c = 0; c < 3; ++c) normal[3 * i + c] = n[c] * scale;
-    for (int r = 0; r < n_regions; ++r) {
-        // >= 0: the barycentrics' slack leaves -1e-9 at edges (a plain comparison: PoCL
-        // calls its fmax); rounded to nearest even, as numpy's astype
-        const float v = p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2;
-        regions[i * n_regions + r] = float_to_half_bits(v > 0.0f ? v : 0.0f);
-    }
+    for (int r = 0; r < n_regions; ++r)
+        regions[i * n_regions + r] = region_weight_bits(p0, p1, p2, 6 + r, w0, b1, b2);
     mm_u[i] = tri_mm[2 * t]; mm_v[i] = tri_mm[2 * t + 1];
 }
 """
@@ -368,8 +414,11 @@ def rasterize(
     n_regions = 0 if region_weights is None else int(np.shape(region_weights)[1])
 
     # over the host arrays: each is kept (named) until the queue is done with it
-    tq_buf, det_buf = (host_buffer(np.asarray(a, np.float64)) for a in (tq, det))
-    corner_buf = host_buffer(np.asarray(tris, np.int32))
+    tq, det, tris = (np.ascontiguousarray(a, t) for a, t in ((tq, np.float64),
+                                                          (det, np.float64),
+                                                          (tris, np.int32)))
+    tq_buf, det_buf = host_buffer(tq), host_buffer(det)
+    corner_buf = host_buffer(tris)
     table_buf = host_buffer(_attribute_table(points, normals, region_weights))
     tri_mm = np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32)
     tri_mm_buf = host_buffer(tri_mm)
@@ -392,4 +441,22 @@ def rasterize(
     for k, v in out.items():
         read_output(queue, bufs[k], v)
     return TextureMaps(size, triangle, out["position"], out["normal"], out["mm_u"],
-                       out["mm_v"], out["regions"] if n_regions else None, tri_mm)
+                       out["mm_v"], out["regions"] if n_regions else None, tri_mm,
+                       _texel_regions(triangle, tq, det, tris, region_weights))
+
+
+def _texel_regions(triangle: NDArray[np.int32], tq: NDArray[np.float64],
+                   det: NDArray[np.float64], tris: NDArray[Any],
+                   region_weights: NDArray[Any] | None) -> TexelRegions | None:
+    if region_weights is None:
+        return None
+    return TexelRegions(triangle, np.ascontiguousarray(tq, np.float64).reshape(-1, 6),
+                        _reciprocal(np.asarray(det, np.float64)),
+                        np.ascontiguousarray(tris, np.int32),
+                        np.ascontiguousarray(region_weights, np.float32))
+
+
+def _reciprocal(det: NDArray[np.float64]) -> NDArray[np.float64]:
+    """1 / det (inf for a degenerate triangle's 0: it claims no texel)."""
+    with np.errstate(divide="ignore"):
+        return 1.0 / det

@@ -466,3 +466,44 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
     through_terms, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     assert "terms" in asked
     np.testing.assert_array_equal(alone, through_terms)
+
+
+def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
+    """A layout given the rasterizer's arrays (TexelRegions) makes each texel's region
+    weights where the accumulation reads them: the same diffusion bit for bit as one
+    reading the maps' half floats (three regions, blends of two and of three), without
+    holding the map; on a device without doubles it reads the map."""
+    from pipeline.render import chart_tiles
+    from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
+    from pipeline.render.renderer import diffusion_terms
+    from pipeline.render.texture_maps import rasterize
+
+    from ..render_scenes import exact_fit, grid_patch
+
+    fits = [exact_fit(name, DEON_2007_SKIN.variances_mm2[:4] * s, DEON_2007_SKIN.weights[:4])
+            for name, s in (("a", 1.0), ("b", 3.0), ("c", 0.5))]
+    pts, tris, uv = grid_patch(24, 40.0)
+    # three ramps that overlap: some texels blend two regions, some all three
+    t = np.clip((pts[:, :2] + 4.0) / 8.0, 0.0, 1.0)
+    weights = np.stack([(1 - t[:, 0]) * (1 - t[:, 1]), t[:, 0], (1 - t[:, 0]) * t[:, 1]], 1)
+    maps = rasterize(pts, tris, uv * 0.9 + 0.05, tris, 192, 0.001, weights)
+    assert maps.texel_regions is not None and maps.region_weights is not None
+    blends = (maps.region_weights > 0).sum(axis=-1)
+    assert (blends == 2).any() and (blends == 3).any()
+    terms = diffusion_terms(fits)
+    rng = np.random.default_rng(4)
+    e = (rng.random((192, 192, 3)) * maps.coverage[..., None]).astype(np.float32)
+    layouts = [DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                               maps.region_weights, texel_regions=regions)
+               for regions in (None, maps.texel_regions)]
+    assert not layouts[0].by_triangle and layouts[0].region_weights is not None
+    assert layouts[1].by_triangle == chart_tiles._device_has_doubles()
+    if layouts[1].by_triangle:
+        assert layouts[1].region_weights is None
+    want, got = (diffuse_prepared(layout, e, terms.variances_mm2, terms.weights)[0]
+                 for layout in layouts)
+    np.testing.assert_array_equal(got, want)
+    assert float(np.abs(want).max()) > 0
+    # a render's last frame lets the maps' own go; what they are made from stays
+    let_go = maps.without_surface(keep_regions=False)
+    assert let_go.region_weights is None and let_go.texel_regions is maps.texel_regions
