@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
@@ -122,7 +123,9 @@ class SeamGeometry:
     """The surface the margins are read from: the Embree scene with the skin mesh in it
     (``mesh_index``), per triangle its chart, its UV corners in finest texel
     coordinates and J = dP / d texel (scene units), and per finest texel its triangle,
-    position and normal (scene units)."""
+    and its position and normal (scene units) from ``surface()`` when tiles are made
+    (a renderer lets its maps go before the irradiance's peak where the tile store holds
+    every tile, and makes them again should one not read back)."""
 
     rays: Any  # ..raytrace.RayScene
     mesh_index: int
@@ -130,8 +133,8 @@ class SeamGeometry:
     uv_corners: NDArray[np.float64]
     jacobian: NDArray[np.float64]
     triangle: NDArray[np.int32]
-    position: NDArray[np.float32]
-    normal: NDArray[np.float32]
+    surface: Callable[[], tuple[NDArray[np.float32], NDArray[np.float32]]]
+    """The (H, W, 3) position and normal maps."""
 
     @cached_property
     def texels_per_scene_unit(self) -> NDArray[np.float64]:
@@ -1086,9 +1089,10 @@ def _cell_frames(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     f = np.clip(np.rint(centre).astype(np.int64), 0, [w0 - 1, h0 - 1])
     texel = f[:, 1] * w0 + f[:, 0]
     jac = np.take(g.jacobian, g.triangle.reshape(-1)[texel], axis=0)  # per finest texel
-    point = np.take(g.position.reshape(-1, 3), texel, axis=0) + \
+    position, normal_map = g.surface()
+    point = np.take(position.reshape(-1, 3), texel, axis=0) + \
         np.einsum("mij,mj->mi", jac, centre - f)
-    normal = np.take(g.normal.reshape(-1, 3), texel, axis=0).astype(np.float64)
+    normal = np.take(normal_map.reshape(-1, 3), texel, axis=0).astype(np.float64)
     normal /= np.maximum(_norm_axis1(normal), 1e-30)[:, None]
     return point, normal, jac * scale
 

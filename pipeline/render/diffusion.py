@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
@@ -47,6 +48,7 @@ from .opencl import (
     HALF_BITS,
     DeviceTexture,
     Kernel,
+    RowBands,
     build,
     cl_context,
     device_buffer,
@@ -613,6 +615,9 @@ be far smaller than the rest (degenerate UV, on the demo face ten at 0.011 mm ag
 0.082 mm at this quantile and 0.105 mm median), and they would set a radius far wider
 than every other texel needs; they are blurred as if they were the quantile's size
 (narrower than their own sigma), and counted."""
+TILE_BAND_BYTES = 32 << 20
+"""The bytes of a stored level's mapped arrays a kernel reads at a time
+(:meth:`LevelGrid.row_bands`)."""
 LAYOUT_LEVELS_AT_ONCE = 2
 """Pyramid levels whose chart tiles :meth:`DiffusionLayout.prepare` makes side by side."""
 TERM_BUFFER_TEXTURES = 4
@@ -662,20 +667,29 @@ class ChartLayout:
 
 def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
                  uv: NDArray[Any], uv_tris: NDArray[np.int32], rays: Any,
-                 mesh_index: int) -> ChartLayout:
+                 mesh_index: int,
+                 surface: Callable[[], tuple[NDArray[np.float32], NDArray[np.float32]]]
+                 | None = None) -> ChartLayout:
     """The charts of a UV layout rasterised into ``maps`` (a
     :class:`~.texture_maps.TextureMaps`) and the surface across their seams: the chart
     of each texel, each texel's covered share, and for the margins the ray scene
     ``rays`` (a :class:`~.raytrace.RayScene` holding the mesh as ``mesh_index``), each
     triangle's chart, UV corners (texels) and Jacobian, and each texel's triangle,
-    position and normal."""
+    position and normal (``surface()``: where they come from when tiles are made; by
+    default ``maps.surface``, which the layout then holds)."""
     tri_chart, n_charts = uv_charts(uv_tris, uv.shape[0])
     chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)],
                      -1).astype(np.int32)
     corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
                                               maps.size)
+    if surface is None:
+        held = maps.surface
+
+        def surface() -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+            return held
+
     geometry = SeamGeometry(rays, mesh_index, tri_chart, corners, jacobian, maps.triangle,
-                            *maps.surface)
+                            surface)
     return ChartLayout(chart, n_charts, geometry,
                        texel_coverage(chart, maps.triangle, tri_chart, corners))
 
@@ -815,6 +829,21 @@ class LevelGrid:
         drop_resident_pages([t.owner, t.count, t.reads.rows, t.reads.xy,
                              *(self._index_arrays or ()), *(self._texel_arrays or ())])
 
+    def row_bands(self, *arrays: NDArray[Any]) -> RowBands | None:
+        """For tiles mapped from the store: bands of rows of ``arrays`` (each row-major
+        with the same number of rows) of about :data:`TILE_BAND_BYTES` of them together,
+        each band's pages let go once its kernel has run (None for tiles made here): the
+        level-0 kernels of the demo face at texture 4096 read 80-160 MB of them each."""
+        if not self.stored or not arrays or not arrays[0].size:
+            return None
+        rows = arrays[0].shape[0]
+        total = sum(a.nbytes for a in arrays)
+
+        def done(first: int, stop: int) -> None:
+            drop_resident_pages([a[first:stop] for a in arrays])
+
+        return RowBands(max(1, rows * TILE_BAND_BYTES // total), done)
+
     def splat_buffers(self) -> tuple[Any, Any, Any]:
         """Device buffers of the tiles' owners, counts and chart shifts (int2) for the
         ``splat_level`` kernel, made on first use (a CPU device reads them in place)."""
@@ -833,6 +862,17 @@ class LevelGrid:
             self._seams = False if seam_read_kernel() is None else \
                 (host_buffer(reads.rows), host_buffer(reads.xy))
         return self._seams or None
+
+    def index_arrays(self) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        """The arrays of :meth:`index`'s buffers (u in row layout, v transposed)."""
+        self.index()
+        assert self._index_arrays is not None
+        return self._index_arrays
+
+    def texel_arrays(self) -> tuple[NDArray[np.uint16], ...]:
+        """The arrays of :meth:`texel_steps`' index buffers (none without them)."""
+        self.texel_steps()
+        return self._texel_arrays or ()
 
     def index(self) -> tuple[int, int, int, int, Any, Any]:
         """(lowest u step, highest u step, lowest v step, highest v step, u index buffer
@@ -1051,6 +1091,17 @@ class DiffusionLayout:
                 self.store.save(tiles, grid.derived())
         return self._grids[key]
 
+    def makes_tiles(self, variances_mm2: NDArray[Any]) -> bool:
+        """Whether :meth:`prepare` for ``variances_mm2`` would make tiles here (reading
+        the surface): some level it needs is neither made nor in the store (one that
+        does not read back is made after all)."""
+        if not self.any_covered:
+            return False
+        stored = self.store.stored() if self.store is not None else []
+        return any(self._made(k, m) is None and not any(sk == k and sm >= m
+                                                        for sk, sm in stored)
+                   for k, m in self.level_margins(variances_mm2).items())
+
     def release_surface(self) -> None:
         """Let the surface the margins are read from go (the texture's position and
         normal maps, 0.4 GB at texture 4096), and the stretch maps the tiles are made
@@ -1118,17 +1169,39 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
     reads = grid.seam_buffers()
     out = np.empty((lh * lw, 4), np.float32) if reads is None else None
     splat_into = scratch if out is None else host_output(out)
-    kernel(queue, (lw, lh), None, irradiance, layout.share_buf, layout.chart_buf,
-           *grid.splat_buffers(), splat_into, np.int32(layout.width), np.int32(layout.height),
-           np.int32(lw), np.int32(lh), np.int32(grid.level))
+    args = (irradiance, layout.share_buf, layout.chart_buf, *grid.splat_buffers(), splat_into,
+            np.int32(layout.width), np.int32(layout.height), np.int32(lw), np.int32(lh),
+            np.int32(grid.level))
+    t = grid.tiles
+    bands = grid.row_bands(t.owner.reshape(lh, lw), t.count.reshape(lh, lw))
+    for first, stop in [(0, lh)] if bands is None else _bands(lh, bands.rows):
+        kernel(queue, (lw, stop - first), None, *args, global_offset=(0, first))
+        if bands is not None:
+            queue.finish()
+            bands.done(first, stop)
     if out is not None:
         read_output(queue, splat_into, out)
         return host_buffer(grid.tiles.read_across_seams(out))
     # the reads on the device too: scipy's product ran on one core (0.45 s of a 2.8 s
     # diffusion at texture 2048), the kernel on all, the same sums
-    seam_read_kernel()(queue, (lh * lw,), None, *reads, np.int32(lh), np.int32(lw),
-                       np.int32(grid.level > 0), scratch, np.int32(lh * lw), into)
+    args = (*reads, np.int32(lh), np.int32(lw), np.int32(grid.level > 0), scratch,
+            np.int32(lh * lw), into)
+    # a band of atlas rows at a time for stored tiles: their reads' rows and positions
+    rows, xy = t.reads.rows, t.reads.xy
+    per = max(1, lh * TILE_BAND_BYTES // (rows.nbytes + xy.nbytes)) if grid.stored else lh
+    for first, stop in _bands(lh, per):
+        seam_read_kernel()(queue, ((stop - first) * lw,), None, *args,
+                           global_offset=(first * lw,))
+        if grid.stored:
+            queue.finish()
+            drop_resident_pages([rows[first * lw:stop * lw + 1],
+                                 xy[int(rows[first * lw]):int(rows[stop * lw])]])
     return into
+
+
+def _bands(rows: int, per: int) -> list[tuple[int, int]]:
+    """(first, stop) of each band of ``per`` of ``rows`` rows."""
+    return [(r, min(r + per, rows)) for r in range(0, rows, per)]
 
 
 def _release_level(queue: Any, grid: LevelGrid) -> None:
@@ -1204,7 +1277,7 @@ def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst:
             assert steps is not None
             direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(direct[0]),
                                             fir_weight_table(direct[1]), steps.index_u,
-                                            steps.index_v)
+                                            steps.index_v, grid.row_bands(*grid.texel_arrays()))
             note = (f"level {grid.level}: {steps.smaller} texel sizes below the "
                     f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
             if steps.smaller and note not in stats.skipped:
@@ -1219,7 +1292,10 @@ def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst:
         lo_u, hi_u, lo_v, hi_v, index_u, index_v = grid.index()
         coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
                  for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
-        iir.blur(src, tmp, dst, lh, lw, coefs[0], coefs[1], index_u, index_v)
+        qu, qv = grid.index_arrays()
+        bands_u, bands_v = grid.row_bands(qu), grid.row_bands(qv)
+        iir.blur(src, tmp, dst, lh, lw, coefs[0], coefs[1], index_u, index_v,
+                 None if bands_u is None or bands_v is None else (bands_u, bands_v))
     stats.passes += 2
 
 

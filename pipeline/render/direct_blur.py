@@ -36,6 +36,7 @@ from .opencl import (
     STORE_MACRO,
     DeviceTexture,
     Kernel,
+    RowBands,
     build,
     cl_context,
     device_cache,
@@ -415,7 +416,7 @@ class DirectKernels:
         return _weights_buffer(round(float(sigma), 6))
 
     def _run(self, ru: int, rv: int, per_texel: bool, src: Any, dst: Any, height: int,
-             width: int, *weights: Any) -> None:
+             width: int, *weights: Any, row_bands: RowBands | None = None) -> None:
         if src is dst:
             raise InputError("direct blur: source and destination must differ")
         b = band_columns(rv)
@@ -424,10 +425,18 @@ class DirectKernels:
         strip = min(MAX_STRIP_ROWS, max(8 * rv, -(-height * bands // 64)))
         strips = -(-height // strip)
         stream = streams(height * width * 16)
-        self.kernel(ru, rv, stream, per_texel)(
-            self.queue, (bands, strips), (1, 1), src, dst, *weights,
-            cl.LocalMemory((2 * rv + 1) * b * 16), np.int32(width), np.int32(height),
-            np.int32(strip))
+        kernel = self.kernel(ru, rv, stream, per_texel)
+        args = (src, dst, *weights, cl.LocalMemory((2 * rv + 1) * b * 16), np.int32(width),
+                np.int32(height), np.int32(strip))
+        if row_bands is None:
+            kernel(self.queue, (bands, strips), (1, 1), *args)
+            return
+        per = max(1, row_bands.rows // strip)  # strips a launch
+        for s0 in range(0, strips, per):
+            s1 = min(s0 + per, strips)
+            kernel(self.queue, (bands, s1 - s0), (1, 1), *args, global_offset=(0, s0))
+            self.queue.finish()
+            row_bands.done(s0 * strip, min(s1 * strip, height))
 
     def blur(self, src: Any, dst: Any, height: int, width: int, sigma_u: float,
              sigma_v: float) -> None:
@@ -439,12 +448,13 @@ class DirectKernels:
 
     def blur_per_texel(self, src: Any, dst: Any, height: int, width: int,
                        table_u: NDArray[Any], table_v: NDArray[Any], index_u: Any,
-                       index_v: Any) -> None:
+                       index_v: Any, row_bands: RowBands | None = None) -> None:
         """Enqueue one 2D blur with per-texel weights: texel t uses row index_u[t] of
         ``table_u`` (N, RU + 1) along u and row index_v[t] of ``table_v`` along v (both
         index buffers uint16 in row layout; tables from :func:`fir_weight_table`). The
         tables are padded with zero weights to the :func:`built_radius` of the wider
-        one, which both axes then use (at most :data:`FIR_MAX_RADIUS_PER_TEXEL`)."""
+        one, which both axes then use (at most :data:`FIR_MAX_RADIUS_PER_TEXEL`).
+        ``row_bands``: run it a band of rows at a time (:class:`~.opencl.RowBands`)."""
         r = built_radius(max(table_u.shape[1], table_v.shape[1]) - 1)
         flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         bufs = []
@@ -453,7 +463,8 @@ class DirectKernels:
             wide = np.zeros((t.shape[0], r + 1, 4), np.float32)
             wide[:, :t.shape[1]] = np.asarray(t, np.float32)[..., None]
             bufs.append(cl.Buffer(self.ctx, flags, hostbuf=wide))
-        self._run(r, r, True, src, dst, height, width, *bufs, index_u, index_v)
+        self._run(r, r, True, src, dst, height, width, *bufs, index_u, index_v,
+                  row_bands=row_bands)
 
 
 @device_cache(maxsize=256)

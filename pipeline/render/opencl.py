@@ -107,6 +107,17 @@ def device_cache(maxsize: int = 1) -> Callable[[_T], _T]:
 
 
 @dataclass(frozen=True)
+class RowBands:
+    """A launch over many rows run ``rows`` rows at a time, ``done(first, stop)`` called
+    once each band has run (the queue finished): a kernel that reads arrays mapped from
+    the tile store lets each band's pages of them go then, so that it holds a band of
+    them, not all (:func:`~.tile_store.drop_resident_pages`)."""
+
+    rows: int
+    done: Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
 class Candidate:
     """One OpenCL device as the ICD loader lists it."""
 

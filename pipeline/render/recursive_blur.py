@@ -32,6 +32,7 @@ from .opencl import (
     STORE_MACRO,
     DeviceTexture,
     Kernel,
+    RowBands,
     build,
     cl_context,
     device_cache,
@@ -301,28 +302,40 @@ class IIRKernels:
                          hostbuf=np.ascontiguousarray(co))
 
     def run_pass(self, src: Any, dst: Any, n: int, lines: int, coefs: Any,
-                 index: Any = None) -> None:
+                 index: Any = None, row_bands: RowBands | None = None) -> None:
         """Enqueue one pass over ``lines`` rows of ``n`` float4 texels of ``src`` into
-        ``dst``, transposed."""
+        ``dst``, transposed; ``row_bands``: a band of rows at a time
+        (:class:`~.opencl.RowBands`)."""
         if n > self.max_line:
             raise InputError(f"recursive blur: lines of {n} texels exceed this device's "
                              f"local memory ({self.max_line} at most)")
         # the one-sigma kernel never reads `index`: any buffer fills the argument
         stream = streams(n * lines * 16)
-        _iir_kernel(index is None, stream)(
-            self.queue, (-(-lines // LINES_PER_ITEM),), (1,), src, dst,
-            cl.LocalMemory(16 * LINES_PER_ITEM * n), coefs if index is None else index,
-            coefs, np.int32(n), np.int32(lines))
+        kernel = _iir_kernel(index is None, stream)
+        items = -(-lines // LINES_PER_ITEM)
+        args = (src, dst, cl.LocalMemory(16 * LINES_PER_ITEM * n),
+                coefs if index is None else index, coefs, np.int32(n), np.int32(lines))
+        if row_bands is None:
+            kernel(self.queue, (items,), (1,), *args)
+            return
+        per = max(1, row_bands.rows // LINES_PER_ITEM)  # work items a launch
+        for i0 in range(0, items, per):
+            i1 = min(i0 + per, items)
+            kernel(self.queue, (i1 - i0,), (1,), *args, global_offset=(i0,))
+            self.queue.finish()
+            row_bands.done(i0 * LINES_PER_ITEM, min(i1 * LINES_PER_ITEM, lines))
 
     def blur(self, src: Any, tmp: Any, dst: Any, height: int, width: int,
-             coefs_u: Any, coefs_v: Any, index_u: Any = None, index_v_t: Any = None
-             ) -> None:
+             coefs_u: Any, coefs_v: Any, index_u: Any = None, index_v_t: Any = None,
+             row_bands: tuple[RowBands, RowBands] | None = None) -> None:
         """Enqueue one 2D blur of the (height, width) float4 image ``src`` into ``dst``
         (``tmp`` holds it transposed between the passes; src may be dst). Each texel
         uses entry index[texel] of the coefficient buffer (index_u in row layout,
-        index_v_t transposed), or entry 0 where the index is None."""
-        self.run_pass(src, tmp, width, height, coefs_u, index_u)
-        self.run_pass(tmp, dst, height, width, coefs_v, index_v_t)
+        index_v_t transposed), or entry 0 where the index is None. ``row_bands``: each
+        pass a band of its rows at a time (:class:`~.opencl.RowBands`)."""
+        bands_u, bands_v = row_bands or (None, None)
+        self.run_pass(src, tmp, width, height, coefs_u, index_u, bands_u)
+        self.run_pass(tmp, dst, height, width, coefs_v, index_v_t, bands_v)
 
 
 @device_cache()

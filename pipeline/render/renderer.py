@@ -445,6 +445,25 @@ def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -
     return total
 
 
+class _BothArrived:
+    """Calls ``then`` once both the irradiance and the layout have arrived (each counts
+    once, from any thread)."""
+
+    def __init__(self, then: Callable[[], None]) -> None:
+        self._then = then
+        self._lock = threading.Lock()
+        self._waiting = {"irradiance", "layout"}
+
+    def arrive(self, party: str) -> None:
+        with self._lock:
+            if party not in self._waiting:
+                return
+            self._waiting.discard(party)
+            last = not self._waiting
+        if last:
+            self._then()
+
+
 @dataclass
 class TaskLog:
     seconds: dict[str, float] = field(default_factory=dict)
@@ -668,12 +687,12 @@ class Renderer:
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
-                    layout: Future[DiffusionLayout] | None = None) -> None:
-        """``tex``'s irradiance and visibility maps. In a render's last frame the
-        position and normal maps go once the texels' rows are taken and the seam layout
-        (``layout``, beside) is made (:meth:`_release_surface_after`): 0.4 GB at texture
-        4096 that the rays' peak held; the filter reads a normal map made again from the
-        rows (:func:`normal_map`)."""
+                    release: _BothArrived | None = None) -> None:
+        """``tex``'s irradiance and visibility maps. In a render's last frame
+        (``release``) the position and normal maps go once the texels' rows are taken
+        and the seam layout beside needs them no more (:meth:`_release_maps`): 0.4 GB
+        at texture 4096 that the rays' peak held; the filter reads a normal map made
+        again from the rows (:func:`normal_map`)."""
         opts = self.options
         maps = tex.maps
         covered = maps.triangle >= 0
@@ -689,9 +708,9 @@ class Renderer:
             interleave = np.take(interleave_classes(covered.shape, period), texel) \
                 if opts.shadow_sampling != "full" else None
             positions, normals = (texel_rows(m, texel) for m in maps.surface)
-            if self.last_frame:
+            if release is not None:
                 maps = maps.without_surface(*self._keeps())
-                self._release_surface_after(tex, layout)
+                release.arrive("irradiance")
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, opts.roughness, opts.rho_s,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
@@ -810,18 +829,43 @@ class Renderer:
             self._cache.pop(f"irradiance:{tex.keys['irradiance']}", None)
         tex.irradiance_filled, tex.visibility = None, {}
 
-    def _release_surface(self, tex: SkinTextures, layout: DiffusionLayout | None) -> None:
-        """Let ``tex``'s position and normal maps go, and ``layout``'s surface, once the
-        irradiance and the seam layout that read them are made, in a render's last frame
-        (0.4 GB at texture 4096): out of the cache too, so that a later render makes them
-        again. Safe from the layout's thread (:meth:`_release_surface_after`)."""
+    def _release_maps(self, tex: SkinTextures) -> None:
+        """Let ``tex``'s position and normal maps go (and the stretch and region maps,
+        :meth:`_keeps`) in a render's last frame, once the irradiance has taken its
+        texels' rows and the seam layout beside needs them no more (0.4-0.7 GB at
+        texture 4096): out of the cache too, so that a later render makes them again.
+        Safe from the layout's thread (:class:`_BothArrived`)."""
         with self._cache_lock:
-            for k in [k for k in self._cache if k.startswith(("texture_maps:",
-                                                              "diffusion_layout:"))]:
+            for k in [k for k in self._cache if k.startswith("texture_maps:")]:
                 del self._cache[k]
             tex.maps = tex.maps.without_surface(*self._keeps())
-            if layout is not None:
-                layout.release_surface()
+
+    def _release_layout(self, layout: DiffusionLayout) -> None:
+        """Let a last frame's seam layout's surface go once its tiles are made
+        (:meth:`~.diffusion.DiffusionLayout.release_surface`; out of the cache: it makes
+        no tiles any more)."""
+        with self._cache_lock:
+            for k in [k for k in self._cache if k.startswith("diffusion_layout:")]:
+                del self._cache[k]
+            layout.release_surface()
+
+    def _release_surface(self, tex: SkinTextures, layout: DiffusionLayout | None) -> None:
+        """:meth:`_release_maps` and :meth:`_release_layout` (each again a no-op)."""
+        self._release_maps(tex)
+        if layout is not None:
+            self._release_layout(layout)
+
+    def _surface_of(self, tex: SkinTextures, meters_per_unit: float
+                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """``tex``'s position and normal maps for the seam layout's margins: its maps',
+        or where a last frame let them go as the tile store held every tile the layout
+        needs, and one then did not read back, rasterised again."""
+        maps = tex.maps
+        if maps.position is None:
+            maps = rasterize(tex.mesh.mesh.points, tex.tris, tex.uv, tex.uv_tris,
+                             self.options.texture_size, meters_per_unit,
+                             tex.mesh.region_weights)
+        return maps.surface
 
     def _keeps(self) -> tuple[bool, bool]:
         """Whether a last frame's maps keep their stretch maps and their region weights
@@ -832,19 +876,6 @@ class Renderer:
         gather = opts.blur == "gather"
         return (gather or "stretch" in opts.texture_outputs,
                 gather or "region" in opts.texture_outputs)
-
-    def _release_surface_after(self, tex: SkinTextures,
-                               layout: Future[DiffusionLayout] | None) -> None:
-        """:meth:`_release_surface` now, or where the seam layout that reads the surface
-        is still being made beside, by its thread as it ends (before the rays' peak of a
-        render whose tiles come from the tile store: the layout takes 1.5 s of the
-        irradiance's 4 s at texture 4096). A failed layout keeps the surface: its error
-        stops the frame."""
-        if layout is None:
-            self._release_surface(tex, None)
-            return
-        layout.add_done_callback(lambda done: None if done.exception() is not None else
-                                 self._release_surface(tex, done.result()))
 
     def _terms(self, tex: SkinTextures) -> tuple[DiffusionTerms, float]:
         """The blur schedule of a skin mesh's fits at its texture's median texel size
@@ -862,7 +893,8 @@ class Renderer:
                             terms.weights, opts.albedo_split, opts.scattering, opts.blur)
 
     def _layout_beside(self, log: TaskLog, tex: SkinTextures, terms: DiffusionTerms,
-                       rays: RayScene, mesh_index: int, geometry_key: str
+                       rays: RayScene, mesh_index: int, geometry_key: str,
+                       meters_per_unit: float, release: _BothArrived | None = None
                        ) -> Future[DiffusionLayout] | None:
         """The diffusion layout's task for a recursive blur, started on a thread to run
         beside the irradiance (None for other blurs): it reads only the texture maps and
@@ -877,31 +909,51 @@ class Renderer:
         margins it reaches (prepare). A cached layout that holds the terms' tiles is
         back at once. With ``options.layout_cache`` the tiles come from disk where an
         earlier process made them (:mod:`.tile_store`), and go there where this one
-        makes them; ``render.json``'s ``tile_store`` says which."""
-        opts, maps = self.options, tex.maps
+        makes them; ``render.json``'s ``tile_store`` says which.
+
+        In a render's last frame (``release``) the layout reads the surface maps only
+        where it makes tiles (:meth:`_surface_of`): where the store holds its tiles, or
+        once it knows it makes none, it says so, and the maps may go before the
+        irradiance's rays (:meth:`_release_maps`; a stored level that then does not read
+        back is made from maps rasterised again); its own surface goes as it ends."""
+        opts = self.options
         if not (opts.scattering and opts.blur == "recursive") or \
                 f"diffusion:{self._diffusion_key(tex, terms)}" in self._cache:
             return None  # a gather blur needs none; a cached diffusion needs none now
 
         key = content_hash(tex.keys["maps"], geometry_key, mesh_index)
 
-        def layout() -> DiffusionLayout:
-            store = None if opts.layout_cache is None else \
-                TileStore(Path(opts.layout_cache), key)
+        def layout(store: TileStore | None) -> DiffusionLayout:
+            # the maps less their surface, which the layout reads only to make tiles
+            maps = tex.maps.without_surface()
             return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                                    maps.region_weights,
                                    chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
-                                                tex.uv_tris, rays, mesh_index), store,
-                                   maps.texel_regions)
+                                                tex.uv_tris, rays, mesh_index,
+                                                lambda: self._surface_of(tex, meters_per_unit)),
+                                   store, maps.texel_regions)
 
         def make() -> DiffusionLayout:
-            prepared = self._cached(log, "diffusion_layout", key, layout, report=False)
-            # other terms (one profile for every region) add the tiles they lack
-            start = time.perf_counter()
-            prepared.prepare(terms.variances_mm2)
-            log.seconds["diffusion_layout"] = (log.seconds.get("diffusion_layout", 0.0)
-                                               + time.perf_counter() - start)
-            return prepared
+            try:
+                store = None if opts.layout_cache is None else \
+                    TileStore(Path(opts.layout_cache), key)
+                if release is not None and store is not None and store.stored():
+                    release.arrive("layout")  # a render made its tiles before
+                prepared = self._cached(log, "diffusion_layout", key, lambda: layout(store),
+                                        report=False)
+                if release is not None and not prepared.makes_tiles(terms.variances_mm2):
+                    release.arrive("layout")  # every tile it needs is made or stored
+                # other terms (one profile for every region) add the tiles they lack
+                start = time.perf_counter()
+                prepared.prepare(terms.variances_mm2)
+                log.seconds["diffusion_layout"] = (log.seconds.get("diffusion_layout", 0.0)
+                                                   + time.perf_counter() - start)
+                if release is not None:
+                    self._release_layout(prepared)
+                return prepared
+            finally:
+                if release is not None:
+                    release.arrive("layout")
 
         pool = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-layout")
         future = pool.submit(make)
@@ -1002,10 +1054,16 @@ class Renderer:
         diffusion and lets the maps go (:meth:`_look_up_at_hits`)."""
         tex = self._textures(log, scene, mesh)
         terms, texel_mm = self._terms(tex)
+        # a last frame lets the maps the irradiance and the layout read go once both are
+        # done with them
+        release = _BothArrived(lambda: self._release_maps(tex)) if self.last_frame else None
         layout = self._layout_beside(log, tex, terms, rays, scene.meshes.index(mesh),
-                                     scene_geometry_key(scene))
+                                     scene_geometry_key(scene), scene.meters_per_unit,
+                                     release)
+        if layout is None and release is not None:
+            release.arrive("layout")
         try:
-            self._irradiance(log, scene, tex, rays, dome_textures or {}, layout)
+            self._irradiance(log, scene, tex, rays, dome_textures or {}, release)
         except BaseException:
             if layout is not None:  # no thread outlives its frame, not even on errors
                 wait([layout])

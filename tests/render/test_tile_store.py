@@ -9,7 +9,10 @@ import json
 import mmap
 import os
 import re
+import threading
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -449,3 +452,106 @@ def test_checks_of_mapped_arrays_read_them_a_chunk_at_a_time(tmp_path: Path,
         assert not tile_store.nondecreasing(bad), at
     assert tile_store.extremes(np.array([[3.5, -1.0]])) == (-1.0, 3.5)
     assert tile_store.nondecreasing(np.arange(3)) and tile_store.nondecreasing(np.zeros(1))
+
+
+def test_stored_tiles_read_a_band_at_a_time_give_the_same_diffusion(
+        patch_layout, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The kernels that read a stored level's mapped arrays (the fill's splat and reads
+    across the seams, the recursive and the direct per-texel blurs) run a band of rows at
+    a time, each band's pages let go after it: the same diffused light bit for bit as the
+    tiles made in the process."""
+    from pipeline.render import diffusion
+
+    reference, _ = _diffused(patch_layout, None)
+    _diffused(patch_layout, TileStore(tmp_path, "patch"))  # made and saved
+    dropped: list[int] = []
+    drop = diffusion.drop_resident_pages
+
+    def counted(arrays: list[np.ndarray]) -> None:
+        dropped.append(len(arrays))
+        drop(arrays)
+
+    monkeypatch.setattr(diffusion, "drop_resident_pages", counted)
+    monkeypatch.setattr(diffusion, "TILE_BAND_BYTES", 4096)
+    store = TileStore(tmp_path, "patch")
+    out, layout = _diffused(patch_layout, store)
+    assert store.loaded and all(grid.stored for grid in layout._grids.values())
+    np.testing.assert_array_equal(out, reference)
+    levels = len(layout._grids)
+    assert len(dropped) > 10 * levels  # bands, not a drop a kernel
+
+
+def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool
+                  ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], Any, list[bool]]:
+    """The lit patch rendered into a tile store, then as a render's last frame from it
+    (``spoil``: every stored file damaged first): both frames, the second's log, and
+    whether its maps had let their surface go when its irradiance cast its rays."""
+    from dataclasses import replace
+
+    from pipeline.render import renderer as renderer_module
+
+    options = replace(SMALL, layout_cache=str(tmp_path / "layouts"))
+    first = Renderer(open_stage_guarded(lit_patch), options)
+    want, _ = first.render()
+    first.close()
+    if spoil:
+        for f in (tmp_path / "layouts").rglob("*.npz"):
+            f.write_bytes(f.read_bytes()[:100])
+    second = Renderer(open_stage_guarded(lit_patch), options)
+    second.last_frame = True
+    texs: list[Any] = []
+    let_go: list[bool] = []
+    irradiance, cast = Renderer._irradiance, renderer_module.irradiance_texture
+    prepare = DiffusionLayout.prepare
+    rays_began = threading.Event()
+
+    def prepare_after_the_rays(layout: DiffusionLayout, *args: Any) -> None:
+        rays_began.wait(10.0)  # the maps must go before the layout is done
+        prepare(layout, *args)
+
+    def keep_tex(self: Renderer, log: Any, scene: Any, tex: Any, *rest: Any) -> Any:
+        texs.append(tex)
+        return irradiance(self, log, scene, tex, *rest)
+
+    def rays(*args: Any, **kwargs: Any) -> Any:
+        # the layout's thread says at once that the store holds its tiles: wait for it
+        deadline = time.monotonic() + 5.0
+        while texs[0].maps.position is not None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        let_go.append(texs[0].maps.position is None and texs[0].maps.normal is None)
+        rays_began.set()
+        return cast(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DiffusionLayout, "prepare", prepare_after_the_rays)
+        mp.setattr(Renderer, "_irradiance", keep_tex)
+        mp.setattr(renderer_module, "irradiance_texture", rays)
+        got, log = second.render()
+    second.close()
+    return want, got, log, let_go
+
+
+def test_a_last_frame_from_stored_tiles_lets_the_maps_go_before_the_rays(
+        lit_patch: Path, tmp_path: Path) -> None:
+    """Where the tile store holds a layout's tiles, a render's last frame lets the
+    position and normal maps go once the irradiance has its texels' rows, before its
+    rays, not when the layout is done: the same images bit for bit."""
+    want, got, log, let_go = _render_twice(lit_patch, tmp_path, spoil=False)
+    assert let_go == [True]
+    assert log.measures["tile_store"]["loaded"] and not log.measures["tile_store"]["saved"]
+    for aov, image in want.items():
+        np.testing.assert_array_equal(got[aov], image, err_msg=aov)
+
+
+def test_a_stored_level_that_does_not_read_back_after_the_maps_went_is_made_again(
+        lit_patch: Path, tmp_path: Path) -> None:
+    """The maps went before the rays because the store listed the tiles; the files then
+    do not read back: the layout makes the tiles from maps rasterised again, and the
+    images are the same bit for bit."""
+    want, got, log, let_go = _render_twice(lit_patch, tmp_path, spoil=True)
+    assert let_go == [True]
+    notes = log.measures["tile_store"]["notes"]
+    assert any("did not read back" in n for n in notes), notes
+    assert log.measures["tile_store"]["saved"]
+    for aov, image in want.items():
+        np.testing.assert_array_equal(got[aov], image, err_msg=aov)
