@@ -31,7 +31,6 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from . import chart_tiles
 from .blur_switch import prefers_direct
 from .chart_tiles import (
     FinestTexels,
@@ -64,12 +63,7 @@ from .recursive_blur import (
     iir_kernels,
     quantized_log2,
 )
-from .texture_maps import (
-    REGION_WEIGHT_DTYPE,
-    TEXEL_BARYCENTRICS,
-    TexelRegions,
-    triangle_jacobians,
-)
+from .texture_maps import REGION_WEIGHT_DTYPE, TexelRegions, triangle_jacobians
 from .tile_store import TileStore, drop_resident_pages, extremes
 
 FloatImage = NDArray[np.float32]
@@ -428,30 +422,33 @@ INL float4 bspline_read(__global const float4 *level, float fx, float fy, int lw
                               (e)[3 * (size_t)(i) + 2], 1.0f))
 
 #if BY_TRIANGLE  // the texel's region weights made again from its triangle's
-#define REGION_ARGS __global const int *triangle, __global const double *tq, \
-                    __global const double *inv_det, __global const int *corners, \
-                    __global const float *vw
+#define REGION_ARGS __global const int *triangle, __global const float *frame, \
+                    __global const int *corners, __global const float *vw
 #else
 #define REGION_ARGS __global const ushort *rw
 #endif
 #if BY_TRIANGLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-""" + TEXEL_BARYCENTRICS + r"""
-// Triangle t's REGIONS weights at texel (x, y) as the rasterizer stores them (half
-// floats: texture_maps.TEXEL_BARYCENTRICS), as floats into r
+// Triangle t's REGIONS weights at texel (x, y) into r: its corners' weights (vw rows)
+// interpolated at the texel centre's barycentrics, >= 0, in float32 (frame: its first
+// corner and two edges in texels, 1 / their determinant; texture_maps.TexelRegions).
+// The rasterizer's doubles and half floats cost a quarter of the diffusion at texture
+// 4096 here (its four batches each make them); these are within 1e-5 of them.
 INL void texel_region_weights(const int t, const int x, const int y,
-                              __global const double *tq, __global const double *inv_det,
-                              __global const int *corners, __global const float *vw,
-                              float *r)
+                              __global const float *frame, __global const int *corners,
+                              __global const float *vw, float *r)
 {
-#pragma OPENCL FP_CONTRACT OFF
-    TEXEL_BARYCENTRICS(t, x, y, inv_det[t])
+    __global const float *f = frame + 8 * (size_t)t;
+    const float dx = (float)x - f[0], dy = (float)y - f[1];
+    const float b1 = (dx * f[5] - dy * f[4]) * f[6], b2 = (f[2] * dy - f[3] * dx) * f[6];
+    const float w0 = 1.0f - b1 - b2;
     __global const float *p0 = vw + (size_t)corners[3 * t] * REGIONS;
     __global const float *p1 = vw + (size_t)corners[3 * t + 1] * REGIONS;
     __global const float *p2 = vw + (size_t)corners[3 * t + 2] * REGIONS;
 #pragma unroll
-    for (int k = 0; k < REGIONS; ++k)
-        r[k] = half_bits_to_float(region_weight_bits(p0, p1, p2, k, w0, b1, b2));
+    for (int k = 0; k < REGIONS; ++k) {
+        const float v = p0[k] * w0 + p1[k] * b1 + p2[k] * b2;
+        r[k] = v > 0.0f ? v : 0.0f;
+    }
 }
 #endif
 
@@ -476,7 +473,7 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
 #if REGIONS > 0
     float r[REGIONS];
 #if BY_TRIANGLE
-    texel_region_weights(triangle[i], x, y, tq, inv_det, corners, vw, r);
+    texel_region_weights(triangle[i], x, y, frame, corners, vw, r);
 #else
 #pragma unroll
     for (int k = 0; k < REGIONS; ++k) r[k] = half_bits_to_float(rw[(size_t)i * REGIONS + k]);
@@ -997,17 +994,16 @@ class DiffusionLayout:
         self.share_buf = host_buffer(covered.astype(np.float32) if charts.coverage is None
                                      else charts.coverage)
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
-        # with the rasterizer's arrays (and doubles on the device) each texel's region
-        # weights are made again where the accumulation reads them, the same half floats:
-        # the layout does not hold the map (0.2 GB at texture 4096 with six regions)
+        # with the rasterizer's arrays each texel's region weights are made again where
+        # the accumulation reads them: the layout does not hold the map (0.2 GB at
+        # texture 4096 with six regions)
         tr = texel_regions
         self.by_triangle = bool(self.n_regions and tr is not None
-                                and chart_tiles._device_has_doubles()
                                 and tr.triangle.shape == (h, w)
                                 and tr.weights.shape[1:] == (self.n_regions,))
         if self.by_triangle:
             assert tr is not None
-            self.region_args = tuple(host_buffer(a) for a in (tr.triangle, tr.tq, tr.inv_det,
+            self.region_args = tuple(host_buffer(a) for a in (tr.triangle, tr.frame,
                                                               tr.corners, tr.weights))
             self.region_weights = None
         else:

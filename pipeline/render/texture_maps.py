@@ -41,53 +41,18 @@ region) exactly, blends within 2.4e-4. Float32 held 403 MB of the render's peak 
 texture 4096 with six regions, and on the benchmark host new memory costs about 2 s of
 CPU a GB in the kernel on first touch (docs/benchmarks.md)."""
 
-TEXEL_BARYCENTRICS = r"""
-// Triangle t's corners in texels (tq: x, y of each of its three corners, doubles)
-#define CORNERS(t) \
-    const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
-    const double e1x = tq[6 * (t) + 2] - ax, e1y = tq[6 * (t) + 3] - ay; \
-    const double e2x = tq[6 * (t) + 4] - ax, e2y = tq[6 * (t) + 5] - ay;
-// Texel (x, y)'s barycentrics b1, b2 in triangle t (inv_det: 1 / its corners'
-// determinant) in doubles, stored as float32 with w0 = 1 - b1 - b2, as the numpy
-// reference stores them
-#define TEXEL_BARYCENTRICS(t, x, y, inv_det) \
-    CORNERS(t) \
-    const double inv = (inv_det); \
-    const double dx = (double)(x) - ax, dy = (double)(y) - ay; \
-    const float b1 = (float)((dx * e2y - dy * e2x) * inv); \
-    const float b2 = (float)((e1x * dy - e1y * dx) * inv); \
-    const float w0 = 1.0f - b1 - b2;
-// Entry r of the corners' rows of weights (p0, p1, p2) at barycentrics (w0, b1, b2),
-// >= 0 (the barycentrics' slack leaves -1e-9 at edges; a plain comparison: PoCL calls
-// its fmax), rounded to a half float's bits to nearest even, as numpy's astype
-inline ushort region_weight_bits(__global const float *p0, __global const float *p1,
-                                 __global const float *p2, const int r, const float w0,
-                                 const float b1, const float b2)
-{
-#pragma OPENCL FP_CONTRACT OFF
-    const float v = p0[r] * w0 + p1[r] * b1 + p2[r] * b2;
-    return float_to_half_bits(v > 0.0f ? v : 0.0f);
-}
-"""
-"""OpenCL C (with HALF_BITS before it; TEXEL_BARYCENTRICS where fused multiply-adds
-are off): the rasterizer's barycentrics and region weights, which the diffusion makes
-again per texel (:class:`TexelRegions`)."""
-
-
 @dataclass(frozen=True)
 class TexelRegions:
-    """What each texel's region weights are made from, the rasterizer's own arrays: the
-    triangle map, each triangle's corners in texels (``tq`` (T, 6) float64) and 1 over
-    their determinant (``inv_det`` (T,), as the rasterizer divides: correctly rounded,
-    an OpenCL double's division too), its vertices (``corners`` (T, 3) int32) and each
-    vertex's
+    """What each texel's region weights are made from: the triangle map, each triangle's
+    ``frame`` ((T, 8) float32: its first corner in texels, its two edges from there, 1
+    over their determinant, 0), its vertices (``corners`` (T, 3) int32) and each vertex's
     weights (``weights`` (V, R) float32). The diffusion makes the weights per texel from
-    them (:data:`TEXEL_BARYCENTRICS`, the same half floats as the maps' region weights)
-    rather than read the maps' (201 MB at texture 4096 with six regions)."""
+    them in float32 (the texel centre's barycentrics, the corners' weights interpolated),
+    rather than read the maps' (201 MB at texture 4096 with six regions), which hold the
+    same within their half floats' rounding."""
 
     triangle: NDArray[np.int32]
-    tq: NDArray[np.float64]
-    inv_det: NDArray[np.float64]
+    frame: NDArray[np.float32]
     corners: NDArray[np.int32]
     weights: NDArray[np.float32]
 
@@ -320,7 +285,10 @@ _KERNEL = r"""
 #pragma OPENCL FP_CONTRACT OFF
 """ + HALF_BITS + r"""
 // the numpy reference's arithmetic, in the same order: no fused multiply-adds
-""" + TEXEL_BARYCENTRICS + r"""
+#define CORNERS(t) \
+    const double ax = tq[6 * (t)], ay = tq[6 * (t) + 1]; \
+    const double e1x = tq[6 * (t) + 2] - ax, e1y = tq[6 * (t) + 3] - ay; \
+    const double e2x = tq[6 * (t) + 4] - ax, e2y = tq[6 * (t) + 5] - ay;
 
 // One triangle: every texel centre of its bounding box (clipped to the texture) that
 // its barycentrics put inside, with 1e-9 of slack, takes the triangle's index unless
@@ -372,7 +340,12 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
         mm_u[i] = 0.0f; mm_v[i] = 0.0f;
         return;
     }
-    TEXEL_BARYCENTRICS(t, x, y, 1.0 / det[t])
+    CORNERS(t)
+    const double inv = 1.0 / det[t];
+    const double dx = (double)x - ax, dy = (double)y - ay;
+    const float b1 = (float)((dx * e2y - dy * e2x) * inv);
+    const float b2 = (float)((e1x * dy - e1y * dx) * inv);
+    const float w0 = 1.0f - b1 - b2;
     __global const float *p0 = table + (size_t)corners[3 * t] * channels;
     __global const float *p1 = table + (size_t)corners[3 * t + 1] * channels;
     __global const float *p2 = table + (size_t)corners[3 * t + 2] * channels;
@@ -384,8 +357,12 @@ __kernel void texel_attributes(__global const int *triangle, __global const doub
     const float len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
     const float scale = 1.0f / (len > 1e-12f ? len : 1e-12f);
     for (int c = 0; c < 3; ++c) normal[3 * i + c] = n[c] * scale;
-    for (int r = 0; r < n_regions; ++r)
-        regions[i * n_regions + r] = region_weight_bits(p0, p1, p2, 6 + r, w0, b1, b2);
+    for (int r = 0; r < n_regions; ++r) {
+        // >= 0: the barycentrics' slack leaves -1e-9 at edges (a plain comparison: PoCL
+        // calls its fmax); rounded to nearest even, as numpy's astype
+        const float v = p0[6 + r] * w0 + p1[6 + r] * b1 + p2[6 + r] * b2;
+        regions[i * n_regions + r] = float_to_half_bits(v > 0.0f ? v : 0.0f);
+    }
     mm_u[i] = tri_mm[2 * t]; mm_v[i] = tri_mm[2 * t + 1];
 }
 """
@@ -450,13 +427,13 @@ def _texel_regions(triangle: NDArray[np.int32], tq: NDArray[np.float64],
                    region_weights: NDArray[Any] | None) -> TexelRegions | None:
     if region_weights is None:
         return None
-    return TexelRegions(triangle, np.ascontiguousarray(tq, np.float64).reshape(-1, 6),
-                        _reciprocal(np.asarray(det, np.float64)),
-                        np.ascontiguousarray(tris, np.int32),
+    corners = np.asarray(tq, np.float64).reshape(-1, 3, 2)
+    frame = np.zeros((corners.shape[0], 8), np.float32)
+    frame[:, 0:2] = corners[:, 0]
+    frame[:, 2:4] = corners[:, 1] - corners[:, 0]
+    frame[:, 4:6] = corners[:, 2] - corners[:, 0]
+    with np.errstate(divide="ignore"):  # a degenerate triangle claims no texel
+        frame[:, 6] = 1.0 / np.asarray(det, np.float64)
+    return TexelRegions(triangle, frame, np.ascontiguousarray(tris, np.int32),
                         np.ascontiguousarray(region_weights, np.float32))
 
-
-def _reciprocal(det: NDArray[np.float64]) -> NDArray[np.float64]:
-    """1 / det (inf for a degenerate triangle's 0: it claims no texel)."""
-    with np.errstate(divide="ignore"):
-        return 1.0 / det

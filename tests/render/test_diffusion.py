@@ -470,10 +470,10 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
 
 def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
     """A layout given the rasterizer's arrays (TexelRegions) makes each texel's region
-    weights where the accumulation reads them: the same diffusion bit for bit as one
-    reading the maps' half floats (three regions, blends of two and of three), without
-    holding the map; on a device without doubles it reads the map."""
-    from pipeline.render import chart_tiles
+    weights where the accumulation reads them, in float32: the diffusion of one reading
+    the maps' half floats within their rounding (three regions, blends of two and of
+    three; measured 1.2e-4 relative at most on PoCL and Intel's runtime), without
+    holding the map."""
     from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
     from pipeline.render.renderer import diffusion_terms
     from pipeline.render.texture_maps import rasterize
@@ -497,13 +497,15 @@ def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
                                maps.region_weights, texel_regions=regions)
                for regions in (None, maps.texel_regions)]
     assert not layouts[0].by_triangle and layouts[0].region_weights is not None
-    assert layouts[1].by_triangle == chart_tiles._device_has_doubles()
-    if layouts[1].by_triangle:
-        assert layouts[1].region_weights is None
+    assert layouts[1].by_triangle and layouts[1].region_weights is None
     want, got = (diffuse_prepared(layout, e, terms.variances_mm2, terms.weights)[0]
                  for layout in layouts)
-    np.testing.assert_array_equal(got, want)
     assert float(np.abs(want).max()) > 0
+    np.testing.assert_allclose(got, want, rtol=5e-4, atol=1e-6)
+    # the regions matter here: one profile for all (the first's) is far from either
+    one = diffuse_prepared(layouts[0], e, terms.variances_mm2,
+                           np.broadcast_to(terms.weights[:1], terms.weights.shape))[0]
+    assert float(np.abs(one - want).max()) > 100 * float(np.abs(got - want).max())
     # a render's last frame lets the maps' own go; what they are made from stays
     let_go = maps.without_surface(keep_regions=False)
     assert let_go.region_weights is None and let_go.texel_regions is maps.texel_regions
