@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -923,9 +924,7 @@ class Renderer:
 
         key = content_hash(tex.keys["maps"], geometry_key, mesh_index)
 
-        def layout(store: TileStore | None) -> DiffusionLayout:
-            # the maps less their surface, which the layout reads only to make tiles
-            maps = tex.maps.without_surface()
+        def layout(maps: TextureMaps, store: TileStore | None) -> DiffusionLayout:
             return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                                    maps.region_weights,
                                    chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
@@ -935,12 +934,18 @@ class Renderer:
 
         def make() -> DiffusionLayout:
             try:
+                # the maps less their surface, which the layout reads only to make tiles,
+                # taken before it says it needs them no more: the release then lets go
+                # of the surface, and of the stretch and region maps the layout holds
+                # where it still does
+                maps = tex.maps.without_surface()
                 store = None if opts.layout_cache is None else \
                     TileStore(Path(opts.layout_cache), key)
                 if release is not None and store is not None and store.stored():
                     release.arrive("layout")  # a render made its tiles before
-                prepared = self._cached(log, "diffusion_layout", key, lambda: layout(store),
-                                        report=False)
+                prepared = self._cached(log, "diffusion_layout", key,
+                                        partial(layout, maps, store), report=False)
+                del maps
                 if release is not None and not prepared.makes_tiles(terms.variances_mm2):
                     release.arrive("layout")  # every tile it needs is made or stored
                 # other terms (one profile for every region) add the tiles they lack

@@ -502,12 +502,21 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool
     texs: list[Any] = []
     let_go: list[bool] = []
     irradiance, cast = Renderer._irradiance, renderer_module.irradiance_texture
-    prepare = DiffusionLayout.prepare
+    prepare, arrive = DiffusionLayout.prepare, renderer_module._BothArrived.arrive
     rays_began = threading.Event()
 
     def prepare_after_the_rays(layout: DiffusionLayout, *args: Any) -> None:
         rays_began.wait(10.0)  # the maps must go before the layout is done
         prepare(layout, *args)
+
+    def layout_goes_on_after_the_release(both: Any, party: str) -> None:
+        # the layout goes on only once the maps went (a tiny texture's rows are taken
+        # at once): it must have taken what it reads of them before it said so
+        arrive(both, party)
+        deadline = time.monotonic() + 5.0
+        while party == "layout" and (not texs or texs[0].maps.position is not None) \
+                and time.monotonic() < deadline:
+            time.sleep(0.005)
 
     def keep_tex(self: Renderer, log: Any, scene: Any, tex: Any, *rest: Any) -> Any:
         texs.append(tex)
@@ -524,6 +533,7 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(DiffusionLayout, "prepare", prepare_after_the_rays)
+        mp.setattr(renderer_module._BothArrived, "arrive", layout_goes_on_after_the_release)
         mp.setattr(Renderer, "_irradiance", keep_tex)
         mp.setattr(renderer_module, "irradiance_texture", rays)
         got, log = second.render()
