@@ -105,7 +105,9 @@ class Camera:
     def rays_at(self, px: NDArray[Any], py: NDArray[Any], width: int, height: int
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Rays through image points (``px``, ``py``) in pixels of a width x height image,
-        (0, 0) its top left corner."""
+        (0, 0) its top left corner. A perspective camera's origins are one point, a
+        read-only view of it for every ray (a copy held 24 MB at 1024 x 1024 pixels
+        through a render's peak)."""
         x = (np.asarray(px, np.float64) / width - 0.5) * self.horizontal_aperture
         # the image keeps square pixels: the vertical extent follows the aspect ratio
         vext = self.horizontal_aperture * height / width
@@ -117,7 +119,7 @@ class Camera:
         local = np.stack([x, y, np.full_like(x, -self.focal_length)], axis=-1)
         d = local @ self.rotation.T
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return np.broadcast_to(self.position, d.shape).copy(), d
+        return np.broadcast_to(np.asarray(self.position, np.float64), d.shape), d
 
     def key(self) -> str:
         return content_hash(self.position, self.rotation, self.focal_length,

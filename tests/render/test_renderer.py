@@ -640,6 +640,26 @@ def _ortho_scene(tmp_path: Path, height: float, asset: Path) -> Path:
     return scene_over(asset, tmp_path / f"ortho_{height:g}.usda", build)
 
 
+def test_a_perspective_cameras_rays_share_one_origin() -> None:
+    """A pinhole camera's rays start at its position, one read-only point for all of
+    them (no copy a ray); an orthographic camera's start on its film plane, each its own;
+    the directions are unit vectors through the pixel centres either way."""
+    persp = Camera("/Cam", np.array([1.0, 2.0, 100.0]), np.eye(3), 50.0, 36.0, 24.0)
+    origins, dirs = persp.rays(6, 4)
+    assert origins.shape == (24, 3) and origins.strides[0] == 0
+    assert not origins.flags.writeable
+    np.testing.assert_array_equal(origins, np.broadcast_to(persp.position, (24, 3)))
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, rtol=1e-12)
+    # the top-left pixel centre's ray: x = (0.5 / 6 - 0.5) * 36 mm, y = (0.5 - 0.5 / 4) * 24
+    want = np.array([(0.5 / 6 - 0.5) * 36.0, (0.5 - 0.5 / 4) * 24.0, -50.0])
+    np.testing.assert_allclose(dirs[0], want / np.linalg.norm(want), rtol=1e-12)
+    ortho = Camera("/Cam", np.array([0.0, 0.0, 100.0]), np.eye(3), 50.0, 150.0, 150.0,
+                   "orthographic")
+    o_origins, o_dirs = ortho.rays(6, 4)
+    assert o_origins.flags.writeable and len(np.unique(o_origins, axis=0)) == 24
+    np.testing.assert_array_equal(o_dirs, np.broadcast_to([0.0, 0.0, -1.0], (24, 3)))
+
+
 def test_an_orthographic_camera_sees_true_sizes_at_any_distance(tmp_path: Path) -> None:
     """A 40 mm square under a 150 mm wide orthographic view covers 40/150 of the frame
     each way, whatever the camera's height (USD's apertures in tenths of a unit)."""
