@@ -54,6 +54,7 @@ from .opencl import (
     device_cache,
     host_buffer,
     host_output,
+    in_bands,
     read_output,
 )
 from .recursive_blur import (
@@ -1093,9 +1094,10 @@ class DiffusionLayout:
         does not read back is made after all)."""
         if not self.any_covered:
             return False
-        stored = self.store.stored() if self.store is not None else []
-        return any(self._made(k, m) is None and not any(sk == k and sm >= m
-                                                        for sk, sm in stored)
+        store = self.store
+        stored = store.stored() if store is not None else []
+        return any(self._made(k, m) is None and
+                   (store is None or store.serving(k, m, stored) is None)
                    for k, m in self.level_margins(variances_mm2).items())
 
     def release_surface(self) -> None:
@@ -1169,12 +1171,9 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
             np.int32(layout.width), np.int32(layout.height), np.int32(lw), np.int32(lh),
             np.int32(grid.level))
     t = grid.tiles
-    bands = grid.row_bands(t.owner.reshape(lh, lw), t.count.reshape(lh, lw))
-    for first, stop in [(0, lh)] if bands is None else _bands(lh, bands.rows):
-        kernel(queue, (lw, stop - first), None, *args, global_offset=(0, first))
-        if bands is not None:
-            queue.finish()
-            bands.done(first, stop)
+    in_bands(queue, grid.row_bands(t.owner.reshape(lh, lw), t.count.reshape(lh, lw)), lh, 1,
+             lambda first, stop: kernel(queue, (lw, stop - first), None, *args,
+                                        global_offset=(0, first)))
     if out is not None:
         read_output(queue, splat_into, out)
         return host_buffer(grid.tiles.read_across_seams(out))
@@ -1184,20 +1183,13 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
             np.int32(lh * lw), into)
     # a band of atlas rows at a time for stored tiles: their reads' rows and positions
     rows, xy = t.reads.rows, t.reads.xy
-    per = max(1, lh * TILE_BAND_BYTES // (rows.nbytes + xy.nbytes)) if grid.stored else lh
-    for first, stop in _bands(lh, per):
-        seam_read_kernel()(queue, ((stop - first) * lw,), None, *args,
-                           global_offset=(first * lw,))
-        if grid.stored:
-            queue.finish()
-            drop_resident_pages([rows[first * lw:stop * lw + 1],
-                                 xy[int(rows[first * lw]):int(rows[stop * lw])]])
+    bands = RowBands(max(1, lh * TILE_BAND_BYTES // (rows.nbytes + xy.nbytes)),
+                     lambda a, b: drop_resident_pages([
+                         rows[a * lw:b * lw + 1], xy[int(rows[a * lw]):int(rows[b * lw])]])
+                     ) if grid.stored else None
+    in_bands(queue, bands, lh, 1, lambda first, stop: seam_read_kernel()(
+        queue, ((stop - first) * lw,), None, *args, global_offset=(first * lw,)))
     return into
-
-
-def _bands(rows: int, per: int) -> list[tuple[int, int]]:
-    """(first, stop) of each band of ``per`` of ``rows`` rows."""
-    return [(r, min(r + per, rows)) for r in range(0, rows, per)]
 
 
 def _release_level(queue: Any, grid: LevelGrid) -> None:

@@ -40,6 +40,7 @@ from .opencl import (
     build,
     cl_context,
     device_cache,
+    in_bands,
     jit_at_first_launch,
     streams,
 )
@@ -428,15 +429,8 @@ class DirectKernels:
         kernel = self.kernel(ru, rv, stream, per_texel)
         args = (src, dst, *weights, cl.LocalMemory((2 * rv + 1) * b * 16), np.int32(width),
                 np.int32(height), np.int32(strip))
-        if row_bands is None:
-            kernel(self.queue, (bands, strips), (1, 1), *args)
-            return
-        per = max(1, row_bands.rows // strip)  # strips a launch
-        for s0 in range(0, strips, per):
-            s1 = min(s0 + per, strips)
-            kernel(self.queue, (bands, s1 - s0), (1, 1), *args, global_offset=(0, s0))
-            self.queue.finish()
-            row_bands.done(s0 * strip, min(s1 * strip, height))
+        in_bands(self.queue, row_bands, strips, strip, lambda s0, s1: kernel(
+            self.queue, (bands, s1 - s0), (1, 1), *args, global_offset=(0, s0)))
 
     def blur(self, src: Any, dst: Any, height: int, width: int, sigma_u: float,
              sigma_v: float) -> None:

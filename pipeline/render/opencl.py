@@ -117,6 +117,22 @@ class RowBands:
     done: Callable[[int, int], None]
 
 
+def in_bands(queue: Any, bands: RowBands | None, units: int, rows_per_unit: int,
+             launch: Callable[[int, int], None]) -> None:
+    """``launch(first, stop)`` over ``units`` work units of ``rows_per_unit`` rows each:
+    all at once without ``bands``, else a band of them at a time, the queue finished and
+    ``bands.done`` told the band's rows after each."""
+    if bands is None:
+        launch(0, units)
+        return
+    per = max(1, bands.rows // rows_per_unit)
+    for first in range(0, units, per):
+        stop = min(first + per, units)
+        launch(first, stop)
+        queue.finish()
+        bands.done(first * rows_per_unit, stop * rows_per_unit)
+
+
 @dataclass(frozen=True)
 class Candidate:
     """One OpenCL device as the ICD loader lists it."""

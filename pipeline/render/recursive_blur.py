@@ -36,6 +36,7 @@ from .opencl import (
     build,
     cl_context,
     device_cache,
+    in_bands,
     jit_at_first_launch,
     streams,
 )
@@ -315,15 +316,8 @@ class IIRKernels:
         items = -(-lines // LINES_PER_ITEM)
         args = (src, dst, cl.LocalMemory(16 * LINES_PER_ITEM * n),
                 coefs if index is None else index, coefs, np.int32(n), np.int32(lines))
-        if row_bands is None:
-            kernel(self.queue, (items,), (1,), *args)
-            return
-        per = max(1, row_bands.rows // LINES_PER_ITEM)  # work items a launch
-        for i0 in range(0, items, per):
-            i1 = min(i0 + per, items)
-            kernel(self.queue, (i1 - i0,), (1,), *args, global_offset=(i0,))
-            self.queue.finish()
-            row_bands.done(i0 * LINES_PER_ITEM, min(i1 * LINES_PER_ITEM, lines))
+        in_bands(self.queue, row_bands, items, LINES_PER_ITEM, lambda i0, i1: kernel(
+            self.queue, (i1 - i0,), (1,), *args, global_offset=(i0,)))
 
     def blur(self, src: Any, tmp: Any, dst: Any, height: int, width: int,
              coefs_u: Any, coefs_v: Any, index_u: Any = None, index_v_t: Any = None,

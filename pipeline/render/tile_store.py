@@ -153,19 +153,28 @@ class TileStore:
             return []
         return sorted((int(m[1]), int(m[2])) for m in map(_FILE.match, names) if m)
 
+    def serving(self, level: int, margin: int,
+                stored: list[tuple[int, int]] | None = None) -> int | None:
+        """The narrowest stored margin of level ``level`` of at least ``margin`` (a wider
+        one holds what a narrower would), None where there is none; ``stored``: the
+        folder's listing, where the caller has it (:meth:`stored`)."""
+        fits = [m for (k, m) in (self.stored() if stored is None else stored)
+                if k == level and m >= margin]
+        return min(fits) if fits else None
+
     def load(self, level: int, margin: int,
              make: Callable[[TileLevel, dict[str, NDArray[Any]]], Made]) -> Made | None:
         """``make`` of level ``level``'s stored tiles with the narrowest margin of at
         least ``margin`` (a wider one holds what a narrower would) and the arrays stored
         with them (:meth:`save`'s ``derived``), or None. A file that does not read back
         whole, or whose arrays ``make`` refuses (ValueError, KeyError), is removed."""
-        fits = [m for (k, m) in self.stored() if k == level and m >= margin]
-        if not fits:
+        served = self.serving(level, margin)
+        if served is None:
             return None
-        path = self.entry / f"L{level}_M{min(fits)}.npz"
+        path = self.entry / f"L{level}_M{served}.npz"
         start = time.perf_counter()
         try:
-            made = make(*_read_tiles(path, level, min(fits)))
+            made = make(*_read_tiles(path, level, served))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             try:
                 path.unlink(missing_ok=True)
@@ -177,7 +186,7 @@ class TileStore:
             return None
         with self._lock:
             self.read_s += time.perf_counter() - start
-            self.loaded.append((level, min(fits)))
+            self.loaded.append((level, served))
         try:
             os.utime(self.entry)  # most recently used: the last to go
         except OSError:
