@@ -84,7 +84,7 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
         renderer.close()
     maps = tex.maps
     covered = maps.coverage > 0
-    pre = tex.irradiance * np.power(tex.albedo, 0.5)
+    pre = tex.irradiance * np.power(tex.albedo_map(), 0.5)
     texel_mm = float(np.median(np.sqrt(maps.mm_per_texel_u * maps.mm_per_texel_v)[covered]))
     irr = log.measures["irradiance"]
     row: dict[str, Any] = {"texture_size": size, "covered_texels": int(covered.sum()),

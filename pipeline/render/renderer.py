@@ -77,7 +77,7 @@ from .opencl import (
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, prepare_dilation, push_pull
 from .raytrace import RayScene, offset_ray_origin
-from .resample import EXACT_POWERS, resample_bilinear, times_resampled_power
+from .resample import EXACT_POWERS, resample_bilinear, resampled_texels, times_resampled_power
 from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
 from .tile_store import TileStore
@@ -248,16 +248,24 @@ def normal_map(normals: NDArray[np.float32], texel: NDArray[np.intp],
 def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
     """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
     size_v, size_u = texture.shape[:2]
+    flat = np.asarray(texture, np.float32).reshape(size_v * size_u, -1)
+    return bilinear_of(lambda i: flat[i], (size_v, size_u), uv)
+
+
+def bilinear_of(texels: Callable[[NDArray[np.int64]], NDArray[np.float32]],
+                shape: tuple[int, int], uv: NDArray[Any]) -> NDArray[np.float32]:
+    """:func:`bilinear` of a texture of ``shape`` (rows, columns) that ``texels`` gives
+    at flat texel indices (N,) as (N, C), rather than a map held whole."""
+    size_v, size_u = shape
     x = np.clip(np.asarray(uv[:, 0], np.float32) * size_u - 0.5, 0, size_u - 1)
     y = np.clip(np.asarray(uv[:, 1], np.float32) * size_v - 0.5, 0, size_v - 1)
     x0 = np.minimum(x.astype(np.int64), size_u - 2 if size_u > 1 else 0)
     y0 = np.minimum(y.astype(np.int64), size_v - 2 if size_v > 1 else 0)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     dx, dy = int(size_u > 1), (size_u if size_v > 1 else 0)
-    flat = np.asarray(texture, np.float32).reshape(size_v * size_u, -1)
     i = y0 * size_u + x0
-    top = flat[i] * (1 - fx) + flat[i + dx] * fx
-    bottom = flat[i + dy] * (1 - fx) + flat[i + dy + dx] * fx
+    top = texels(i) * (1 - fx) + texels(i + dx) * fx
+    bottom = texels(i + dy) * (1 - fx) + texels(i + dy + dx) * fx
     return top * (1 - fy) + bottom * fy
 
 
@@ -377,24 +385,36 @@ def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) 
     return SkinUVs(stage, scene, mesh, uv, uv_tris, f"unwrapped ({why})")
 
 
-def albedo_map(mesh: SceneMesh, size: int, working: str
-               ) -> tuple[NDArray[np.float32], str, NDArray[np.float32]]:
-    """The albedo in texture space (S, S, 3), linear in the working space; what it came
-    from; and its own image in texture row order (the bottom row first; (1, 1, 3) for a
-    constant), from which it is resampled (:func:`~.resample.times_resampled_power`)."""
+def albedo_image(mesh: SceneMesh, working: str) -> tuple[NDArray[np.float32], str]:
+    """The albedo's own image, linear in the working space, in texture row order (the
+    bottom row first; (1, 1, 3) for a constant), and what it came from. Its texture-space
+    map is the image resampled (:func:`albedo_texture`)."""
     albedo = mesh.albedo
     if albedo.texture is None:
-        constant = np.asarray(albedo.constant, np.float32)
-        return np.broadcast_to(constant, (size, size, 3)).copy(), "constant diffuseColor", \
-            constant.reshape(1, 1, 3)
+        return np.asarray(albedo.constant, np.float32).reshape(1, 1, 3), \
+            "constant diffuseColor"
     img = read_image(albedo.texture)
     cs = albedo.colorspace or (working if img.is_float else "srgb_tx")
     px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
     # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
-    bottom_up = np.ascontiguousarray(px[::-1, :, :3], dtype=np.float32)
-    albedo_tex = resample_bilinear(bottom_up, size)
-    return np.clip(albedo_tex, 0.0, None, out=albedo_tex), f"{albedo.texture} ({cs})", \
-        bottom_up
+    return np.ascontiguousarray(px[::-1, :, :3], dtype=np.float32), f"{albedo.texture} ({cs})"
+
+
+def albedo_texture(image: NDArray[np.float32], size: int) -> NDArray[np.float32]:
+    """The albedo map (S, S, 3) of :func:`albedo_image`'s ``image``: resampled to the
+    texel centres, bilinear, and no less than 0."""
+    out = resample_bilinear(image, size)
+    return np.clip(out, 0.0, None, out=out)
+
+
+def albedo_texels(image: NDArray[np.float32], size: int
+                  ) -> Callable[[NDArray[np.int64]], NDArray[np.float32]]:
+    """The texels of ``albedo_texture(image, size)`` at flat indices, the same floats,
+    for :func:`bilinear_of`: lookups without the map."""
+    def texels(index: NDArray[np.int64]) -> NDArray[np.float32]:
+        out = resampled_texels(image, size, index)
+        return np.clip(out, 0.0, None, out=out)
+    return texels
 
 
 # ------------------------------------------------------------------------ renderer
@@ -497,10 +517,14 @@ class SkinTextures:
     uv_tris: NDArray[np.int32]
     tris: NDArray[np.int32]
     maps: TextureMaps
-    albedo: NDArray[np.float32] | None = None  # after the irradiance (Renderer._albedo)
+    albedo: NDArray[np.float32] | None = None
+    """The albedo map (:func:`albedo_texture`), made only for a split whose powers
+    :func:`~.resample.times_resampled_power` does not take as numpy does
+    (:meth:`Renderer._albedo`)."""
     albedo_image: NDArray[np.float32] | None = None
-    """The albedo's own image it is resampled from (:func:`albedo_map`): the weight after
-    the blur is made from it where a last frame let the albedo map go."""
+    """The albedo's own image (:func:`albedo_image`; after the irradiance, which does not
+    read it): the split's weights and the shading's lookups are made from it, the same
+    floats as from the map, without the map (201 MB at texture 4096)."""
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
@@ -520,6 +544,13 @@ class SkinTextures:
     hit_uv: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     """The texture coordinates of those hits, by part, where they were taken: the
     shading reads them rather than making them again."""
+
+    def albedo_map(self) -> NDArray[np.float32]:
+        """The albedo map: the one made, else one made now from the image."""
+        if self.albedo is not None:
+            return self.albedo
+        assert self.albedo_image is not None
+        return albedo_texture(self.albedo_image, self.maps.triangle.shape[0])
 
     @property
     def irradiance(self) -> NDArray[np.float32] | None:
@@ -677,14 +708,19 @@ class Renderer:
         return interleave_period(per_pixel, points, opts.interleave_period), per_pixel
 
     def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
-        """``tex``'s albedo map: after the irradiance, which does not read it (a painted
-        albedo held 201 MB beside the irradiance's peak at texture 4096)."""
-        albedo, source, image = self._cached(log, "albedo", tex.keys["albedo"],
-                                             lambda: albedo_map(tex.mesh,
-                                                                self.options.texture_size,
-                                                                scene.working_colorspace))
+        """``tex``'s albedo image and, where the split's weights need it, its map (a
+        split of 0.5, the default, does not): after the irradiance, which does not read
+        them (a painted albedo's map held 201 MB beside the irradiance's peak at texture
+        4096; making it took 0.4 s)."""
+        key = tex.keys["albedo"]
+        image, source = self._cached(log, "albedo", key, lambda: albedo_image(
+            tex.mesh, scene.working_colorspace))
         log.measures["albedo_source"] = source
-        tex.albedo, tex.albedo_image = albedo, image
+        tex.albedo_image = image
+        a = self.options.albedo_split
+        if a not in EXACT_POWERS or 1.0 - a not in EXACT_POWERS:
+            tex.albedo = self._cached(log, "albedo_map", key, lambda: albedo_texture(
+                image, self.options.texture_size))
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
@@ -799,12 +835,15 @@ class Renderer:
         """What the shading reads of ``tex``'s irradiance ('irradiance', (N, 3), for its
         AOV), albedo ('albedo', (N, 3), likewise) and each light's visibility (by light
         path, (N,), for the specular lobe) at texture coordinates ``uv`` (N, 2): the AOVs
-        asked for need, bilinear lookups in the push-pulled maps and the albedo map."""
+        asked for need, bilinear lookups in the push-pulled maps and the albedo's (made
+        from its image where the map was not made)."""
         wanted = set(self.options.aovs)
         got: dict[str, NDArray[np.float32]] = {}
         if "albedo" in wanted:
-            assert tex.albedo is not None
-            got["albedo"] = bilinear(tex.albedo, uv)
+            assert tex.albedo_image is not None
+            size = self.options.texture_size
+            got["albedo"] = bilinear_of(albedo_texels(tex.albedo_image, size), (size, size),
+                                        uv)
         if "irradiance" in wanted:
             assert tex.irradiance_filled is not None
             got["irradiance"] = bilinear(tex.irradiance_filled, uv)
@@ -819,7 +858,7 @@ class Renderer:
         (:meth:`_look_up_at_hits`); its image stays for the weight after the blur
         (:func:`~.resample.times_resampled_power`)."""
         with self._cache_lock:
-            self._cache.pop(f"albedo:{tex.keys['albedo']}", None)
+            self._cache.pop(f"albedo_map:{tex.keys['albedo']}", None)
         tex.albedo = None
 
     def _release_irradiance(self, tex: SkinTextures) -> None:
@@ -982,8 +1021,7 @@ class Renderer:
             self._release_surface(tex, prepared)
         maps = tex.maps  # after the release: not the maps that still hold the surface
 
-        albedo = tex.albedo
-        assert albedo is not None
+        albedo = tex.albedo  # None: the weights come from its image
 
         def compute() -> Any:
             nonlocal albedo
@@ -992,8 +1030,12 @@ class Renderer:
             assert pre is not None
             if tex.at_hits is not None:  # the shading's lookups are taken
                 self._release_irradiance(tex)
-            times_albedo_power(pre, albedo, a)
-            if tex.at_hits is not None and 1.0 - a in EXACT_POWERS:
+            if albedo is None:
+                assert tex.albedo_image is not None
+                times_resampled_power(pre, tex.albedo_image, a)
+            else:
+                times_albedo_power(pre, albedo, a)
+            if albedo is not None and tex.at_hits is not None and 1.0 - a in EXACT_POWERS:
                 # the weight after the blur comes from the albedo's own image: the map
                 # goes before the diffusion's peak (201 MB at texture 4096)
                 albedo = None

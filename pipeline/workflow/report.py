@@ -235,12 +235,13 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
             if not finest:
                 covered = tex.maps.triangle >= 0
                 a = opts.albedo_split
+                albedo = tex.albedo_map()
                 finest = {
                     "pos": tex.maps.surface[0][covered].astype(np.float64) * sc.meters_per_unit
                     * 1000.0,
                     "area": (tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered].astype(
                         np.float64),
-                    "flux": (tex.irradiance * np.power(tex.albedo, a))[covered] * (
+                    "flux": (tex.irradiance * np.power(albedo, a))[covered] * (
                         tex.maps.mm_per_texel_u * tex.maps.mm_per_texel_v)[covered][:, None],
                 }
                 rng = np.random.default_rng(seed)
@@ -269,7 +270,7 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                                 g = np.exp(-d * d / (2 * vv)) / (2 * math.pi * vv)
                                 prof += rw[n, r] * g[:, None] * wk
                     ref[n] = (finest["flux"][idx] * prof).sum(axis=0)
-                albedo_at = bilinear(tex.albedo, uv)
+                albedo_at = bilinear(albedo, uv)
                 ref *= np.power(albedo_at, 1.0 - a) / math.pi
                 finest.update(uv=uv, ref=ref)
             got = bilinear(tex.radiance, finest["uv"]).astype(np.float64)

@@ -315,6 +315,39 @@ def test_camera_change_reuses_texture_space_work(lit_patch: Path) -> None:
     renderer.close()
 
 
+def test_an_albedo_split_of_a_half_makes_no_albedo_map_and_renders_the_same(
+        lit_patch: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A textured albedo with the default split (0.5, a square root before the blur and
+    after): its weights and the albedo AOV come from the albedo's own image, no map of
+    it is made, and every image is the one a render that makes the map and weighs with
+    it gives, bit for bit (a map is made for a split whose powers the device does not
+    take as numpy does)."""
+    from dataclasses import replace
+
+    import pipeline.render.renderer as renderer_module
+
+    rng = np.random.default_rng(4)
+    image = (rng.random((19, 27, 3)) * 0.9 + 0.1).astype(np.float32)
+    image[3, 4] = -0.2  # clipped at 0, on both paths
+    monkeypatch.setattr(renderer_module, "albedo_image",
+                        lambda mesh, working: (image, "a test image"))
+    options = replace(SMALL, aovs=AOVS)
+    renderer = Renderer(open_stage_guarded(lit_patch), options)
+    got, log = renderer.render()
+    renderer.close()
+    assert renderer.textures[0].albedo is None and "albedo_map" not in log.seconds
+    assert log.measures["albedo_source"] == "a test image"
+    monkeypatch.setattr(renderer_module, "EXACT_POWERS", {})  # the map and numpy's weights
+    renderer = Renderer(open_stage_guarded(lit_patch), options)
+    want, log = renderer.render()
+    renderer.close()
+    assert "albedo_map" in log.seconds
+    assert got.keys() == want.keys()
+    for aov, values in want.items():
+        np.testing.assert_array_equal(got[aov], values, err_msg=aov)
+    assert got["albedo"].max() > 0.5  # the texture, not a constant
+
+
 def test_a_render_without_scattering_keeps_the_seam_layout(lit_patch: Path) -> None:
     """The demo's order: with scattering, without (figure 7's left half), then other
     terms again. The layout depends on the UV layout and geometry alone, so the third

@@ -5,8 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.render.renderer import bilinear
-from pipeline.render.resample import resample_bilinear, times_resampled_power
+from pipeline.render.renderer import albedo_texels, albedo_texture, bilinear, bilinear_of
+from pipeline.render.resample import (
+    resample_bilinear,
+    resampled_texels,
+    times_resampled_power,
+)
 
 
 def test_resample_bilinear_equals_bilinear_lookups_at_texel_centres() -> None:
@@ -36,6 +40,45 @@ def test_resample_bilinear_equals_openimageio_at_texel_centres() -> None:
         want = np.array([[buf.interppixel_NDC(float(u), float(v), "clamp") for u in centres]
                          for v in centres], np.float32)
         np.testing.assert_allclose(resample_bilinear(image, size), want, atol=3e-6)
+
+
+def test_resampled_texels_are_the_resampled_images_texels() -> None:
+    """Texels of the resample made one by one (resampled_texels) are the whole image's
+    (resample_bilinear), bit for bit: up, down, the same size and a 1 x 1 constant."""
+    rng = np.random.default_rng(3)
+    for (h, w), size in (((37, 50), 64), ((64, 64), 64), ((90, 70), 40), ((1, 1), 16),
+                         ((2, 300), 33)):
+        image = (rng.random((h, w, 3)) * 1.2 - 0.1).astype(np.float32)
+        index = rng.integers(0, size * size, 4000)
+        got = resampled_texels(image, size, index)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, resample_bilinear(image, size).reshape(-1, 3)[index])
+
+
+def test_albedo_lookups_without_the_map_are_the_maps() -> None:
+    """The shading's albedo at texture coordinates made from the albedo's own image
+    (bilinear_of albedo_texels) is the bilinear lookup in its map (albedo_texture), bit
+    for bit, values below 0 clipped as the map clips them; and the map's texels are
+    OpenImageIO's bilinear lookups of the image at the texel centres (interppixel_NDC,
+    within float32 rounding of the positions: 3.8e-6 at most measured), clipped."""
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(11)
+    for (h, w), size in (((37, 50), 64), ((64, 64), 64), ((90, 70), 40)):
+        image = (rng.random((h, w, 3)) * 1.2 - 0.1).astype(np.float32)
+        uv = rng.random((5000, 2))
+        uv[:10] = [[0, 0], [1, 1], [0, 1], [1, 0], [0.5, 0], [0, 0.5], [1e-9, 1 - 1e-9],
+                   [0.25, 0.75], [1, 0.5], [0.5, 1]]
+        want = bilinear(albedo_texture(image, size), uv)
+        np.testing.assert_array_equal(
+            bilinear_of(albedo_texels(image, size), (size, size), uv), want)
+        buf = oiio.ImageBuf(oiio.ImageSpec(w, h, 3, oiio.FLOAT))
+        buf.set_pixels(oiio.ROI(), image)
+        centres = (np.arange(size) + 0.5) / size
+        looked_up = np.array([[buf.interppixel_NDC(float(u), float(v), "clamp")
+                               for u in centres] for v in centres], np.float32)
+        np.testing.assert_allclose(albedo_texture(image, size), np.clip(looked_up, 0, None),
+                                   atol=1e-5)
 
 
 def test_times_resampled_power_is_numpys_weight_of_the_resampled_image() -> None:
