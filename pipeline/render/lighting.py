@@ -10,6 +10,9 @@ leaving towards the camera by 1 - rho_dt(theta_v).
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
 import math
 import threading
 import time
@@ -24,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from ..fileio import atomic_write_json
 from .opencl import (
     Kernel,
     build,
@@ -36,6 +40,7 @@ from .opencl import (
     read_output,
     run_on_host_arrays,
 )
+from .opencl_runtimes import cache_root
 from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS, INTERLEAVE_PERIODS
 from .raytrace import (
     OFFSET_FLOAT_SCALE,
@@ -208,12 +213,8 @@ def light_sample_set(samples: int, rng: np.random.Generator, interleaved: bool,
                          f"{period}")
     classes = period * period
     if sequence == "sobol":
-        # lazy: all of scipy.stats comes with it, 0.8-1.1 s on 2 cores (imported on a
-        # thread beside the texture maps, it slowed them as much: the GIL)
-        from scipy.stats import qmc
-
         m = sobol_points(samples)
-        grid = qmc.Sobol(2, scramble=True, seed=rng).random(m)
+        grid = scrambled_sobol(m, rng)
         sets = np.arange(m).reshape(classes, m // classes) if interleaved and \
             m >= classes else None
         return grid, sets
@@ -223,6 +224,37 @@ def light_sample_set(samples: int, rng: np.random.Generator, interleaved: bool,
         return stratified_unit_square(samples, rng, period), \
             interleaved_strata(samples, period)
     return stratified_unit_square(samples, rng), None
+
+
+def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
+    """The first ``m`` points (m, 2) of a scrambled 2-D Sobol sequence as scipy makes them
+    (``qmc.Sobol(2, scramble=True, seed=rng).random(m)``: linear matrix scrambling and a
+    digital shift, Matousek 1998), ``rng`` left in the state scipy leaves it in. Kept in
+    skinpipe's cache folder by scipy's version, ``m`` and ``rng``'s state: importing
+    scipy.stats for them took 0.56-0.64 s of CPU with the GIL held, in every render
+    (0.3-0.5 s of a 4096 render's wall on 2 cores). A kept file that does not read back
+    is made again; one that cannot be written is not kept."""
+    import scipy
+
+    before = rng.bit_generator.state
+    key = hashlib.sha256(json.dumps([scipy.__version__, m, before], sort_keys=True)
+                         .encode()).hexdigest()[:32]
+    path = cache_root() / "light-samples" / f"sobol-{key}.json"
+    with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+        kept = json.loads(path.read_text())
+        if kept["before"] == before and kept["m"] == m:
+            points = np.asarray(kept["points"], np.float64).reshape(m, 2)
+            if np.all((points >= 0) & (points < 1)):
+                rng.bit_generator.state = kept["after"]
+                return points
+    from scipy.stats import qmc  # lazy: all of scipy.stats comes with it
+
+    points = qmc.Sobol(2, scramble=True, seed=rng).random(m)
+    with contextlib.suppress(OSError):
+        atomic_write_json(path, {"scipy": scipy.__version__, "m": m, "before": before,
+                                 "after": rng.bit_generator.state,
+                                 "points": points.ravel().tolist()})
+    return points
 
 
 def _frame(axis: NDArray[Any], dtype: Any = np.float64) -> NDArray[Any]:
@@ -772,11 +804,19 @@ def _penumbra_kernel(period: int = 2) -> Any:
 def sample_plan(light: Light, samples: int, interleaved: bool,
                 sequence: str = "stratified", period: int = 2) -> tuple[int, bool]:
     """(samples each point traces, whether they are interleaved) for ``light`` at
-    ``samples`` per point, as :class:`LightSampler` takes them: from the same
-    :func:`light_sample_set` (its points are a few dozen at most)."""
-    grid, sets = light_sample_set(1 if is_delta_light(light) else samples,
-                                  np.random.default_rng(0), interleaved, sequence, period)
-    return (int(sets.shape[1]), True) if sets is not None else (int(grid.shape[0]), False)
+    ``samples`` per point, as :class:`LightSampler` takes them from
+    :func:`light_sample_set`, without making the points (the prewarm's plan asks)."""
+    n = 1 if is_delta_light(light) else samples
+    classes = period * period
+    if sequence == "sobol":
+        points = sobol_points(n)
+        return (points // classes, True) if interleaved and points >= classes else \
+            (points, False)
+    if interleaved and n >= classes:
+        nx, ny = grid_shape(n, period)
+        return nx * ny // classes, True
+    nx, ny = grid_shape(n)
+    return nx * ny, False
 
 
 def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,

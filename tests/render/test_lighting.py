@@ -4,6 +4,7 @@ closed-form irradiance."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +26,8 @@ from pipeline.render.lighting import (
     penumbra_texels,
     ray_origins,
     refine_penumbrae,
+    sample_plan,
+    scrambled_sobol,
     sobol_points,
     specular_albedo,
     sum_axis1,
@@ -192,6 +195,57 @@ def test_sobol_sets_are_nets_and_each_interleaved_quarter_is_one() -> None:
     np.testing.assert_array_equal(grid, again)
     with pytest.raises(InputError, match="unknown light sample sequence"):
         light_sample_set(16, rng, False, "halton")
+
+
+def test_kept_sobol_points_are_scipys(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                       ) -> None:
+    """The light samples' Sobol points, made by scipy and then read back from skinpipe's
+    cache folder, are scipy's own (``qmc.Sobol``), bit for bit, and leave the generator
+    in the state scipy leaves it; a kept file that does not read back, or one of other
+    points, is made again; a cache folder that cannot be written keeps nothing."""
+    from scipy.stats import qmc
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    for m, seed in ((16, 3), (64, 7), (1, 0)):
+        scipy_rng = np.random.default_rng([seed, 11])
+        want = qmc.Sobol(2, scramble=True, seed=scipy_rng).random(m)
+        for _ in range(2):  # made, then read back
+            rng = np.random.default_rng([seed, 11])
+            np.testing.assert_array_equal(scrambled_sobol(m, rng), want)
+            assert rng.bit_generator.state == scipy_rng.bit_generator.state
+    kept = sorted((tmp_path / "cache" / "skinpipe" / "light-samples").glob("sobol-*.json"))
+    assert len(kept) == 3
+    for damage in ("{", '{"m": 16, "before": 0, "after": 0, "points": [2.0]}'):
+        for path in kept:
+            path.write_text(damage)
+        rng = np.random.default_rng([3, 11])
+        want = qmc.Sobol(2, scramble=True, seed=np.random.default_rng([3, 11])).random(16)
+        np.testing.assert_array_equal(scrambled_sobol(16, rng), want)
+    (tmp_path / "ro").mkdir()
+    (tmp_path / "ro" / "skinpipe").write_text("a file where the folder would go")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "ro"))
+    np.testing.assert_array_equal(scrambled_sobol(16, np.random.default_rng([3, 11])), want)
+
+
+@pytest.mark.parametrize("sequence", ["sobol", "stratified"])
+def test_sample_plan_counts_the_samples_light_sample_set_makes(sequence: str) -> None:
+    """The prewarm's plan of samples per point (made without the points) is what the
+    samplers take from light_sample_set, for every period, interleaved or not, and a
+    delta light's single sample."""
+    area = Light("/L", "sphere", np.ones(3), np.eye(4), radius=2.0)
+    delta = Light("/D", "distant", np.ones(3), np.eye(4), angle_deg=0.0)
+    for samples in (1, 2, 3, 4, 5, 9, 10, 16, 17, 33, 64, 100):
+        for interleaved in (False, True):
+            for period in INTERLEAVE_PERIODS:
+                grid, sets = light_sample_set(samples, np.random.default_rng(0), interleaved,
+                                              sequence, period)
+                want = (sets.shape[1], True) if sets is not None else (grid.shape[0], False)
+                assert sample_plan(area, samples, interleaved, sequence, period) == want
+                one = light_sample_set(1, np.random.default_rng(0), interleaved, sequence,
+                                       period)
+                assert sample_plan(delta, samples, interleaved, sequence, period) == \
+                    ((one[1].shape[1], True) if one[1] is not None else (one[0].shape[0],
+                                                                         False))
 
 
 def test_sobol_sets_of_period_four_are_nets() -> None:
