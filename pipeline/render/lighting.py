@@ -937,12 +937,15 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any] | None,
 
 @dataclass
 class IrradianceResult:
-    """Irradiance entering the skin per point (N, 3), and per light the fraction of its
-    unshadowed irradiance that arrived (``visibility``, for the specular term) and the
-    unshadowed irradiance itself (N, 3), so that interleaved visibility can be filtered
-    and applied afterwards (``entering_with``)."""
+    """Irradiance entering the skin per point (``entering``, (N, 3)), and per light the
+    fraction of its unshadowed irradiance that arrived (``visibility``, for the specular
+    term) and the unshadowed irradiance itself (N, 3), so that interleaved visibility can
+    be filtered and applied afterwards (``entering_with``)."""
 
-    entering: NDArray[np.float32]
+    arrived: list[tuple[NDArray[np.float32], NDArray[np.float32]]]
+    """Per light that adds light, in the lights' order: the weights that reached it per
+    point ((N,), or (N, 3) for a textured dome) and its colour (3,): what ``entering``
+    sums."""
     visibility: dict[str, NDArray[np.float32]]
     unshadowed: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
@@ -952,10 +955,27 @@ class IrradianceResult:
     """Lights whose shadow rays were interleaved (each point traced a share of the
     samples): only their visibility is reconstructed by ``filter_interleaved``."""
 
+    points: int = 0
+
+    @cached_property
+    def entering(self) -> NDArray[np.float32]:
+        """Irradiance entering the skin per point (N, 3): each light's weights that
+        reached it times its colour, summed light by light. Made when first read: an
+        interleaved or adaptive render replaces it (``entering_with``), and these sums
+        were 1.3 s of its main thread at texture 4096, beside the rays."""
+        out = np.zeros((self.points, 3), np.float32)
+        for lit, colour in self.arrived:
+            if lit.ndim == 1:  # a column at a time, no (N, 3) of products
+                for c in range(3):
+                    out[:, c] += lit * colour[c]
+            else:
+                out += lit * colour
+        return out
+
     def entering_with(self, visibility: dict[str, NDArray[Any]]) -> NDArray[np.float32]:
         """Irradiance entering the skin with each light's visibility replaced (e.g. by its
         filtered form): sum of unshadowed x visibility."""
-        out = np.zeros_like(self.entering)
+        out = np.zeros((self.points, 3), np.float32)
         for path, un in self.unshadowed.items():
             vis = np.asarray(visibility[path], np.float32)
             for c in range(un.shape[-1]):  # un * vis[..., None], a column at a time
@@ -1059,7 +1079,7 @@ def irradiance_texture(
 
     origins = ray_origins(pos, nrm)
     n = pos.shape[0]
-    entering = np.zeros((n, 3), np.float32)
+    arrived: list[tuple[NDArray[np.float32], NDArray[np.float32]]] = []
     visibility: dict[str, NDArray[np.float32]] = {}
     unshadowed_by_light: dict[str, NDArray[np.float32]] = {}
     skipped: list[str] = []
@@ -1088,18 +1108,12 @@ def irradiance_texture(
             skipped.append(f"light {light.path}: adds nothing (shadowed everywhere)")
         if sampler.sets is not None:
             interleaved.add(light.path)
-        colour = sampler.colour
-        if lit.ndim == 1:  # times_colour's products a column at a time, no (N, 3) of them
-            for c in range(3):
-                entering[:, c] += lit * colour[c]
-        else:
-            entering += lit * colour
+        arrived.append((back(lit), sampler.colour))
         visibility[light.path] = back(light_visibility(lit, unshadowed))
         # back to the points' order before the colour: a third of the gathered bytes
         unshadowed_by_light[light.path] = coloured(sampler, back(unshadowed))
-    result = back(entering)
-    return IrradianceResult(result, visibility, unshadowed_by_light, skipped, n_rays,
-                            time.perf_counter() - start, frozenset(interleaved))
+    return IrradianceResult(arrived, visibility, unshadowed_by_light, skipped, n_rays,
+                            time.perf_counter() - start, frozenset(interleaved), n)
 
 
 RAY_BLOCK_POINTS = 1 << 21

@@ -759,7 +759,7 @@ class Renderer:
                     opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
                     opts.light_sequence, texel, coherent=True, period=period)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
-            visibility, entering = res.visibility, res.entering
+            visibility = res.visibility
             filtered = bool(interleave is not None and res.interleaved and visibility)
             normal = None if not filtered or maps.normal is not None else \
                 normal_map(normals, texel, covered.shape)
@@ -771,9 +771,11 @@ class Renderer:
             side = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-gutter")
             gutter = side.submit(prepare_dilation, maps.coverage)  # made here, not there
             side.shutdown(wait=False)
-            if filtered:
+            if filtered:  # the sums of the visibility as traced are not made at all
                 visibility = interleaved_visibility(res, maps, texel, period, normal)
                 entering = res.entering_with(visibility)
+            else:
+                entering = res.entering
             del normal
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the per-light sums go before the planes and their push-pull (0.3 GB at

@@ -17,7 +17,7 @@ from pipeline.errors import InputError
 from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
 from pipeline.profile.reference_data import DEON_2007_SKIN
 from pipeline.render.diffusion import DiffusionLayout, diffuse
-from pipeline.render.lighting import irradiance_texture, specular_albedo
+from pipeline.render.lighting import IrradianceResult, irradiance_texture, specular_albedo
 from pipeline.render.options import AOVS, DATA_AOVS
 from pipeline.render.raytrace import RayScene
 from pipeline.render.renderer import (
@@ -346,6 +346,34 @@ def test_an_albedo_split_of_a_half_makes_no_albedo_map_and_renders_the_same(
     for aov, values in want.items():
         np.testing.assert_array_equal(got[aov], values, err_msg=aov)
     assert got["albedo"].max() > 0.5  # the texture, not a constant
+
+
+def test_an_interleaved_render_does_not_sum_the_irradiance_it_replaces(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under a sampled (5 degree) sun, the interleaved render's irradiance is made from
+    the filtered visibility (entering_with) and never from the rays' own sums, which it
+    would replace (IrradianceResult.entering is not read); full sampling reads them."""
+    from dataclasses import replace
+
+    asset = patch_asset(tmp_path / "asset", [deon_fit()])
+    scene = scene_over(asset, tmp_path / "scene.usda", lambda stage: (
+        top_camera(stage), distant_down(stage, intensity=2.0, angle=5.0)))
+    made = IrradianceResult.entering.func  # type: ignore[attr-defined]
+    read: list[str] = []
+
+    def entering(self: IrradianceResult) -> np.ndarray:
+        read.append("entering")
+        return made(self)
+
+    monkeypatch.setattr(IrradianceResult, "entering", property(entering))
+    for sampling, want in (("interleaved", []), ("full", ["entering"])):
+        read.clear()
+        renderer = Renderer(open_stage_guarded(scene),
+                            replace(SMALL, light_samples=16, shadow_sampling=sampling))
+        _, log = renderer.render()
+        renderer.close()
+        assert read == want, sampling
+        assert log.measures["irradiance"]["rays"] > 0
 
 
 def test_a_render_without_scattering_keeps_the_seam_layout(lit_patch: Path) -> None:
