@@ -231,9 +231,10 @@ def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
     (``qmc.Sobol(2, scramble=True, seed=rng).random(m)``: linear matrix scrambling and a
     digital shift, Matousek 1998), ``rng`` left in the state scipy leaves it in. Kept in
     skinpipe's cache folder by scipy's version, ``m`` and ``rng``'s state: importing
-    scipy.stats for them took 0.56-0.64 s of CPU with the GIL held, in every render
-    (0.3-0.5 s of a 4096 render's wall on 2 cores). A kept file that does not read back
-    is made again; one that cannot be written is not kept."""
+    scipy.stats for them took 0.6-0.9 s of CPU with the GIL held in every render, on the
+    prewarm's thread beside the texture maps (0.76 -> 0.48 s at texture 4096 without
+    it). A kept file that does not read back is made again; one that cannot be written
+    is not kept."""
     import scipy
 
     before = rng.bit_generator.state
