@@ -1159,8 +1159,7 @@ def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
             # texture 4096 (zeroed by the kernel)
             worker.rays = (np.empty((most, 3), np.float32), np.empty(most, np.float32))
         d, dist, w = sampler.entering_sample(k, (worker.rays[0][:n], worker.rays[1][:n]),
-                                             (first, n) if sampler.device is not None
-                                             else None)
+                                             (first, n))
         cast = int(np.count_nonzero((w if w.ndim == 1 else w.max(axis=1)) > 0))
         if cast == 0:
             return None, None, 0
@@ -1179,8 +1178,7 @@ def cast_samples(samplers: Sequence[LightSampler], rays: RayScene
             lit = np.zeros((n, 3) if sampler.texture is not None else n, np.float32)
             unshadowed = np.zeros_like(lit)
             n_rays = 0
-            for _, (first, count) in ((k, span) for k in range(sampler.count)
-                                      for span in spans[id(sampler)]):
+            for first, count in spans[id(sampler)] * sampler.count:  # as the jobs go
                 got, full, cast = next(results)
                 if got is not None:
                     lit[first:first + count] += got

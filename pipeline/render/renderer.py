@@ -453,6 +453,19 @@ def times_albedo_power(rgb: NDArray[np.float32], albedo: NDArray[np.float32], po
         rgb[y:y + rows] *= np.sqrt(band) if power == 0.5 else np.power(band, power)
 
 
+def times_albedo_weight(rgb: NDArray[np.float32], albedo: NDArray[np.float32] | None,
+                        image: NDArray[np.float32] | None, power: float) -> None:
+    """``rgb *= albedo ** power`` in place from the albedo map where one was made
+    (:func:`times_albedo_power`), else from the albedo's own image on the device
+    (:func:`~.resample.times_resampled_power`: the same floats for the powers of
+    :data:`~.resample.EXACT_POWERS`, the only ones a render asks of it without a map)."""
+    if albedo is not None:
+        times_albedo_power(rgb, albedo, power)
+    else:
+        assert image is not None
+        times_resampled_power(rgb, image, power)
+
+
 def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -> float:
     """The flux of a texture of irradiance or radiance exitance ``rgb`` (H, W, 3) over its
     charts, summed over channels: sum of value x texel area in mm^2 (mm per texel along u
@@ -1032,11 +1045,7 @@ class Renderer:
             assert pre is not None
             if tex.at_hits is not None:  # the shading's lookups are taken
                 self._release_irradiance(tex)
-            if albedo is None:
-                assert tex.albedo_image is not None
-                times_resampled_power(pre, tex.albedo_image, a)
-            else:
-                times_albedo_power(pre, albedo, a)
+            times_albedo_weight(pre, albedo, tex.albedo_image, a)
             if albedo is not None and tex.at_hits is not None and 1.0 - a in EXACT_POWERS:
                 # the weight after the blur comes from the albedo's own image: the map
                 # goes before the diffusion's peak (201 MB at texture 4096)
@@ -1066,12 +1075,7 @@ class Renderer:
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             flux_out = surface_flux(out, maps)
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            # out is this task's own array
-            if albedo is not None:
-                times_albedo_power(out, albedo, 1.0 - a)
-            else:
-                assert tex.albedo_image is not None
-                times_resampled_power(out, tex.albedo_image, 1.0 - a)
+            times_albedo_weight(out, albedo, tex.albedo_image, 1.0 - a)  # out: its own
             out *= np.float32(1.0 / math.pi)
             radiance = dilate_charts(push_pull(out, cov, in_place=True), cov)
             return radiance, skipped, passes, energy, work
