@@ -229,7 +229,7 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
         return dict(res.visibility)
     vis = visibility_planes(len(paths), covered.shape)
     for i, p in enumerate(paths):
-        visibility_plane(res.visibility[p], res.unshadowed[p], texel, vis[i])
+        visibility_plane(res.visibility[p], res.carries_light(p), texel, vis[i])
     filtered = filter_interleaved(vis, None, maps.surface[1] if normal is None else normal,
                                   at=texel, period=period)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}

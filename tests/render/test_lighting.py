@@ -12,6 +12,7 @@ import pytest
 from pipeline.errors import InputError
 from pipeline.render import lighting
 from pipeline.render.lighting import (
+    IrradianceResult,
     LightSampler,
     beckmann_ndf,
     complement_sets,
@@ -298,6 +299,35 @@ def test_filter_interleaved_matches_its_definition(period: int) -> None:
         filter_interleaved(vis, traced, nrm, at=np.array([15 * 11]))
 
 
+def test_unshadowed_weights_and_colour_read_as_the_irradiance_they_make() -> None:
+    # the result keeps a light's unshadowed weights and colour apart; every reading of
+    # them (the traced test, the sums with a filtered visibility) is the same as from the
+    # (N, 3) products, bit for bit: weights spanning float32's range down to subnormals
+    # (whose products with a colour underflow to 0) and a colour with a 0 channel
+    rng = np.random.default_rng(11)
+    n = 4000
+    weights = (rng.random(n) * 10.0 ** rng.integers(-45, 3, n)).astype(np.float32)
+    weights[:500] = 0.0
+    dome_weights = rng.random((n, 3)).astype(np.float32)
+    dome_weights[100:300, 1:] = 0.0
+    dome_weights[200:300, 0] = 0.0
+    colour = np.array([3e-3, 0.0, 0.3], np.float32)
+    res = IrradianceResult([], {}, {"/Key": (weights, colour),
+                                    "/Dome": (dome_weights, np.ones(3, np.float32))},
+                           points=n)
+    key = weights[:, None] * colour
+    assert res.unshadowed_irradiance("/Key").tobytes() == key.tobytes()
+    assert 0 < np.count_nonzero(weights) - np.count_nonzero(key.sum(axis=1)) < n
+    np.testing.assert_array_equal(res.carries_light("/Key"), key.sum(axis=1) > 0)
+    np.testing.assert_array_equal(res.carries_light("/Dome"), dome_weights.sum(axis=1) > 0)
+    vis = {"/Key": rng.random(n).astype(np.float32),
+           "/Dome": rng.random(n).astype(np.float32)}
+    want = np.zeros((n, 3), np.float32)
+    for path, un in (("/Key", key), ("/Dome", dome_weights)):
+        want += un * vis[path][:, None]
+    assert res.entering_with(vis).tobytes() == want.tobytes()
+
+
 @pytest.mark.parametrize("period", [2, 4])
 def test_visibility_planes_say_what_was_traced_by_their_sign(period: int) -> None:
     # the renderer's planes (visibility_plane: negated where no ray could carry light,
@@ -316,7 +346,7 @@ def test_visibility_planes_say_what_was_traced_by_their_sign(period: int) -> Non
     planes = visibility_planes(2, (h, w))
     vis, traced = np.zeros((2, h, w), np.float32), np.zeros((2, h, w), bool)
     for i in range(2):
-        visibility_plane(vis_pts[i], unshadowed[i], texel, planes[i])
+        visibility_plane(vis_pts[i], unshadowed[i].sum(axis=1) > 0, texel, planes[i])
         np.put(vis[i], texel, vis_pts[i])
         np.put(traced[i], texel, unshadowed[i].sum(axis=1) > 0)
     assert np.signbit(planes).sum() == (~traced).sum()
@@ -392,7 +422,7 @@ def test_a_light_shadowed_everywhere_is_refined_to_no_light() -> None:
                                interleave=classes)
     assert any("adds nothing (shadowed everywhere)" in s for s in first.skipped)
     np.testing.assert_array_equal(first.visibility["/Key"], 0.0)
-    assert first.unshadowed["/Key"].min() > 0
+    assert first.unshadowed_irradiance("/Key").min() > 0
     got, refined = refine_penumbrae(first, np.ones((n, n), bool), pos, nrm, classes, [key],
                                     rays, 16, rho_s=0.0)
     assert refined["/Key"].size == 0
@@ -437,7 +467,7 @@ def test_interleaved_shadow_rays_match_full_sampling_in_a_penumbra() -> None:
     inter = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0,
                                interleave=classes)
     assert inter.rays * 4 == full.rays
-    traced = (inter.unshadowed["/Key"].sum(axis=1) > 0).reshape(1, n, n)
+    traced = (inter.unshadowed_irradiance("/Key").sum(axis=1) > 0).reshape(1, n, n)
     vis = filter_interleaved(inter.visibility["/Key"].reshape(1, n, n), traced,
                              nrm.reshape(n, n, 3))
     got = inter.entering_with({"/Key": vis.ravel()})[:, 0]
@@ -480,7 +510,7 @@ def test_period_four_matches_full_sampling_per_pixel_of_four_by_four_texels() ->
         inter = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0, seed=seed,
                                    interleave=classes, period=period)
         assert inter.rays * 16 == full.rays
-        traced = (inter.unshadowed["/Key"].sum(axis=1) > 0).reshape(1, n, n)
+        traced = (inter.unshadowed_irradiance("/Key").sum(axis=1) > 0).reshape(1, n, n)
         vis = filter_interleaved(inter.visibility["/Key"].reshape(1, n, n), traced,
                                  nrm.reshape(n, n, 3), period=period)
         rms_full.append(per_pixel_rms(full.entering))
@@ -686,7 +716,8 @@ def test_shadow_rays_cast_in_blocks_give_the_same_sums(monkeypatch: pytest.Monke
     np.testing.assert_array_equal(blocks.entering, whole.entering)
     for path in ("/Key", "/Fill", "/Sun"):
         np.testing.assert_array_equal(blocks.visibility[path], whole.visibility[path])
-        np.testing.assert_array_equal(blocks.unshadowed[path], whole.unshadowed[path])
+        np.testing.assert_array_equal(blocks.unshadowed_irradiance(path),
+                                      whole.unshadowed_irradiance(path))
 
 
 def test_device_ray_origins_equal_the_listing_bit_for_bit() -> None:
