@@ -160,22 +160,26 @@ def interleaved_strata(n: int, period: int = 2) -> NDArray[np.int64]:
 
 
 def interleave_period(texels_per_pixel: float, points: int, at_most: int = 0) -> int:
-    """The interleaving period p for a texture of ``texels_per_pixel`` texels across an
+    """The interleaving period p for a texture of ``texels_per_pixel`` k texels across an
     image pixel at the skin and a light of ``points`` sample points: the largest of
-    :data:`INTERLEAVE_PERIODS` whose reconstruction (the tent of :func:`filter_interleaved`,
-    variance (p^2 - 1) / 6 texel^2 along each axis) is no wider in pixels than period 2's
-    at one texel a pixel (0.5 pixel^2), i.e. p^2 <= 3 k^2 + 1, and whose p^2 classes each
-    keep a sample (p^2 <= points); 2 when none is (a texture no finer than the image,
-    or too few samples, as before). With ``at_most`` (a period asked for), the largest
-    up to it whose classes each keep a sample, whatever the texels per pixel. Rays then
-    go per pixel, not per texel: at 4 texels a pixel (the demo face at texture 4096)
-    period 4 traces a quarter of period 2's, 16 a pixel and light at 16 samples where
-    texture 1024 traces 4."""
+    :data:`INTERLEAVE_PERIODS` that still casts every pixel at least ``points`` rays of
+    the light (k^2 texels of points / p^2 rays each: p <= k) and whose p^2 classes each
+    keep a sample (p^2 <= points); 2 when none does (a texture no finer than twice the
+    image, or too few samples). Its reconstruction (the tent of
+    :func:`filter_interleaved`, variance (p^2 - 1) / 6 texel^2 along each axis) is then
+    narrower in pixels than period 2's at one texel a pixel (0.5 pixel^2). With
+    ``at_most`` (a period asked for), the largest up to it whose classes each keep a
+    sample, whatever the texels per pixel. At 4 texels a pixel (the demo face at texture
+    4096) period 4 traces a quarter of period 2's rays, 16 a pixel and light at 16
+    samples. The pixels' noise follows their rays: at 2.73 texels a pixel (texture 1024,
+    384 x 384 pixels) period 4, which the reconstruction's width alone allowed (p^2 <=
+    3 k^2 + 1), cast 7.5 rays a pixel and light and rendered the face's direct light in
+    0.63 s at 1.45% error, period 2 in 0.84 s at 0.79% (error^2 x time 2.5x lower)."""
     k = float(texels_per_pixel)
     k2 = k * k if math.isfinite(k) and k > 0 else 0.0
     best = INTERLEAVE_PERIODS[0]
     for p in INTERLEAVE_PERIODS:
-        narrow = p <= at_most if at_most else p * p <= 3.0 * k2 + 1.0
+        narrow = p <= at_most if at_most else p * p <= k2
         if narrow and p * p <= points:
             best = p
     return best

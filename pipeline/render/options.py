@@ -68,7 +68,7 @@ class RenderOptions:
     interleave_period: int = 0
     """The period p of interleaved and adaptive sampling (2, 4 or 8); 0: chosen per skin
     mesh from its texels per image pixel (:func:`~.lighting.interleave_period`: 2 unless
-    the texture is finer than the image)."""
+    a pixel holds p x p texels or more)."""
     light_sequence: str = "sobol"
     """Light sample points: 'sobol' (scrambled Sobol, light_samples rounded up to a power
     of two) or 'stratified' (a jittered grid)."""

@@ -133,16 +133,21 @@ def test_interleaved_strata_partition_the_grid_and_each_set_is_stratified(period
 
 
 def test_interleave_period_keeps_the_reconstruction_within_a_pixel() -> None:
-    """Period p where its tent's variance, (p^2 - 1) / 6 texel^2, is no more pixels^2
-    than period 2's at one texel a pixel, and each of the p^2 classes keeps a sample."""
+    """Period p where every pixel still casts each light's points (k^2 texels a pixel,
+    each a p^2-th of them: p <= k), then its tent's variance, (p^2 - 1) / 6 texel^2, is
+    fewer pixels^2 than period 2's at one texel a pixel, and each of the p^2 classes
+    keeps a sample."""
     assert interleave_period(1.0, 16) == 2
-    assert interleave_period(2.05, 16) == 2  # 16 > 3 * 2.05^2 + 1 = 13.6
-    assert interleave_period(2.24, 16) == 4  # 16 <= 16.05
-    assert interleave_period(4.1, 16) == 4 and interleave_period(4.1, 64) == 4
+    assert interleave_period(2.24, 16) == 2  # 5.0 texels a pixel: 5 rays at period 4
+    assert interleave_period(3.99, 16) == 2  # 15.9 rays a pixel at period 4: too few
+    assert interleave_period(4.0, 16) == 4 and interleave_period(4.1, 64) == 4
     assert interleave_period(8.2, 64) == 8 and interleave_period(8.2, 16) == 4
     assert interleave_period(8.2, 8) == 2  # fewer points than 16 classes
     for unknown in (0.0, float("nan"), float("inf"), -3.0):
         assert interleave_period(unknown, 16) == 2
+    for k in (4.0, 5.7, 8.0, 11.3):  # the rays a pixel and light, the tent's width
+        p = interleave_period(k, 64)
+        assert k * k * 64 / (p * p) >= 64 and (p * p - 1) / 6 / (k * k) < 0.5
     # a period asked for: up to it, as the samples allow, whatever the texels per pixel
     assert interleave_period(1.0, 16, at_most=4) == 4
     assert interleave_period(8.2, 64, at_most=4) == 4

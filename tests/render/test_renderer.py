@@ -241,19 +241,22 @@ def test_texels_per_pixel_is_the_pixels_footprint_over_the_texels() -> None:
 
 def test_the_render_takes_the_interleaving_period_of_its_texels_per_pixel(
         lit_patch: Path) -> None:
-    """The lit patch at 6 texels a pixel: period 4 at 16 light samples (8 needs 64), 2
-    at one sample, the option's where it is set; render.json's measures say which, and
-    the period is part of the irradiance's key."""
+    """The lit patch at 6 texels a pixel: period 4 at 16 light samples and at 64 (8
+    needs 8 texels a pixel: 12 at texture 256 takes it), 2 at one sample, the option's
+    where it is set; render.json's measures say which, and the period is part of the
+    irradiance's key."""
     from dataclasses import replace
 
     stage = open_stage_guarded(lit_patch)
     for options, period in ((replace(SMALL, light_samples=16), 4), (SMALL, 2),
-                            (replace(SMALL, light_samples=64), 8),
+                            (replace(SMALL, light_samples=64), 4),
+                            (replace(SMALL, light_samples=64, texture_size=256), 8),
                             (replace(SMALL, light_samples=16, interleave_period=2), 2)):
         renderer = Renderer(stage, options)
         _, log = renderer.render()
         assert log.measures["irradiance"]["interleave_period"] == period
-        assert log.measures["irradiance"]["texels_per_pixel"] == pytest.approx(6.0, rel=1e-3)
+        assert log.measures["irradiance"]["texels_per_pixel"] == pytest.approx(
+            6.0 * options.texture_size / 128, rel=1e-3)
         if period != 2:  # another period, another irradiance
             key = renderer.textures[0].keys["irradiance"]
             renderer.options = replace(options, interleave_period=2)
