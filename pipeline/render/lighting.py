@@ -11,8 +11,6 @@ leaving towards the camera by 1 - rho_dt(theta_v).
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import math
 import threading
 import time
@@ -27,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ..fileio import atomic_write_json
+from .kept import keep, kept_path, read_kept
 from .opencl import (
     Kernel,
     build,
@@ -40,7 +38,6 @@ from .opencl import (
     read_output,
     run_on_host_arrays,
 )
-from .opencl_runtimes import cache_root
 from .options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS, INTERLEAVE_PERIODS
 from .raytrace import (
     OFFSET_FLOAT_SCALE,
@@ -242,12 +239,10 @@ def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
     import scipy
 
     before = rng.bit_generator.state
-    key = hashlib.sha256(json.dumps([scipy.__version__, m, before], sort_keys=True)
-                         .encode()).hexdigest()[:32]
-    path = cache_root() / "light-samples" / f"sobol-{key}.json"
-    with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
-        kept = json.loads(path.read_text())
-        if kept["before"] == before and kept["m"] == m:
+    path = kept_path("light-samples", "sobol", [scipy.__version__, m, before])
+    kept = read_kept(path)
+    with contextlib.suppress(ValueError, KeyError, TypeError):
+        if kept is not None and kept["before"] == before and kept["m"] == m:
             points = np.asarray(kept["points"], np.float64).reshape(m, 2)
             if np.all((points >= 0) & (points < 1)):
                 rng.bit_generator.state = kept["after"]
@@ -255,10 +250,8 @@ def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
     from scipy.stats import qmc  # lazy: all of scipy.stats comes with it
 
     points = qmc.Sobol(2, scramble=True, seed=rng).random(m)
-    with contextlib.suppress(OSError):
-        atomic_write_json(path, {"scipy": scipy.__version__, "m": m, "before": before,
-                                 "after": rng.bit_generator.state,
-                                 "points": points.ravel().tolist()})
+    keep(path, {"scipy": scipy.__version__, "m": m, "before": before,
+                "after": rng.bit_generator.state, "points": points.ravel().tolist()})
     return points
 
 

@@ -12,6 +12,7 @@ mm with the stage's metersPerUnit); colours linear in the stage's working space
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import threading
@@ -50,6 +51,7 @@ from .diffusion import (
     release_freed_heap,
 )
 from .huge_pages import apply_to_numpy, huge_pages_choice
+from .kept import keep, kept_path, read_kept
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -170,6 +172,42 @@ def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0
         weights[:] = shared
         notes.append(f"one profile ({single}) for every region")
     return DiffusionTerms(variances, weights, error, notes)
+
+
+def kept_diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0,
+                         single: str | None = None, floor_mm2: float = 0.0
+                         ) -> DiffusionTerms:
+    """:func:`diffusion_terms`, kept in skinpipe's cache folder (:mod:`.kept`) by scipy's
+    version and every input (the fits' names, variances and weights, ``grid``,
+    ``single``, ``floor_mm2``): the same terms bit for bit. Importing scipy.optimize for
+    its NNLS took 0.44 s of a render's main thread before its rays (0.5 s of CPU, the
+    other core mostly idle); a render of the same fits at the same texel size reads
+    them back instead."""
+    import scipy
+
+    fits = list(fits)
+    key = content_hash(scipy.__version__, grid, single, float(floor_mm2), len(fits),
+                       *(part for f in fits for part in
+                         (f.name, np.asarray(f.variances_mm2, np.float64),
+                          np.asarray(f.weights, np.float64))))
+    path = kept_path("diffusion-terms", "terms", key)
+    doc = read_kept(path)
+    with contextlib.suppress(ValueError, KeyError, TypeError):
+        if doc is not None and doc["key"] == key:
+            variances = np.asarray(doc["variances_mm2"], np.float64)
+            weights = np.asarray(doc["weights"], np.float64)
+            error = {str(k): float(v) for k, v in doc["error"].items()}
+            if variances.ndim == 1 and weights.shape == (len(fits), variances.size, 3) \
+                    and set(error) == {f.name for f in fits} \
+                    and np.all(np.isfinite(weights)) and np.all(variances > 0):
+                return DiffusionTerms(variances, weights, error,
+                                      [str(n) for n in doc["notes"]])
+    terms = diffusion_terms(fits, grid, single, floor_mm2)
+    keep(path, {"key": key, "scipy": scipy.__version__,
+                "variances_mm2": terms.variances_mm2.tolist(),
+                "weights": terms.weights.tolist(), "error": terms.error,
+                "notes": terms.notes})
+    return terms
 
 
 # ------------------------------------------------------------------------ helpers
@@ -939,8 +977,8 @@ class Renderer:
         texel_mm = float(np.median(np.sqrt(maps.mm_per_texel_u * maps.mm_per_texel_v)[
             maps.triangle >= 0]))
         # blurs narrower than half a texel change nothing a texture can hold
-        return diffusion_terms(tex.mesh.fits, opts.variance_grid, opts.single_profile,
-                               floor_mm2=(0.5 * texel_mm) ** 2), texel_mm
+        return kept_diffusion_terms(tex.mesh.fits, opts.variance_grid, opts.single_profile,
+                                    floor_mm2=(0.5 * texel_mm) ** 2), texel_mm
 
     def _diffusion_key(self, tex: SkinTextures, terms: DiffusionTerms) -> str:
         opts = self.options

@@ -25,6 +25,7 @@ from pipeline.render.renderer import (
     RenderOptions,
     diffusion_terms,
     interleave_classes,
+    kept_diffusion_terms,
     normal_map,
     render_files,
     texels_per_pixel,
@@ -210,6 +211,54 @@ def test_shared_variance_grid_reports_its_error() -> None:
     assert same.variances_mm2.size == 6 and "merged" in same.notes[0]
     with pytest.raises(InputError, match="single profile"):
         diffusion_terms(fits, single="nose")
+
+
+def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch
+                                                       ) -> None:
+    """The blur schedule, made (scipy's NNLS) and then read back from skinpipe's cache
+    folder, is diffusion_terms' own, bit for bit; other inputs are another file; a kept
+    file that does not read back, or whose weights do not fit the fits, is made again;
+    a cache folder that cannot be written keeps nothing."""
+    from pipeline.render import renderer as renderer_module
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    fits = [deon_fit("a"), deon_fit("b", 2.0)]
+    cases = [dict(grid=10, floor_mm2=1e-3), dict(grid=10, floor_mm2=2e-3),
+             dict(grid=0), dict(grid=6, single="b")]
+    wants = [diffusion_terms(fits, **case) for case in cases]
+
+    def same(got: Any, want: Any) -> None:
+        assert got.variances_mm2.tobytes() == want.variances_mm2.tobytes()
+        assert got.weights.tobytes() == want.weights.tobytes()
+        assert got.error == want.error and got.notes == want.notes
+
+    for case, want in zip(cases, wants, strict=True):
+        same(kept_diffusion_terms(fits, **case), want)  # made and kept
+    folder = tmp_path / "cache" / "skinpipe" / "diffusion-terms"
+    assert len(list(folder.glob("terms-*.json"))) == len(cases)
+
+    def refused(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("made again")
+
+    with monkeypatch.context() as m:  # read back: nothing made
+        m.setattr(renderer_module, "diffusion_terms", refused)
+        for case, want in zip(cases, wants, strict=True):
+            same(kept_diffusion_terms(fits, **case), want)
+    for damage in ("{", "weights"):
+        for kept in folder.glob("terms-*.json"):
+            if damage == "weights":  # one region's weights fewer than the fits
+                doc = json.loads(kept.read_text())
+                doc["weights"] = doc["weights"][:1]
+                kept.write_text(json.dumps(doc))
+            else:
+                kept.write_text(damage)
+        for case, want in zip(cases, wants, strict=True):
+            same(kept_diffusion_terms(fits, **case), want)  # made again
+    (tmp_path / "ro").mkdir()
+    (tmp_path / "ro" / "skinpipe").write_text("a file where the folder would go")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "ro"))
+    same(kept_diffusion_terms(fits, **cases[0]), wants[0])
 
 
 @pytest.mark.parametrize("shape", [(4, 4), (3, 5), (1, 7), (7, 1), (9, 10)])

@@ -1,0 +1,39 @@
+"""Small results kept between processes in skinpipe's cache folder
+(:func:`~.opencl_runtimes.cache_root`): JSON files named by a hash of everything that
+made them (the library's version among it), so that a render need not import the
+library that makes them. A file that does not read back, or whose content its reader
+refuses, is made again; one that cannot be written is not kept (the result is the
+same either way)."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from ..fileio import atomic_write_json
+from .opencl_runtimes import cache_root
+
+
+def kept_path(kind: str, name: str, key: Any) -> Path:
+    """The file that keeps a result of ``kind`` (a folder) made from ``key`` (anything
+    JSON can write, which names every input), ``name`` its file name's prefix."""
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:32]
+    return cache_root() / kind / f"{name}-{digest}.json"
+
+
+def read_kept(path: Path) -> dict[str, Any] | None:
+    """The object kept at ``path``, or None where there is none that reads back."""
+    with contextlib.suppress(OSError, ValueError):
+        doc = json.loads(path.read_text())
+        if isinstance(doc, dict):
+            return doc
+    return None
+
+
+def keep(path: Path, doc: dict[str, Any]) -> None:
+    """Keep ``doc`` at ``path`` (atomically), or nothing where it cannot be written."""
+    with contextlib.suppress(OSError, ValueError):
+        atomic_write_json(path, doc)
