@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import inspect
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,3 +39,12 @@ def keep(path: Path, doc: dict[str, Any]) -> None:
     """Keep ``doc`` at ``path`` (atomically), or nothing where it cannot be written."""
     with contextlib.suppress(OSError, ValueError):
         atomic_write_json(path, doc)
+
+
+def source_of(*functions: Callable[..., Any]) -> str:
+    """A hash of the functions' source, for a key: a result kept by other code (an
+    edited function) is not read back."""
+    h = hashlib.blake2b(digest_size=16)
+    for function in functions:
+        h.update(inspect.getsource(function).encode())
+    return h.hexdigest()

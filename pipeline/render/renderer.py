@@ -51,7 +51,7 @@ from .diffusion import (
     release_freed_heap,
 )
 from .huge_pages import apply_to_numpy, huge_pages_choice
-from .kept import keep, kept_path, read_kept
+from .kept import keep, kept_path, read_kept, source_of
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -178,15 +178,20 @@ def kept_diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: in
                          single: str | None = None, floor_mm2: float = 0.0
                          ) -> DiffusionTerms:
     """:func:`diffusion_terms`, kept in skinpipe's cache folder (:mod:`.kept`) by scipy's
-    version and every input (the fits' names, variances and weights, ``grid``,
-    ``single``, ``floor_mm2``): the same terms bit for bit. Importing scipy.optimize for
+    version, the source of the functions that make them and every input (the fits'
+    names, variances and weights, ``grid``, ``single``, ``floor_mm2``): the same terms
+    bit for bit. Importing scipy.optimize for
     its NNLS took 0.44 s of a render's main thread before its rays (0.5 s of CPU, the
     other core mostly idle); a render of the same fits at the same texel size reads
     them back instead."""
     import scipy
 
     fits = list(fits)
-    key = content_hash(scipy.__version__, grid, single, float(floor_mm2), len(fits),
+    # the code that makes them is in the key too, with scipy's version: terms made by an
+    # edited function are not read back
+    code = source_of(diffusion_terms, _normalised, sum_of_gaussians, fit_error_eq2c)
+    key = content_hash(scipy.__version__, code, MERGE_RELATIVE, grid, single,
+                       float(floor_mm2), len(fits),
                        *(part for f in fits for part in
                          (f.name, np.asarray(f.variances_mm2, np.float64),
                           np.asarray(f.weights, np.float64))))

@@ -238,13 +238,26 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     folder = tmp_path / "cache" / "skinpipe" / "diffusion-terms"
     assert len(list(folder.glob("terms-*.json"))) == len(cases)
 
-    def refused(*args: Any, **kwargs: Any) -> Any:
-        raise AssertionError("made again")
+    made: list[Any] = []
 
-    with monkeypatch.context() as m:  # read back: nothing made
-        m.setattr(renderer_module, "diffusion_terms", refused)
-        for case, want in zip(cases, wants, strict=True):
-            same(kept_diffusion_terms(fits, **case), want)
+    def counted(path: Path, doc: Any) -> None:
+        made.append(path)
+
+    monkeypatch.setattr(renderer_module, "keep", counted)
+    for case, want in zip(cases, wants, strict=True):  # read back: nothing made
+        same(kept_diffusion_terms(fits, **case), want)
+    assert made == []
+    original = renderer_module.diffusion_terms
+
+    def edited(*args: Any, **kwargs: Any) -> Any:  # other source: terms made again
+        return original(*args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(renderer_module, "diffusion_terms", edited)
+        same(kept_diffusion_terms(fits, **cases[0]), wants[0])
+    assert len(made) == 1
+    monkeypatch.undo()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     for damage in ("{", "weights"):
         for kept in folder.glob("terms-*.json"):
             if damage == "weights":  # one region's weights fewer than the fits
