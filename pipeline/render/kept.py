@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..fileio import atomic_write_json
+from ..fileio import atomic_write_text
 from .opencl_runtimes import cache_root
 
 
@@ -36,9 +36,10 @@ def read_kept(path: Path) -> dict[str, Any] | None:
 
 
 def keep(path: Path, doc: dict[str, Any]) -> None:
-    """Keep ``doc`` at ``path`` (atomically), or nothing where it cannot be written."""
+    """Keep ``doc`` at ``path`` (atomically, compact JSON: a mesh's charts are a number a
+    triangle), or nothing where it cannot be written."""
     with contextlib.suppress(OSError, ValueError):
-        atomic_write_json(path, doc)
+        atomic_write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False))
 
 
 def source_of(*functions: Callable[..., Any]) -> str:

@@ -9,6 +9,7 @@ side's texture coordinates, as xatlas splits them at a seam).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -227,6 +228,34 @@ def test_a_shadow_edge_at_a_seam_shows_no_step(tmp_path: Path, angle_deg: float,
         assert l2 < 0.01, (l2, pointwise, derivative)
         assert pointwise < 0.015, (l2, pointwise, derivative)
         assert derivative < 0.05, (l2, pointwise, derivative)
+
+
+def test_kept_uv_charts_are_the_connected_components(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each triangle's chart: three charts drawn by hand (two quads of two triangles,
+    one of them split along a seam into two charts by its own UV corners, and a lone
+    triangle, with a UV vertex no triangle uses), the same after they are kept and read
+    back from skinpipe's cache folder; a damaged kept file is made again, and other
+    triangles are another file."""
+    from pipeline.render.chart_tiles import connected_uv_charts, uv_charts
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    uv_tris = np.array([[0, 1, 2], [2, 1, 3],  # a quad: one chart
+                        [4, 5, 6], [7, 8, 9],  # a quad split along a seam: two
+                        [10, 11, 12]], np.int32)  # a lone triangle; UV 13 unused
+    want = [0, 0, 1, 2, 3]
+    for _ in range(2):  # made, then read back
+        chart, count = uv_charts(uv_tris, 14)
+        assert chart.tolist() == want and count == 4 and chart.dtype == np.int32
+    folder = tmp_path / "cache" / "skinpipe" / "uv-charts"
+    (kept,) = folder.glob("charts-*.json")
+    doc = json.loads(kept.read_text())
+    assert doc["count"] == 4
+    kept.write_text(json.dumps({**doc, "count": 3}))  # charts beyond the count
+    assert uv_charts(uv_tris, 14)[0].tolist() == want
+    chart, count = uv_charts(uv_tris[:2], 14)  # other triangles: another file
+    assert chart.tolist() == connected_uv_charts(uv_tris[:2], 14)[0].tolist() == [0, 0]
+    assert count == 1 and len(list(folder.glob("charts-*.json"))) == 2
 
 
 def test_texel_coverage_is_the_share_of_the_square_on_its_chart() -> None:
