@@ -20,7 +20,6 @@ accumulation reads each finest texel's terms in its own chart's tiles.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import math
 import os
@@ -34,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .kept import keep, kept_path, read_kept, source_of
+from .kept import kept, source_of
 from .opencl import (
     Kernel,
     build,
@@ -63,18 +62,19 @@ def uv_charts(uv_tris: NDArray[Any], n_uv: int) -> tuple[NDArray[np.int32], int]
     t = np.ascontiguousarray(uv_tris, dtype=np.int64).reshape(-1, 3)
     key = [scipy.__version__, source_of(connected_uv_charts), int(n_uv),
            hashlib.blake2b(t.tobytes(), digest_size=16).hexdigest()]
-    path = kept_path("uv-charts", "charts", key)
-    doc = read_kept(path)
-    with contextlib.suppress(ValueError, KeyError, TypeError):
-        if doc is not None and doc["key"] == key:
-            chart = np.asarray(doc["chart"], np.int32)
-            count = int(doc["count"])
-            if chart.shape == (t.shape[0],) and (chart.size == 0 or (
-                    chart.min() == 0 and chart.max() == count - 1)):
-                return chart, count
-    chart, count = connected_uv_charts(t, n_uv)
-    keep(path, {"key": key, "count": count, "chart": chart.tolist()})
-    return chart, count
+
+    def read(doc: dict[str, Any]) -> tuple[NDArray[np.int32], int]:
+        chart, count = np.asarray(doc["chart"], np.int32), int(doc["count"])
+        if chart.shape != (t.shape[0],) or (chart.size and (
+                chart.min() != 0 or chart.max() != count - 1)):
+            raise ValueError("kept charts do not fit the triangles")
+        return chart, count
+
+    def make() -> tuple[tuple[NDArray[np.int32], int], dict[str, Any]]:
+        chart, count = connected_uv_charts(t, n_uv)
+        return (chart, count), {"count": count, "chart": chart.tolist()}
+
+    return kept("uv-charts", "charts", key, read, make)
 
 
 def connected_uv_charts(uv_tris: NDArray[Any], n_uv: int) -> tuple[NDArray[np.int32], int]:

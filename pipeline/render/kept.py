@@ -12,11 +12,14 @@ import hashlib
 import inspect
 import json
 from collections.abc import Callable
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from ..fileio import atomic_write_text
 from .opencl_runtimes import cache_root
+
+T = TypeVar("T")
 
 
 def kept_path(kind: str, name: str, key: Any) -> Path:
@@ -42,9 +45,26 @@ def keep(path: Path, doc: dict[str, Any]) -> None:
         atomic_write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False))
 
 
+def kept(kind: str, name: str, key: Any, read: Callable[[dict[str, Any]], T],
+         make: Callable[[], tuple[T, dict[str, Any]]]) -> T:
+    """The result of ``key`` (anything JSON can write, which names every input):
+    ``read(doc)`` of the object kept with that key where one reads back and ``read``
+    takes it (it raises ValueError, KeyError or TypeError to refuse it), else the result
+    of ``make()``, which also gives the object to keep (what ``read`` takes back)."""
+    path = kept_path(kind, name, key)
+    doc = read_kept(path)
+    if doc is not None and doc.get("key") == key:
+        with contextlib.suppress(ValueError, KeyError, TypeError):
+            return read(doc)
+    result, made = make()
+    keep(path, {**made, "key": key})
+    return result
+
+
+@lru_cache(maxsize=64)
 def source_of(*functions: Callable[..., Any]) -> str:
     """A hash of the functions' source, for a key: a result kept by other code (an
-    edited function) is not read back."""
+    edited function) is not read back. Once per process (3-7 ms a render)."""
     h = hashlib.blake2b(digest_size=16)
     for function in functions:
         h.update(inspect.getsource(function).encode())

@@ -10,7 +10,6 @@ leaving towards the camera by 1 - rho_dt(theta_v).
 
 from __future__ import annotations
 
-import contextlib
 import math
 import threading
 import time
@@ -25,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .kept import keep, kept_path, read_kept
+from .kept import kept
 from .opencl import (
     Kernel,
     build,
@@ -238,21 +237,21 @@ def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
     is not kept."""
     import scipy
 
-    before = rng.bit_generator.state
-    path = kept_path("light-samples", "sobol", [scipy.__version__, m, before])
-    kept = read_kept(path)
-    with contextlib.suppress(ValueError, KeyError, TypeError):
-        if kept is not None and kept["before"] == before and kept["m"] == m:
-            points = np.asarray(kept["points"], np.float64).reshape(m, 2)
-            if np.all((points >= 0) & (points < 1)):
-                rng.bit_generator.state = kept["after"]
-                return points
-    from scipy.stats import qmc  # lazy: all of scipy.stats comes with it
+    def read(doc: dict[str, Any]) -> NDArray[np.float64]:
+        points = np.asarray(doc["points"], np.float64).reshape(m, 2)
+        if not np.all((points >= 0) & (points < 1)):
+            raise ValueError("kept Sobol points outside the unit square")
+        rng.bit_generator.state = doc["after"]
+        return points
 
-    points = qmc.Sobol(2, scramble=True, seed=rng).random(m)
-    keep(path, {"scipy": scipy.__version__, "m": m, "before": before,
-                "after": rng.bit_generator.state, "points": points.ravel().tolist()})
-    return points
+    def make() -> tuple[NDArray[np.float64], dict[str, Any]]:
+        from scipy.stats import qmc  # lazy: all of scipy.stats comes with it
+
+        points = qmc.Sobol(2, scramble=True, seed=rng).random(m)
+        return points, {"after": rng.bit_generator.state, "points": points.ravel().tolist()}
+
+    return kept("light-samples", "sobol", [scipy.__version__, m, rng.bit_generator.state],
+                read, make)
 
 
 def _frame(axis: NDArray[Any], dtype: Any = np.float64) -> NDArray[Any]:

@@ -12,7 +12,6 @@ mm with the stage's metersPerUnit); colours linear in the stage's working space
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import threading
@@ -51,7 +50,7 @@ from .diffusion import (
     release_freed_heap,
 )
 from .huge_pages import apply_to_numpy, huge_pages_choice
-from .kept import keep, kept_path, read_kept, source_of
+from .kept import kept, source_of
 from .lighting import (
     IrradianceResult,
     filter_interleaved,
@@ -180,10 +179,9 @@ def kept_diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: in
     """:func:`diffusion_terms`, kept in skinpipe's cache folder (:mod:`.kept`) by scipy's
     version, the source of the functions that make them and every input (the fits'
     names, variances and weights, ``grid``, ``single``, ``floor_mm2``): the same terms
-    bit for bit. Importing scipy.optimize for
-    its NNLS took 0.44 s of a render's main thread before its rays (0.5 s of CPU, the
-    other core mostly idle); a render of the same fits at the same texel size reads
-    them back instead."""
+    bit for bit. Importing scipy.optimize for its NNLS took 0.44 s of a render's main
+    thread before its rays (0.5 s of CPU, the other core mostly idle); a render of the
+    same fits at the same texel size reads them back instead."""
     import scipy
 
     fits = list(fits)
@@ -195,24 +193,24 @@ def kept_diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: in
                        *(part for f in fits for part in
                          (f.name, np.asarray(f.variances_mm2, np.float64),
                           np.asarray(f.weights, np.float64))))
-    path = kept_path("diffusion-terms", "terms", key)
-    doc = read_kept(path)
-    with contextlib.suppress(ValueError, KeyError, TypeError):
-        if doc is not None and doc["key"] == key:
-            variances = np.asarray(doc["variances_mm2"], np.float64)
-            weights = np.asarray(doc["weights"], np.float64)
-            error = {str(k): float(v) for k, v in doc["error"].items()}
-            if variances.ndim == 1 and weights.shape == (len(fits), variances.size, 3) \
-                    and set(error) == {f.name for f in fits} \
-                    and np.all(np.isfinite(weights)) and np.all(variances > 0):
-                return DiffusionTerms(variances, weights, error,
-                                      [str(n) for n in doc["notes"]])
-    terms = diffusion_terms(fits, grid, single, floor_mm2)
-    keep(path, {"key": key, "scipy": scipy.__version__,
-                "variances_mm2": terms.variances_mm2.tolist(),
-                "weights": terms.weights.tolist(), "error": terms.error,
-                "notes": terms.notes})
-    return terms
+
+    def read(doc: dict[str, Any]) -> DiffusionTerms:
+        variances = np.asarray(doc["variances_mm2"], np.float64)
+        weights = np.asarray(doc["weights"], np.float64)
+        error = {str(k): float(v) for k, v in doc["error"].items()}
+        if variances.ndim != 1 or weights.shape != (len(fits), variances.size, 3) \
+                or set(error) != {f.name for f in fits} \
+                or not np.all(np.isfinite(weights)) or not np.all(variances > 0):
+            raise ValueError("kept terms do not fit the fits")
+        return DiffusionTerms(variances, weights, error, [str(n) for n in doc["notes"]])
+
+    def make() -> tuple[DiffusionTerms, dict[str, Any]]:
+        terms = diffusion_terms(fits, grid, single, floor_mm2)
+        return terms, {"variances_mm2": terms.variances_mm2.tolist(),
+                       "weights": terms.weights.tolist(), "error": terms.error,
+                       "notes": terms.notes}
+
+    return kept("diffusion-terms", "terms", key, read, make)
 
 
 # ------------------------------------------------------------------------ helpers

@@ -220,6 +220,7 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     folder, is diffusion_terms' own, bit for bit; other inputs are another file; a kept
     file that does not read back, or whose weights do not fit the fits, is made again;
     a cache folder that cannot be written keeps nothing."""
+    from pipeline.render import kept as kept_module
     from pipeline.render import renderer as renderer_module
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -243,7 +244,7 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     def counted(path: Path, doc: Any) -> None:
         made.append(path)
 
-    monkeypatch.setattr(renderer_module, "keep", counted)
+    monkeypatch.setattr(kept_module, "keep", counted)
     for case, want in zip(cases, wants, strict=True):  # read back: nothing made
         same(kept_diffusion_terms(fits, **case), want)
     assert made == []
