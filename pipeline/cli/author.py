@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -21,7 +21,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "landmarks file (soft borders) or from an existing uniform int primvar of a USD "
             "mesh. Layers are written to temporary files and renamed; inputs are only read."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("--fits", nargs="+", type=Path, required=True, metavar="DIR_OR_JSON",
                    help="FIT.json files or directories of them; each fit's name is its region")

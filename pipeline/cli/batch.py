@@ -11,7 +11,7 @@ from typing import Any
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from ..render.options import DEVICE_ENV, DEVICE_HELP
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def _stages(text: str) -> tuple[str, ...]:
@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "subject is reported and the others go on. Writes OUT_ROOT/batch.json."
         ),
         epilog="Exit codes: 0 every subject done, 1 a subject failed, 2 bad input.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("batch", type=Path, metavar="BATCH.json", help="the subjects to run")
     where = p.add_mutually_exclusive_group()

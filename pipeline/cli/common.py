@@ -12,6 +12,21 @@ from typing import Any
 Handler = Callable[[argparse.Namespace], int]
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's defaults in ``--help``, but only where the help does not state its own
+    default already (argparse's would follow it with a second, often ``None``, one) and
+    where there is one to show (not None, False, empty or suppressed)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        nothing = default is None or default is False or default == argparse.SUPPRESS or \
+            (isinstance(default, (str, tuple, list)) and not default)  # 0 is shown
+        if nothing or "default" in text.lower():
+            return action.help
+        return super()._get_help_string(action)
+
+
 def _eprint(*args: object) -> None:
     print(*args, file=sys.stderr, flush=True)
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from .common import (
+    HelpFormatter,
     add_force_option,
     add_render_options,
 )
@@ -32,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "OUT/asset, OUT/scene.usda, OUT/render (EXR, PNG, render.json) and "
             "OUT/report.json (each stage's seconds and error)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("-o", "--output", type=Path, default=Path("demo_out"), help="output directory")
     p.add_argument("-k", type=int, default=6, help="Gaussians per profile")

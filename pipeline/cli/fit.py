@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def _float_list(text: str) -> tuple[float, ...]:
@@ -33,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "(Park & Oh 2009, eq. 1-2). A genetic algorithm seeds the variances, casadi's IPOPT "
             "refines variances and weights. Error: eq. 2c (relative, r-weighted RMS)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("profiles", nargs="+", type=Path, metavar="PROFILE.csv",
                    help="header and columns radius_mm,R,G,B[,std_R,std_G,std_B]")

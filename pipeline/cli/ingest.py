@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +22,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "OUT_DIR/<region>.exr and ingest.json. "
             "Nothing is written unless every region succeeds."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("captures", type=Path, metavar="CAPTURES", help="capture-set directory")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory")

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +18,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "facts; --plot draws measured samples and fitted curves per channel with "
             "relative residuals (one PNG per profile when several are shown)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("asset", type=Path, metavar="ASSET.usd")
     p.add_argument("--prim", default=None, help="a profile prim, or a mesh: its profiles")

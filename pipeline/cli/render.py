@@ -8,6 +8,7 @@ from typing import Any
 
 from ..errors import EXIT_OK
 from .common import (
+    HelpFormatter,
     TaskBar,
     _frames,
     add_force_option,
@@ -45,7 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "seconds, what was cached or skipped, error measures). With --frames, one pair "
             "per frame; texture-space work is reused while only the camera moves."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("scene", type=Path, help="USD scene or asset to render")
     add_render_options(p)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
 from ..render.options import BLURS, LIGHT_SEQUENCES, SHADOW_SAMPLING
-from .common import _eprint, _int_pair, add_force_option
+from .common import HelpFormatter, _eprint, _int_pair, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -36,7 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "Every run also (re)writes OUTPUT/report.md, one page with each stage found in "
             "OUTPUT: plot, table, Pareto front, and whether the default sits on it."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("stage", choices=["fit", "ingest", "render", "all"],
                    help="which stage to measure ('all': fit, ingest and render)")

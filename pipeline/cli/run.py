@@ -9,6 +9,7 @@ from typing import Any
 
 from ..errors import EXIT_CHECK_FAILED, EXIT_OK, InputError
 from .common import (
+    HelpFormatter,
     TaskBar,
     add_force_option,
     add_render_options,
@@ -28,7 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "--landmarks), optionally paint a sample albedo, write the shot layer "
             "OUT/scene.usda and render it into OUT/render."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("captures", type=Path, help="capture set directory (capture.json)")
     p.add_argument("--mesh", type=Path, required=True, help="face mesh (USD, PLY, OBJ)")

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK
-from .common import add_force_option
+from .common import HelpFormatter, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +18,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "asset from the front (+Z, Y up), a key SphereLight (soft shadows) and a dim "
             "DomeLight fill. The asset is only read."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("asset", type=Path)
     p.add_argument("--turntable", type=int, default=0, metavar="N",

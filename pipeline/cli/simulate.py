@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import EXIT_OK, InputError
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -26,7 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "camera) or 'legacy' (the earlier simulator: 0.025 mm pixels, no black level, "
             "Rec.709 camera); the options below override single effects."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("-o", "--output", type=Path, required=True, help="capture-set directory")
     p.add_argument("--preset", choices=["realistic", "legacy"], default="realistic",

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ..errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK, InputError
-from .common import _eprint, add_force_option
+from .common import HelpFormatter, _eprint, add_force_option
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +22,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "a check fails, 2 when a file cannot be read. Text files nested too deep for "
             "USD's parser are refused before parsing."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("assets", nargs="*", type=Path, metavar="ASSET.usd")
     p.add_argument("--strict", action="store_true",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -9,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
+from pipeline.cli import build_parser, main
 from pipeline.profile.io import write_profile_csv
 
 from ..reference_profiles import deon_profile, dipole_normalised
@@ -25,6 +26,38 @@ def test_fit_help_gives_units(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["fit", "--help"]) == 0
     out = capsys.readouterr().out
     assert "mm^2" in out and "--share" in out
+
+
+def test_every_option_states_its_default_once(capsys: pytest.CaptureFixture[str]) -> None:
+    """Against argparse's plain formatter: an option whose help states its default is
+    shown as written; one with a default to show (not None, False or empty) and no word
+    of it gets argparse's "(default: X)"; none ever shows "(default: None)"."""
+    parser = build_parser()
+    verbs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    checked = appended = 0
+    for verb, sub in verbs.choices.items():
+        ours = sub._get_formatter()
+        plain = argparse.HelpFormatter(sub.prog)
+        for action in sub._actions:
+            if action.help in (None, argparse.SUPPRESS) or not action.option_strings:
+                continue
+            shown = " ".join(ours._expand_help(action).split())
+            written = " ".join(plain._expand_help(action).split())
+            where = f"{verb} {action.option_strings[-1]}: {shown!r}"
+            default = action.default
+            nothing = default is None or default is False or default == argparse.SUPPRESS \
+                or (isinstance(default, (str, tuple, list)) and not default)
+            if nothing or "default" in written.lower():
+                assert shown == written, where
+            else:
+                assert shown == f"{written} (default: {default})", where
+                appended += 1
+            assert "(default: None)" not in shown, where
+            checked += 1
+    assert checked > 100 and appended > 20
+    assert main(["render", "--help"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "(default: the first camera on the stage)" in out and "(default: None)" not in out
 
 
 def test_fit_writes_the_documented_json(tmp_path: Path) -> None:
