@@ -41,6 +41,7 @@ from ..imageio import (
 from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
+from .bands import BAND_ITEMS, in_bands
 from .blur_switch import TUNE_STREAM, direct_limits
 from .diffusion import (
     DiffusionLayout,
@@ -78,7 +79,13 @@ from .opencl import (
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .push_pull import dilate_charts, prepare_dilation, push_pull
 from .raytrace import RayScene, offset_ray_origin
-from .resample import EXACT_POWERS, resample_bilinear, resampled_texels, times_resampled_power
+from .resample import (
+    EXACT_POWERS,
+    resample_bilinear,
+    resampled_texels,
+    take_rows,
+    times_resampled_power,
+)
 from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
 from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
 from .tile_store import TileStore
@@ -290,7 +297,7 @@ def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
     """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
     size_v, size_u = texture.shape[:2]
     flat = np.asarray(texture, np.float32).reshape(size_v * size_u, -1)
-    return bilinear_of(lambda i: flat[i], (size_v, size_u), uv)
+    return bilinear_of(lambda i: take_rows(flat, i), (size_v, size_u), uv)
 
 
 def bilinear_of(texels: Callable[[NDArray[np.int64]], NDArray[np.float32]],
@@ -512,11 +519,13 @@ def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -
     charts, summed over channels: sum of value x texel area in mm^2 (mm per texel along u
     times along v) x coverage. In bands of ``rows`` rows: the areas of the whole texture
     at once were 67 MB of new memory at texture 4096, at the diffusion's peak."""
-    total = 0.0
-    for y in range(0, rgb.shape[0], rows):
-        band = slice(y, y + rows)
+    def flux(band: slice) -> float:
         area = maps.texel_area_mm2(band) * maps.coverage[band]
-        total += float((area.ravel() @ rgb[band].reshape(-1, 3)).sum(dtype=np.float64))
+        return float((area.ravel() @ rgb[band].reshape(-1, 3)).sum(dtype=np.float64))
+
+    total = 0.0
+    for part in in_bands(flux, rgb.shape[0], rows):  # on the cores; added in band order
+        total += part
     return total
 
 
@@ -611,10 +620,18 @@ class SkinTextures:
         """The irradiance (H, W, 3), 0 off the charts, as a new array: the filled one where
         a triangle covers the texel, which the push-pull and the gutter leave as it was
         (a copy kept beside the filled one held 201 MB at texture 4096)."""
-        if self.irradiance_filled is None:
+        filled = self.irradiance_filled
+        if filled is None:
             return None
-        return np.where((self.maps.triangle >= 0)[..., None], self.irradiance_filled,
-                        np.float32(0.0))
+        triangle = self.maps.triangle
+        out = np.empty(filled.shape, np.float32)
+
+        def band(rows: slice) -> None:  # in bands on the cores: 0.30 -> 0.14 s at 4096
+            np.copyto(out[rows], np.where((triangle[rows] >= 0)[..., None], filled[rows],
+                                          np.float32(0.0)))
+
+        in_bands(band, out.shape[0], BAND_ITEMS // max(out.shape[1], 1))
+        return out
 
 
 class Renderer:
@@ -778,12 +795,14 @@ class Renderer:
 
     def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
-                    release: _BothArrived | None = None) -> None:
+                    release: _BothArrived | None = None,
+                    after_rays: Callable[[], None] | None = None) -> None:
         """``tex``'s irradiance and visibility maps. In a render's last frame
         (``release``) the position and normal maps go once the texels' rows are taken
         and the seam layout beside needs them no more (:meth:`_release_maps`): 0.4 GB
         at texture 4096 that the rays' peak held; the filter reads a normal map made
-        again from the rows (:func:`normal_map`)."""
+        again from the rows (:func:`normal_map`). ``after_rays`` is called once the
+        shadow rays are cast (not at all where the maps come from the cache)."""
         opts = self.options
         maps = tex.maps
         covered = maps.triangle >= 0
@@ -813,6 +832,8 @@ class Renderer:
                     opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
                     opts.light_sequence, texel, coherent=True, period=period)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
+            if after_rays is not None:
+                after_rays()
             visibility = res.visibility
             filtered = bool(interleave is not None and res.interleaved and visibility)
             normal = None if not filtered or maps.normal is not None else \
@@ -869,22 +890,25 @@ class Renderer:
                                       != "full" else None,
                                       "texels_per_pixel": round(tex.texels_per_pixel, 3)}
 
-    def _look_up_at_hits(self, scene: SceneData, tex: SkinTextures, cam: CameraHits,
-                         owners: dict[str, NDArray[Any]]) -> None:
+    @staticmethod
+    def _hit_uvs(scene: SceneData, tex: SkinTextures, cam: CameraHits,
+                 owners: dict[str, NDArray[Any]]) -> dict[str, NDArray[np.float64]]:
+        """The texture coordinates of the camera's hits on ``tex``'s mesh, by part
+        ('center', 'edge'); ``owners``: each part's :func:`ray_owners`."""
+        mesh = scene.meshes.index(tex.mesh)
+        return {part: hit_uvs(tex, *mesh_hits(owners[part], hits, mesh)[1:])
+                for part, hits in (("center", cam.hits), ("edge", cam.edge_hits))}
+
+    def _look_up_at_hits(self, tex: SkinTextures, uvs: dict[str, NDArray[np.float64]]
+                         ) -> None:
         """``tex.at_hits``: what the shading reads of the irradiance and the lights'
         visibility maps (their push-pulled planes: 268 MB at texture 4096 with one
-        shadowed light) at the camera's hits on ``tex``'s mesh, the same bilinear
-        lookups, so that the diffusion lets the maps go once it has read the irradiance
-        (:meth:`_release_irradiance`) rather than hold them through its peak. ``owners``:
-        each part's :func:`ray_owners`; the hits' texture coordinates are kept
-        (``tex.hit_uv``) for the shading."""
-        mesh = scene.meshes.index(tex.mesh)
-        at: dict[str, dict[str, NDArray[np.float32]]] = {}
-        for part, hits in (("center", cam.hits), ("edge", cam.edge_hits)):
-            _, tri_idx, b = mesh_hits(owners[part], hits, mesh)
-            uv = tex.hit_uv[part] = hit_uvs(tex, tri_idx, b)
-            at[part] = self._irradiance_lookups(tex, uv)
-        tex.at_hits = at
+        shadowed light) at the camera's hits on ``tex``'s mesh (:meth:`_hit_uvs`, kept in
+        ``tex.hit_uv`` for the shading), the same bilinear lookups, so that the diffusion
+        lets the maps go once it has read the irradiance (:meth:`_release_irradiance`)
+        rather than hold them through its peak."""
+        tex.hit_uv.update(uvs)
+        tex.at_hits = {part: self._irradiance_lookups(tex, uv) for part, uv in uvs.items()}
 
     def _irradiance_lookups(self, tex: SkinTextures, uv: NDArray[Any]
                             ) -> dict[str, NDArray[np.float32]]:
@@ -1156,16 +1180,31 @@ class Renderer:
                                      release)
         if layout is None and release is not None:
             release.arrive("layout")
+        look_up = camera is not None and self.last_frame and \
+            "irradiance" not in self.options.texture_outputs
+        beside: list[Future[dict[str, NDArray[np.float64]]]] = []
+
+        def hit_uvs_beside() -> None:
+            # the camera's rays and the hits' uvs need no irradiance: on a thread while
+            # the filter's numpy steps leave a core idle (0.2 s of the main thread at
+            # texture 4096)
+            assert camera is not None
+            pool = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-camera")
+            beside.append(pool.submit(lambda: self._hit_uvs(scene, tex, *camera())))
+            pool.shutdown(wait=False)
+
         try:
-            self._irradiance(log, scene, tex, rays, dome_textures or {}, release)
+            self._irradiance(log, scene, tex, rays, dome_textures or {}, release,
+                             hit_uvs_beside if look_up else None)
         except BaseException:
-            if layout is not None:  # no thread outlives its frame, not even on errors
-                wait([layout])
+            # no thread outlives its frame, not even on errors
+            wait([*beside, *([] if layout is None else [layout])])
             raise
         self._albedo(log, scene, tex)
-        if camera is not None and self.last_frame and \
-                "irradiance" not in self.options.texture_outputs:
-            self._look_up_at_hits(scene, tex, *camera())
+        if look_up:
+            assert camera is not None
+            self._look_up_at_hits(tex, beside[0].result() if beside else
+                                  self._hit_uvs(scene, tex, *camera()))
         self._diffusion(log, tex, terms, texel_mm, layout)
         store = None if layout is None else layout.result().store
         if store is not None:  # its writes ran beside the diffusion
@@ -1219,14 +1258,17 @@ class Renderer:
         # the diffusion (Renderer._look_up_at_hits): made first, they waited for the
         # kernels' prewarm (0.5-0.8 s against 0.16 at texture 4096)
         made: list[tuple[CameraHits, dict[str, NDArray[Any]]]] = []
+        making = threading.Lock()
 
         def camera() -> tuple[CameraHits, dict[str, NDArray[Any]]]:
             """The camera's hits and each part's (mesh, triangle) of them: once a frame
-            (the log counts the task once), for the lookups and the shading."""
-            if not made:
-                cam = self._camera_hits(scene, log, camera_rays)
-                made.append((cam, {part: ray_owners(camera_rays, hits[0]) for part, hits
-                                   in (("center", cam.hits), ("edge", cam.edge_hits))}))
+            (the log counts the task once), for the lookups and the shading; from any
+            thread (a caller waits for one that is making them)."""
+            with making:
+                if not made:
+                    cam = self._camera_hits(scene, log, camera_rays)
+                    made.append((cam, {part: ray_owners(camera_rays, hits[0]) for part, hits
+                                       in (("center", cam.hits), ("edge", cam.edge_hits))}))
             return made[0]
 
         skins = self.textures = [self.texture_space(log, scene, mesh, rays, domes, camera)

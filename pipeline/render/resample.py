@@ -43,6 +43,16 @@ def resample_bilinear(image: NDArray[Any], size: int) -> NDArray[np.float32]:
     return out
 
 
+def take_rows(rows: NDArray[Any], index: NDArray[np.integer]) -> NDArray[Any]:
+    """``rows[index]``: the rows (N, ...) of ``rows`` at ``index``, by ``np.take`` where
+    they are contiguous (8 ms against fancy indexing's 20 for 293 k rows of 3 floats of a
+    texture 4096 map, the same values) and by fancy indexing where they are a view of a
+    wider array (``np.take`` would first copy all of it: 0.2 s)."""
+    if rows.flags.c_contiguous:
+        return np.take(rows, index, axis=0)
+    return rows[index]
+
+
 def resampled_texels(image: NDArray[Any], size: int, index: NDArray[np.integer]
                      ) -> NDArray[np.float32]:
     """The texels at flat indices ``index`` (N,) of ``resample_bilinear(image, size)``,
@@ -50,18 +60,19 @@ def resampled_texels(image: NDArray[Any], size: int, index: NDArray[np.integer]
     the (S, S, C) image (201 MB at texture 4096 for the few texels a lookup reads)."""
     img = np.asarray(image, np.float32)
     h, w = img.shape[:2]
-    ty, tx = np.divmod(np.asarray(index), size)
+    pixels = img.reshape(h * w, *img.shape[2:])  # rows by flat pixel index: take_rows
     if (h, w) == (size, size):  # resample_bilinear's copy: each texel its own
-        return img[ty, tx]
+        return take_rows(pixels, index)
+    ty, tx = np.divmod(np.asarray(index), size)
     x0, fx = _axis_weights(w, size)
     y0, fy = _axis_weights(h, size)
     xa, xb = x0[tx], np.minimum(x0 + 1, w - 1)[tx]
-    ya, yb = y0[ty], np.minimum(y0 + 1, h - 1)[ty]
+    ya, yb = y0[ty] * w, np.minimum(y0 + 1, h - 1)[ty] * w
     left, right = (1 - fx)[tx, None], fx[tx, None]
-    top = img[ya, xa] * left
-    top += img[ya, xb] * right
-    bottom = img[yb, xa] * left
-    bottom += img[yb, xb] * right
+    top = take_rows(pixels, ya + xa) * left
+    top += take_rows(pixels, ya + xb) * right
+    bottom = take_rows(pixels, yb + xa) * left
+    bottom += take_rows(pixels, yb + xb) * right
     top *= (1 - fy)[ty, None]
     bottom *= fy[ty, None]
     top += bottom

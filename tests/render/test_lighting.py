@@ -3,6 +3,7 @@ closed-form irradiance."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -66,6 +67,35 @@ def test_specular_albedo_is_small_and_rises_at_grazing() -> None:
     rho = specular_albedo(np.array([1.0, 0.5, 0.1]))
     assert 0.0 < rho[0] < rho[1] < rho[2] < 0.25  # never more than rho_s
     assert specular_albedo(1.0, rho_s=0.0) == 0.0
+
+
+def test_kept_rho_dt_table_is_the_quadrature(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The specular albedo's table, made and then read back from skinpipe's cache
+    folder, is the quadrature's own, bit for bit; a damaged kept file (not JSON, another
+    size, a negative value) is made again; another roughness is another file."""
+    from pipeline.render.lighting import _rho_dt_table, rho_dt_quadrature
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    want = rho_dt_quadrature(0.3, 0.2)
+    assert 0 < want[-1] < want[1] < 0.2  # a rough lobe reflects more at grazing angles
+    for _ in range(2):  # made, then read back
+        _rho_dt_table.cache_clear()
+        got = _rho_dt_table(0.3, 0.2)
+        np.testing.assert_array_equal(got, want)
+        assert not got.flags.writeable
+    folder = tmp_path / "cache" / "skinpipe" / "specular-albedo"
+    (path,) = folder.glob("rho-dt-*.json")
+    doc = json.loads(path.read_text())
+    for damage in ("{", json.dumps({**doc, "table": doc["table"][:-1]}),
+                   json.dumps({**doc, "table": [-1.0] * 64})):
+        path.write_text(damage)
+        _rho_dt_table.cache_clear()
+        np.testing.assert_array_equal(_rho_dt_table(0.3, 0.2), want)
+    _rho_dt_table.cache_clear()
+    np.testing.assert_array_equal(_rho_dt_table(0.4, 0.2), rho_dt_quadrature(0.4, 0.2))
+    assert len(list(folder.glob("rho-dt-*.json"))) == 2
+    _rho_dt_table.cache_clear()
 
 
 def _floor() -> RayScene:

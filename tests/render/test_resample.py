@@ -9,6 +9,7 @@ from pipeline.render.renderer import albedo_texels, albedo_texture, bilinear, bi
 from pipeline.render.resample import (
     resample_bilinear,
     resampled_texels,
+    take_rows,
     times_resampled_power,
 )
 
@@ -53,6 +54,21 @@ def test_resampled_texels_are_the_resampled_images_texels() -> None:
         got = resampled_texels(image, size, index)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, resample_bilinear(image, size).reshape(-1, 3)[index])
+
+
+def test_take_rows_is_fancy_indexing() -> None:
+    """take_rows against numpy's fancy indexing: contiguous rows, a view of a wider
+    array's first columns (the irradiance beside the visibility planes), one column of
+    it, 1-D values; repeated and last indices, none at all."""
+    rng = np.random.default_rng(4)
+    planes = rng.random((50 * 40, 5)).astype(np.float32)
+    for rows in (planes, planes[:, :3], planes[:, 3], planes[:, 3:4],
+                 np.ascontiguousarray(planes[:, 3])):
+        for index in (rng.integers(0, rows.shape[0], 3000),
+                      np.array([rows.shape[0] - 1, 0, 0]), np.array([], np.int64)):
+            got = take_rows(rows, index)
+            assert got.dtype == rows.dtype and got.shape == rows[index].shape
+            np.testing.assert_array_equal(got, rows[index])
 
 
 def test_albedo_lookups_without_the_map_are_the_maps() -> None:
