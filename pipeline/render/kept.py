@@ -3,7 +3,8 @@
 made them (the library's version among it), so that a render need not import the
 library that makes them. A file that does not read back, or whose content its reader
 refuses, is made again; one that cannot be written is not kept (the result is the
-same either way)."""
+same either way). Each kind's folder holds at most :data:`LIMIT_ENV` MB: past it, a
+write removes the least recently used files (a read marks its file used)."""
 
 from __future__ import annotations
 
@@ -11,15 +12,28 @@ import contextlib
 import hashlib
 import inspect
 import json
+import os
+import time
 from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, TypeVar
 
+from ..errors import InputError
 from ..fileio import atomic_write_text
 from .opencl_runtimes import cache_root
 
 T = TypeVar("T")
+
+LIMIT_ENV = "SKINPIPE_KEPT_CACHE_MB"
+"""Environment variable: the most one kind's folder of kept results may hold, in MB (10^6
+bytes); :data:`DEFAULT_LIMIT_MB` where unset."""
+DEFAULT_LIMIT_MB = 256.0
+"""A mesh's UV charts, the largest kept result, take about 4 bytes a triangle (211 KB
+for the demo face's 60 k triangles); the other kinds a few KB each."""
+_STALE_TMP_S = 3600.0
+"""A temporary file (``.name.*``, :func:`~pipeline.fileio.atomic_path`) this old was left
+by a killed process."""
 
 
 def kept_path(kind: str, name: str, key: Any) -> Path:
@@ -34,6 +48,8 @@ def read_kept(path: Path) -> dict[str, Any] | None:
     with contextlib.suppress(OSError, ValueError):
         doc = json.loads(path.read_text())
         if isinstance(doc, dict):
+            with contextlib.suppress(OSError):
+                os.utime(path)  # most recently used: the last to go
             return doc
     return None
 
@@ -41,8 +57,56 @@ def read_kept(path: Path) -> dict[str, Any] | None:
 def keep(path: Path, doc: dict[str, Any]) -> None:
     """Keep ``doc`` at ``path`` (atomically, compact JSON: a mesh's charts are a number a
     triangle), or nothing where it cannot be written."""
+    limit = limit_bytes()  # a bad limit is the user's to hear of, not a file not kept
     with contextlib.suppress(OSError, ValueError):
         atomic_write_text(path, json.dumps(doc, separators=(",", ":"), allow_nan=False))
+        evict(path.parent, limit, keep=path)
+
+
+def limit_bytes() -> float:
+    """The most a kind's folder may hold, in bytes (:data:`LIMIT_ENV`); a value that is
+    not a number >= 0 is refused with the variable named."""
+    raw = os.environ.get(LIMIT_ENV, "").strip()
+    if not raw:
+        return DEFAULT_LIMIT_MB * 1e6
+    try:
+        mb = float(raw)
+    except ValueError:
+        mb = -1.0
+    if not mb >= 0:  # NaN too
+        raise InputError(f"${LIMIT_ENV} must be a number of MB >= 0, got {raw!r}")
+    return mb * 1e6
+
+
+def evict(folder: Path, limit: float, keep: Path | None = None) -> list[Path]:
+    """Remove the least recently used files of ``folder`` (by modification time, which
+    :func:`read_kept` renews) while it holds more than ``limit`` bytes, never ``keep``,
+    and temporary files a killed process left; the files removed. Files another user
+    owns in a shared folder stay."""
+    now = time.time()
+    files = []
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(folder):
+            with contextlib.suppress(OSError):
+                st = entry.stat(follow_symlinks=False)
+                if not entry.is_file(follow_symlinks=False):
+                    continue
+                if entry.name.startswith(".") and now - st.st_mtime > _STALE_TMP_S:
+                    os.unlink(entry.path)
+                    continue
+                files.append((st.st_mtime, st.st_size, Path(entry.path)))
+    total = sum(size for _, size, _ in files)
+    removed = []
+    for _, size, path in sorted(files, key=lambda f: f[0]):
+        if total <= limit:
+            break
+        if keep is not None and path == keep:
+            continue
+        with contextlib.suppress(OSError):
+            path.unlink()
+            total -= size
+            removed.append(path)
+    return removed
 
 
 def kept(kind: str, name: str, key: Any, read: Callable[[dict[str, Any]], T],
