@@ -88,9 +88,10 @@ __attribute__((always_inline)) inline ushort float_to_half_bits(float f)
 kept as ``ushort`` bits, converted as numpy's float16 does, without PoCL's calls."""
 
 
-MIN_LOCAL_MEM_BYTES = 64 << 10
-"""Local memory a device needs: the direct blur's ring (20 KiB) and the recursive blur's
-lines (64 B a texel of a line: 1024-texel lines at 64 KiB)."""
+MIN_LOCAL_MEM_BYTES = 32 << 10
+"""Local memory a device needs: the direct blur's ring (20 KiB). The recursive blur's
+rows (64 B a texel of a row) go to a global buffer where they do not fit (NVIDIA's GPUs
+offer OpenCL 48 KiB, 768 texels)."""
 PROBE_ITEMS = 256
 _T = TypeVar("_T", bound=Callable[..., Any])
 _DEVICE_CACHES: list[Any] = []

@@ -170,8 +170,10 @@ _KERNEL = r"""
 // item runs LINES rows side by side: the recursion is a chain of dependent multiply-adds
 // and independent rows fill its latency, and the transposed writes of LINES rows fill
 // whole 64-byte cache lines. The causal half goes to `scratch`, local memory the size
-// of LINES rows that stays in cache for the anticausal half. Rows past `lines` repeat
-// the last one and are not written.
+// of LINES rows that stays in cache for the anticausal half (GLOBAL_SCRATCH: this work
+// item's LINES rows of a global buffer, where a device's local memory holds fewer
+// texels than a row: a GPU's 48 KiB). Rows past `lines` repeat the last one and are
+// not written.
 //
 // Coefficients: 12 floats (3 float4) per entry of `coefs`; entry index[texel] (or entry
 // 0 for every texel when UNIFORM). Loading them per texel costs less than testing
@@ -183,13 +185,24 @@ _KERNEL = r"""
     const __global float4 *cp = coefs + 3 * index[t]; \
     const float4 c0 = cp[0], c1 = cp[1], c2 = cp[2];
 #endif
+#if GLOBAL_SCRATCH
+#define SCRATCH_SPACE __global
+#else
+#define SCRATCH_SPACE __local
+#endif
 __kernel void iir_rows_transposed(__global const float4 *src, __global float4 *dst,
-                                  __local float4 *scratch, __global const int *index,
+                                  SCRATCH_SPACE float4 *scratch_base,
+                                  __global const int *index,
                                   __global const float4 *coefs, const int n,
                                   const int lines)
 {
     const int L0 = get_global_id(0) * LINES;
     if (L0 >= lines) return;
+#if GLOBAL_SCRATCH
+    __global float4 *scratch = scratch_base + (size_t)L0 * (size_t)n;
+#else
+    __local float4 *scratch = scratch_base;
+#endif
 #if UNIFORM
     const float4 c0 = coefs[0], c1 = coefs[1], c2 = coefs[2];
 #endif
@@ -259,27 +272,35 @@ def quantized_sigma(sigma: NDArray[Any]) -> NDArray[np.float64]:
     return 2.0 ** (quantized_log2(s) / QUANT_STEPS_PER_OCTAVE)
 
 
-def _variant_source(uniform: bool, stream: bool) -> str:
+def _variant_name(uniform: bool, stream: bool, global_scratch: bool = False) -> str:
+    return f"iir_rows_transposed_{int(uniform)}{int(stream)}" + ("_g" if global_scratch else "")
+
+
+def _variant_source(uniform: bool, stream: bool, global_scratch: bool = False) -> str:
     """The pass for one sigma or per-texel coefficients, with or without streaming
-    stores, as ``iir_rows_transposed_<uniform><stream>``."""
+    stores, its scratch rows in local or global memory, as :func:`_variant_name`."""
     return (f"#define UNIFORM {int(uniform)}\n#define STREAM {int(stream)}\n"
+            f"#define GLOBAL_SCRATCH {int(global_scratch)}\n"
             f"#define LINES {LINES_PER_ITEM}\n" + STORE_MACRO
             + _KERNEL.replace("iir_rows_transposed(",
-                              f"iir_rows_transposed_{int(uniform)}{int(stream)}(")
-            + "#undef UNIFORM\n#undef STREAM\n#undef LINES\n#undef STORE\n#undef COEFFS\n")
+                              _variant_name(uniform, stream, global_scratch) + "(")
+            + "#undef UNIFORM\n#undef STREAM\n#undef LINES\n#undef STORE\n#undef COEFFS\n"
+            "#undef GLOBAL_SCRATCH\n#undef SCRATCH_SPACE\n")
 
 
-@device_cache(maxsize=4)
-def _iir_kernel(uniform: bool, stream: bool) -> Any:
+@device_cache(maxsize=8)
+def _iir_kernel(uniform: bool, stream: bool, global_scratch: bool = False) -> Any:
     """The recursive pass for one sigma or per-texel coefficients, with or without
-    streaming stores. Where kernels are compiled at their first launch (PoCL) all four
-    are in one program: its build's fixed cost (0.29 s cold, measured, whatever the
-    program holds) is paid once; elsewhere (Intel's runtime compiles every kernel of a
-    program when it builds it) each is a program of its own, built when first needed."""
+    streaming stores, its scratch in local memory (or global, :class:`IIRKernels`).
+    Where kernels are compiled at their first launch (PoCL) the four local ones are in
+    one program: its build's fixed cost (0.29 s cold, measured, whatever the program
+    holds) is paid once; elsewhere (Intel's runtime compiles every kernel of a program
+    when it builds it), and for global scratch, each is a program of its own, built
+    when first needed."""
     variants = [(u, s) for u in (True, False) for s in (True, False)] \
-        if jit_at_first_launch() else [(uniform, stream)]
-    program = build("".join(_variant_source(u, s) for u, s in variants))
-    return Kernel(program, f"iir_rows_transposed_{int(uniform)}{int(stream)}", (1,))
+        if jit_at_first_launch() and not global_scratch else [(uniform, stream)]
+    program = build("".join(_variant_source(u, s, global_scratch) for u, s in variants))
+    return Kernel(program, _variant_name(uniform, stream, global_scratch), (1,))
 
 
 def pass_kernels(stream: bool, uniform: bool = False) -> list[Any]:
@@ -295,6 +316,9 @@ class IIRKernels:
     def __init__(self) -> None:
         self.ctx, self.queue = cl_context()
         self.max_line = int(self.ctx.devices[0].local_mem_size) // (16 * LINES_PER_ITEM)
+        """The longest row whose scratch fits local memory; longer rows' scratch is a
+        global buffer (:meth:`_global_scratch`)."""
+        self._scratch: Any = None
 
     def coefficients(self, sigma: NDArray[Any]) -> Any:
         """Device buffer of the section coefficients (N, 12) for sigmas (N,) in texels."""
@@ -307,17 +331,26 @@ class IIRKernels:
         """Enqueue one pass over ``lines`` rows of ``n`` float4 texels of ``src`` into
         ``dst``, transposed; ``row_bands``: a band of rows at a time
         (:class:`~.opencl.RowBands`)."""
-        if n > self.max_line:
-            raise InputError(f"recursive blur: lines of {n} texels exceed this device's "
-                             f"local memory ({self.max_line} at most)")
         # the one-sigma kernel never reads `index`: any buffer fills the argument
         stream = streams(n * lines * 16)
-        kernel = _iir_kernel(index is None, stream)
         items = -(-lines // LINES_PER_ITEM)
-        args = (src, dst, cl.LocalMemory(16 * LINES_PER_ITEM * n),
+        in_global = n > self.max_line
+        kernel = _iir_kernel(index is None, stream, in_global)
+        scratch = self._global_scratch(16 * LINES_PER_ITEM * n * items) if in_global else \
+            cl.LocalMemory(16 * LINES_PER_ITEM * n)
+        args = (src, dst, scratch,
                 coefs if index is None else index, coefs, np.int32(n), np.int32(lines))
         in_bands(self.queue, row_bands, items, LINES_PER_ITEM, lambda i0, i1: kernel(
             self.queue, (i1 - i0,), (1,), *args, global_offset=(i0,)))
+
+    def _global_scratch(self, nbytes: int) -> Any:
+        """A global buffer of at least ``nbytes`` for the passes whose rows are longer
+        than local memory holds (each work item its LINES rows), kept for the next
+        such pass; the queue is in order, so passes share it."""
+        if self._scratch is None or self._scratch.size < nbytes:
+            self._scratch = None  # its memory goes before the larger one comes
+            self._scratch = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+        return self._scratch
 
     def blur(self, src: Any, tmp: Any, dst: Any, height: int, width: int,
              coefs_u: Any, coefs_v: Any, index_u: Any = None, index_v_t: Any = None,

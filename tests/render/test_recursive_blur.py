@@ -58,6 +58,30 @@ def test_opencl_agrees_with_the_float64_reference_per_texel() -> None:
     assert np.abs(ours - ref).max() / np.abs(ref).max() < 1e-5
 
 
+def test_rows_longer_than_local_memory_blur_the_same_through_global_scratch(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where a device's local memory holds fewer texels than a row (a GPU's 48 KiB: 768
+    texels), the pass keeps its rows in a global buffer: the same floats as in local
+    memory, per texel and for one sigma, with a row count that is not a multiple of the
+    rows a work item runs, and the float64 reference's values."""
+    rng = np.random.default_rng(7)
+    h, w = 39, 61
+    img = rng.random((h, w, 4)).astype(np.float32)
+    su = rng.uniform(0.3, 9.0, (h, w))
+    sv = rng.uniform(0.3, 9.0, (h, w))
+    blur = RecursiveBlur(h, w)
+    assert blur.iir.max_line >= max(h, w)  # every device the tests run on
+    want = [blur.blur(img, *sigmas) for sigmas in ((su, sv), (3.5, 6.0))]
+    monkeypatch.setattr(blur.iir, "max_line", 16)  # rows of 61 and 39 texels: past it
+    monkeypatch.setattr(blur.iir, "_scratch", None)
+    got = [blur.blur(img, *sigmas) for sigmas in ((su, sv), (3.5, 6.0))]
+    for g, wnt in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, wnt)
+    assert blur.iir._scratch.size >= 16 * 4 * w * 10  # ceil(39 / 4) items of 4 rows
+    ref = recursive_reference(img, su, sv)
+    assert np.abs(got[0] - ref).max() / np.abs(ref).max() < 1e-5
+
+
 def test_closed_form_variance_matches_the_impulse_response() -> None:
     from scipy.signal import lfilter
 
