@@ -80,9 +80,9 @@ def limit_bytes() -> float:
 
 def evict(folder: Path, limit: float, keep: Path | None = None) -> list[Path]:
     """Remove the least recently used files of ``folder`` (by modification time, which
-    :func:`read_kept` renews) while it holds more than ``limit`` bytes, never ``keep``,
-    and temporary files a killed process left; the files removed. Files another user
-    owns in a shared folder stay."""
+    :func:`read_kept` renews) while it holds more than ``limit`` bytes, never ``keep``
+    nor a temporary file being written, and temporary files a killed process left; the
+    files removed. Files another user owns in a shared folder stay."""
     now = time.time()
     files = []
     with contextlib.suppress(OSError):
@@ -91,8 +91,9 @@ def evict(folder: Path, limit: float, keep: Path | None = None) -> list[Path]:
                 st = entry.stat(follow_symlinks=False)
                 if not entry.is_file(follow_symlinks=False):
                     continue
-                if entry.name.startswith(".") and now - st.st_mtime > _STALE_TMP_S:
-                    os.unlink(entry.path)
+                if entry.name.startswith("."):  # a temporary file: being written, or
+                    if now - st.st_mtime > _STALE_TMP_S:  # left by a killed process
+                        os.unlink(entry.path)
                     continue
                 files.append((st.st_mtime, st.st_size, Path(entry.path)))
     total = sum(size for _, size, _ in files)

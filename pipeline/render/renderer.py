@@ -864,7 +864,7 @@ class Renderer:
             flat = planes.reshape(-1, planes.shape[-1])
             columns = [visibility[path] for path in spec]
 
-            def scatter(rows: slice) -> None:  # in bands on the cores: 0.38 -> 0.31 s
+            def scatter(rows: slice) -> None:  # on the cores: 0.3 s of one -> 0.12 of two
                 at = texel[rows]
                 flat[at, :3] = entering[rows]  # by flat index: a strided mask's took 5x
                 for i, column in enumerate(columns):

@@ -55,6 +55,7 @@ def test_evict_removes_stale_temporary_files_and_keeps_fresh_ones(tmp_path: Path
     (tmp_path / "sub").mkdir()
     assert evict(tmp_path, 1e9) == []
     assert not stale.exists() and fresh.exists() and (tmp_path / "sub").is_dir()
+    assert evict(tmp_path, 0) == [] and fresh.exists()  # another writer's, whatever the limit
     assert evict(tmp_path / "missing", 0) == []
 
 
