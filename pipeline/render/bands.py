@@ -1,4 +1,5 @@
-"""Texture-sized numpy steps in bands on the host's cores.
+"""Texture-sized numpy steps in bands on the host's cores, and one-off work beside the
+main thread.
 
 numpy lets go of the GIL inside its loops, so an elementwise step over a texture at 4096
 (16.8 M texels) runs on as many cores as there are bands at once. Between the shadow
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -44,3 +45,14 @@ def in_bands(work: Callable[[slice], T], n: int, items: int = BAND_ITEMS) -> lis
         return [work(b) for b in bands]
     with ThreadPoolExecutor(threads, thread_name_prefix="skinpipe-bands") as pool:
         return list(pool.map(work, bands))
+
+
+def beside(work: Callable[[], T], name: str) -> Future[T]:
+    """``work()`` started on a thread of its own (named ``name``), which ends with it:
+    its future, for the caller to wait on (no thread should outlive the frame that
+    started it, not even on errors)."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix=name)
+    try:
+        return pool.submit(work)
+    finally:
+        pool.shutdown(wait=False)

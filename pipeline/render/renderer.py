@@ -41,7 +41,7 @@ from ..imageio import (
 from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
-from .bands import BAND_ITEMS, in_bands
+from .bands import BAND_ITEMS, beside, host_threads, in_bands
 from .blur_switch import TUNE_STREAM, direct_limits
 from .diffusion import (
     DiffusionLayout,
@@ -843,9 +843,8 @@ class Renderer:
             del positions, normals
             # the gutter's sources on a thread beside the filter and the planes, whose
             # numpy steps leave a core idle (0.2-0.3 s at texture 4096 on the main one)
-            side = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-gutter")
-            gutter = side.submit(prepare_dilation, maps.coverage)  # made here, not there
-            side.shutdown(wait=False)
+            coverage = maps.coverage  # made here, not there
+            gutter = beside(lambda: prepare_dilation(coverage), "skinpipe-gutter")
             if filtered:  # the sums of the visibility as traced are not made at all
                 visibility = interleaved_visibility(res, maps, texel, period, normal)
                 entering = res.entering_with(visibility)
@@ -1085,10 +1084,7 @@ class Renderer:
                 if release is not None:
                     release.arrive("layout")
 
-        pool = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-layout")
-        future = pool.submit(make)
-        pool.shutdown(wait=False)  # its thread ends with the task
-        return future
+        return beside(make, "skinpipe-layout")
 
     def _diffusion(self, log: TaskLog, tex: SkinTextures, terms: DiffusionTerms,
                    texel_mm: float, layout: Future[DiffusionLayout] | None) -> None:
@@ -1188,29 +1184,26 @@ class Renderer:
             release.arrive("layout")
         look_up = camera is not None and self.last_frame and \
             "irradiance" not in self.options.texture_outputs
-        beside: list[Future[dict[str, NDArray[np.float64]]]] = []
+        uvs: list[Future[dict[str, NDArray[np.float64]]]] = []
 
-        def hit_uvs_beside() -> None:
-            # the camera's rays and the hits' uvs need no irradiance: on a thread while
-            # the filter's numpy steps leave a core idle (0.2 s of the main thread at
-            # texture 4096)
+        def hit_uvs() -> dict[str, NDArray[np.float64]]:
             assert camera is not None
-            pool = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-camera")
-            beside.append(pool.submit(lambda: self._hit_uvs(scene, tex, *camera())))
-            pool.shutdown(wait=False)
+            return self._hit_uvs(scene, tex, *camera())
 
         try:
+            # the camera's rays and the hits' uvs need no irradiance: on a thread once the
+            # rays are cast, while the filter's numpy steps leave a core idle (0.2 s of the
+            # main thread at texture 4096)
             self._irradiance(log, scene, tex, rays, dome_textures or {}, release,
-                             hit_uvs_beside if look_up else None)
+                             (lambda: uvs.append(beside(hit_uvs, "skinpipe-camera")))
+                             if look_up else None)
         except BaseException:
             # no thread outlives its frame, not even on errors
-            wait([*beside, *([] if layout is None else [layout])])
+            wait([*uvs, *([] if layout is None else [layout])])
             raise
         self._albedo(log, scene, tex)
         if look_up:
-            assert camera is not None
-            self._look_up_at_hits(tex, beside[0].result() if beside else
-                                  self._hit_uvs(scene, tex, *camera()))
+            self._look_up_at_hits(tex, uvs[0].result() if uvs else hit_uvs())
         self._diffusion(log, tex, terms, texel_mm, layout)
         store = None if layout is None else layout.result().store
         if store is not None:  # its writes ran beside the diffusion
@@ -1525,9 +1518,9 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
     # in row bands on the cores: OCIO lets go of the GIL, and the default view's ACES 2.0
     # output transform took 0.45 s for a 768 x 768 image on one core (0.23 s on two); a
     # pixel's value does not depend on the band
-    bands = np.array_split(rgb.reshape(-1, 3), max(1, min(os.cpu_count() or 1, 8)))
-    with ThreadPoolExecutor(len(bands)) as pool:
-        list(pool.map(proc.applyRGB, bands))
+    pixels = rgb.reshape(-1, 3)
+    in_bands(lambda rows: proc.applyRGB(pixels[rows]), pixels.shape[0],
+             -(-pixels.shape[0] // min(host_threads(), 8)))
     return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.render import bands
-from pipeline.render.bands import band_slices, in_bands
+from pipeline.render.bands import band_slices, beside, in_bands
 
 
 def test_band_slices_cover_every_item_once() -> None:
@@ -42,3 +42,16 @@ def test_in_bands_is_the_whole_step(monkeypatch: pytest.MonkeyPatch) -> None:
         assert starts == list(range(0, 301, 40))
         if threads == 1:
             assert seen == {threading.get_ident()}
+
+
+def test_beside_runs_on_a_named_thread_of_its_own_and_hands_back_errors() -> None:
+    names: list[str] = []
+
+    def work() -> int:
+        names.append(threading.current_thread().name)
+        return 7
+
+    assert beside(work, "skinpipe-test").result() == 7
+    assert names[0].startswith("skinpipe-test") and names[0] != threading.current_thread().name
+    with pytest.raises(ZeroDivisionError):
+        beside(lambda: 1 // 0, "skinpipe-test").result()
