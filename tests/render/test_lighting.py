@@ -69,6 +69,33 @@ def test_specular_albedo_is_small_and_rises_at_grazing() -> None:
     assert specular_albedo(1.0, rho_s=0.0) == 0.0
 
 
+def test_rho_dt_quadrature_against_scipys_adaptive_integral() -> None:
+    """The specular lobe's directional albedo table (a 256 x 128 midpoint rule over half
+    the azimuths) against scipy's adaptive dblquad of the same BRDF x cos over the whole
+    hemisphere, at two of the table's cosines: within 5e-5 relative (measured 7e-6 at
+    cos 0.70 and 1.0 for roughness 0.35, 3e-5 at cos 0.30)."""
+    from scipy import integrate
+
+    from pipeline.render.lighting import rho_dt_quadrature, torrance_sparrow
+
+    table = rho_dt_quadrature(0.35, 0.25)
+    for i in (44, 63):
+        c = i / (table.size - 1)
+        light = np.array([math.sqrt(max(0.0, 1 - c * c)), 0.0, c])
+
+        def integrand(phi: float, theta: float, c: float = c,
+                      light: np.ndarray = light) -> float:
+            out = np.array([math.sin(theta) * math.cos(phi),
+                            math.sin(theta) * math.sin(phi), math.cos(theta)])
+            h = (out + light) / np.linalg.norm(out + light)
+            brdf = float(torrance_sparrow(c, out[2], h[2], out @ h, 0.35, 0.25))
+            return brdf * out[2] * math.sin(theta)
+
+        want, _ = integrate.dblquad(integrand, 0, math.pi / 2, 0, 2 * math.pi,
+                                    epsabs=1e-7, epsrel=1e-5)
+        assert table[i] == pytest.approx(want, rel=5e-5), c
+
+
 def test_kept_rho_dt_table_is_the_quadrature(tmp_path: Path,
                                              monkeypatch: pytest.MonkeyPatch) -> None:
     """The specular albedo's table, made and then read back from skinpipe's cache
