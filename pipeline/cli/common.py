@@ -12,10 +12,18 @@ from typing import Any
 Handler = Callable[[argparse.Namespace], int]
 
 
+def typed_default(default: list[Any] | tuple[Any, ...], metavar: object) -> str:
+    """A list or tuple default as a user would type it: joined by ':' where the option's
+    metavar has one (``A:B``), else by ',' (``N,N``), not as Python's repr."""
+    sep = ":" if isinstance(metavar, str) and ":" in metavar else ","
+    return sep.join(str(v) for v in default)
+
+
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """argparse's defaults in ``--help``, but only where the help does not state its own
     default already (argparse's would follow it with a second, often ``None``, one) and
-    where there is one to show (not None, False, empty or suppressed)."""
+    where there is one to show (not None, False, empty or suppressed); a list or tuple
+    is shown as the option takes it (:func:`typed_default`)."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
@@ -24,6 +32,9 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
             (isinstance(default, (str, tuple, list)) and not default)  # 0 is shown
         if nothing or "default" in text.lower():
             return action.help
+        if isinstance(default, (list, tuple)):
+            shown = typed_default(default, action.metavar).replace("%", "%%")
+            return f"{text} (default: {shown})"
         return super()._get_help_string(action)
 
 

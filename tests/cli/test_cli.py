@@ -31,10 +31,11 @@ def test_fit_help_gives_units(capsys: pytest.CaptureFixture[str]) -> None:
 def test_every_option_states_its_default_once(capsys: pytest.CaptureFixture[str]) -> None:
     """Against argparse's plain formatter: an option whose help states its default is
     shown as written; one with a default to show (not None, False or empty) and no word
-    of it gets argparse's "(default: X)"; none ever shows "(default: None)"."""
+    of it gets argparse's "(default: X)", a list or tuple as the option's own type reads it
+back ("512,1024", "1:8", not "[512, 1024]"); none ever shows "(default: None)"."""
     parser = build_parser()
     verbs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    checked = appended = 0
+    checked = appended = listed = 0
     for verb, sub in verbs.choices.items():
         ours = sub._get_formatter()
         plain = argparse.HelpFormatter(sub.prog)
@@ -49,12 +50,18 @@ def test_every_option_states_its_default_once(capsys: pytest.CaptureFixture[str]
                 or (isinstance(default, (str, tuple, list)) and not default)
             if nothing or "default" in written.lower():
                 assert shown == written, where
+            elif isinstance(default, (list, tuple)):
+                # as the user would type it: the option's own type reads it back
+                typed = shown.rsplit("(default: ", 1)[1][:-1]
+                assert shown == f"{written} (default: {typed})", where
+                assert action.type(typed) == default, where
+                listed += 1
             else:
                 assert shown == f"{written} (default: {default})", where
                 appended += 1
             assert "(default: None)" not in shown, where
             checked += 1
-    assert checked > 100 and appended > 20
+    assert checked > 100 and appended > 20 and listed >= 6
     assert main(["render", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())
     assert "(default: the first camera on the stage)" in out and "(default: None)" not in out
