@@ -1109,6 +1109,15 @@ class DiffusionLayout:
         self._surface_released = True
         self._mm = None  # no tiles are made any more: the stretch maps may go too
 
+    def release_work(self) -> None:
+        """Let the diffusions' work buffers and level tiles go (the atlases' scratch and
+        source alone are 0.6 GB at texture 4096): a render's last diffusion is done,
+        and what follows it (the push-pull, the shading) allocates its own. A later
+        diffusion makes them again (tiles from the store, else from the surface if it
+        is still held)."""
+        self._buffers.clear()
+        self._grids.clear()
+
     def _load(self, level: int, margin: int) -> bool:
         """Whether the store (if any) held tiles for (``level``, ``margin``), now made a
         level of this layout."""

@@ -1142,6 +1142,8 @@ class Renderer:
                 if prepared is not None:
                     out, stats = diffuse_prepared(prepared, pre, terms.variances_mm2,
                                                   terms.weights)
+                    if self.last_frame:  # its buffers stayed beside the push-pull's
+                        prepared.release_work()
                 else:
                     out, stats = diffuse_gather(pre, maps.mm_per_texel_u, maps.mm_per_texel_v,
                                                 cov, terms.variances_mm2, terms.weights,
