@@ -40,7 +40,7 @@ def working_devices() -> list[str]:
     from pipeline.render import opencl
 
     out: list[str] = []
-    for cand, device in opencl.candidates():
+    for cand, device in opencl.candidates(all_runtimes=True):
         if cand.runtime not in out and opencl.probe(device) is None:
             out.append(cand.runtime)
     return out

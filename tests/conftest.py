@@ -33,7 +33,7 @@ os.environ[LAYOUT_CACHE_ENV] = _LAYOUTS
 def _working_devices() -> list[opencl.Candidate]:
     """Every OpenCL device here that passes skinpipe's probe (one runtime each once)."""
     out: list[opencl.Candidate] = []
-    for cand, device in opencl.candidates():
+    for cand, device in opencl.candidates(all_runtimes=True):
         if opencl.probe(device) is None and cand.runtime not in [c.runtime for c in out]:
             out.append(cand)
     return out

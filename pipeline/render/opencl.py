@@ -30,7 +30,13 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from .huge_pages import huge_pages_choice
-from .opencl_runtimes import SETUP, cache_root
+from .opencl_runtimes import (
+    SETUP,
+    cache_root,
+    note_pocl_probe,
+    pocl_passed_here,
+    register_vendors,
+)
 from .options import DEVICE_ENV
 
 STREAM_MIN_BYTES = 16 << 20
@@ -173,12 +179,26 @@ class DeviceChoice:
     def summary(self) -> dict[str, Any]:
         return {"device": self.candidate.label, "runtime": self.candidate.runtime,
                 "spec": self.spec, "nontemporal_stores": self.nontemporal_stores,
-                "tried": {c.label: reason or "passed" for c, reason in self.tried}}
+                "tried": {c.label: reason or "passed" for c, reason in self.tried},
+                "runtime_notes": list(SETUP.notes)}
 
 
-def candidates() -> list[tuple[Candidate, Any]]:
+LEAN_SPECS = ("auto", "cpu", "gpu", "pocl", "pocl-cpu")
+"""Device specs that do without Intel's runtime once PoCL has passed the probe here:
+they rank PoCL's CPU device ahead of it (see :func:`order_candidates`)."""
+
+
+def candidates(all_runtimes: bool = False, spec: str | None = None
+               ) -> list[tuple[Candidate, Any]]:
     """Every device of every platform, with its pyopencl object; ``[]`` when the loader
-    has no platform at all."""
+    has no platform at all. At the process's first platform query the runtimes are
+    registered (:func:`~.opencl_runtimes.register_vendors`): Intel's CPU runtime with
+    ``all_runtimes`` (every device is wanted: ``skinpipe env``, the tests), for a device
+    ``spec`` (default :func:`device_spec`) outside :data:`LEAN_SPECS`, or where PoCL has
+    not passed the probe on this CPU before; later queries list what the first one
+    registered."""
+    spec = (device_spec() if spec is None else spec).strip().lower()
+    register_vendors(all_runtimes or spec not in LEAN_SPECS or not pocl_passed_here())
     try:
         platforms = cl.get_platforms()
     except cl.Error:  # ocl-icd raises PLATFORM_NOT_FOUND_KHR with no ICD
@@ -296,7 +316,8 @@ def choose_device(spec: str, found: Sequence[tuple[Candidate, Any]] | None = Non
     """The first device for ``spec`` that passes :func:`probe` (``probe_all``: every
     device is probed, for the report of ``skinpipe env``); an :class:`InputError`
     naming every device tried and why it failed when none does."""
-    found = candidates() if found is None else list(found)
+    real = found is None
+    found = candidates(probe_all, spec) if found is None else list(found)
     ordered = order_candidates(found, spec)
     tried: list[tuple[Candidate, str | None]] = []
     chosen: tuple[Candidate, Any, bool] | None = None
@@ -310,9 +331,13 @@ def choose_device(spec: str, found: Sequence[tuple[Candidate, Any]] | None = Non
             reason = None  # it runs everything but streaming stores: plain stores then
         tried.append((cand, reason if reason or chosen is None else
                       "passed (an earlier device was chosen)"))
+        if real and cand.runtime == "pocl-cpu":
+            note_pocl_probe(reason is None)  # whether the next process needs Intel's
         if reason is None and chosen is None:
             chosen = (cand, device, nt)
     if chosen is None:
+        if real and SETUP.intel_left_out:
+            SETUP.notes.append("PoCL fails here now: the next process loads Intel's runtime")
         raise InputError(no_device_message(spec, found, tried))
     tried += [(c, f"not matched by '{spec}'") for c, _ in found
               if all(c != o for o, _ in ordered)]

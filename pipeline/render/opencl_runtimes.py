@@ -8,9 +8,17 @@ not open source), which pip installs into ``<prefix>/lib`` without an ICD entry 
 loader can use (its ``.icd`` files hold a build machine's path). This module writes a
 vendors folder holding an entry with the library's absolute path plus the machine's own
 entries (``/etc/OpenCL/vendors``: GPU drivers), and points ``OCL_ICD_VENDORS`` at it.
-The loader reads that variable once per process, before the first platform query, and
-child processes (Dask workers) inherit it; pyopencl's loader adds its own PoCL whatever
-the folder holds. Nothing here imports pyopencl.
+The loader reads that variable once per process, at the first platform query, and child
+processes (Dask workers) inherit it; pyopencl's loader adds its own PoCL whatever the
+folder holds. Nothing here imports pyopencl.
+
+The folder is written at the first platform query (:func:`register_vendors`, called by
+:func:`~.opencl.candidates`), not at import: Intel's runtime is loaded only where it may
+be used. Once PoCL has passed skinpipe's probe on this CPU (a record in the cache folder,
+:func:`pocl_passed_here`), a render asking for ``auto``, ``cpu``, ``gpu`` or PoCL leaves
+it out: loaded, its library and LLVM are 85 MB of the process's memory (a texture 4096
+render's peak 1.87-1.91 -> 1.81-1.82 GB) and 25 ms of its start, for a device that
+PoCL ranks ahead of.
 
 Intel's runtime needs a TBB newer than the one pymeshlab ships (2021.5): whichever
 ``libtbb.so.12`` is loaded first serves the process, and with pymeshlab's the runtime
@@ -38,11 +46,17 @@ TBB_DIST, TBB_LIBRARY = "tbb", "libtbb.so.12"
 
 @dataclass
 class RuntimeSetup:
-    """What :func:`register_runtimes` did: the vendors folder used and one note per
-    runtime that could not be registered (shown by ``skinpipe env``)."""
+    """What :func:`register_runtimes` and :func:`register_vendors` did: the vendors
+    folder used, one note per runtime that could not be registered or was left out
+    (shown by ``skinpipe env`` and in "no device" errors), Intel's library if installed,
+    and whether the loader's vendors are settled (its first platform query came)."""
 
     vendors: str | None = None
     notes: list[str] = field(default_factory=list)
+    intel: Path | None = None
+    user_vendors: bool = False
+    settled: bool = False
+    intel_left_out: bool = False
 
 
 def _dist_file(dist: str, name: str) -> Path | None:
@@ -92,13 +106,13 @@ def _write_vendors(entries: dict[str, str]) -> Path:
 
 
 def register_runtimes() -> RuntimeSetup:
-    """Make Intel's CPU runtime (if installed) and the system's ICDs visible to the ICD
-    loader; call before pyopencl's first platform query. Leaves a user's own
-    ``OCL_ICD_VENDORS`` alone."""
+    """At import: the newer TBB loaded before pymeshlab's, PoCL's kernel cache folder,
+    and what :func:`register_vendors` will need (Intel's library, whether the user set
+    ``OCL_ICD_VENDORS``, which is left alone)."""
     setup = RuntimeSetup()
     # PoCL compiles each kernel again at its first launch: keep those on disk too
     os.environ.setdefault("POCL_CACHE_DIR", str(cache_root() / "pocl"))
-    intel = _dist_file(INTEL_DIST, INTEL_LIBRARY)
+    intel = setup.intel = _dist_file(INTEL_DIST, INTEL_LIBRARY)
     if intel is None:
         setup.notes.append(f"Intel CPU runtime: not installed (pip install {INTEL_DIST} "
                            f"intel-cmplr-lib-rt {TBB_DIST})")
@@ -113,6 +127,7 @@ def register_runtimes() -> RuntimeSetup:
             except OSError as exc:
                 setup.notes.append(f"Intel CPU runtime: cannot load {tbb}: {exc}")
     if os.environ.get(ICD_ENV):
+        setup.user_vendors = True
         setup.vendors = os.environ[ICD_ENV]
         if intel is not None and not any(
                 Path(setup.vendors, f).is_file() and INTEL_LIBRARY in Path(
@@ -120,9 +135,27 @@ def register_runtimes() -> RuntimeSetup:
                 for f in _listdir(setup.vendors)):
             setup.notes.append(f"Intel CPU runtime: {ICD_ENV} is set by you "
                                f"({setup.vendors}) and does not list {intel}")
-        return setup
-    if intel is None:
-        return setup
+    return setup
+
+
+def register_vendors(with_intel: bool, setup: RuntimeSetup | None = None) -> None:
+    """Before the loader's first platform query: point ``OCL_ICD_VENDORS`` at a folder
+    with Intel's runtime and the machine's own entries if ``with_intel`` (and it is
+    installed), else leave the loader to the machine's entries (and pyopencl's PoCL).
+    Only the first call decides (the loader reads the variable once); a user's own
+    ``OCL_ICD_VENDORS`` is left alone."""
+    setup = SETUP if setup is None else setup
+    if setup.settled:
+        return
+    setup.settled = True
+    intel = setup.intel
+    if setup.user_vendors or intel is None:
+        return
+    if not with_intel:
+        setup.intel_left_out = True
+        setup.notes.append("Intel CPU runtime: not loaded (PoCL passed skinpipe's probe on "
+                           "this CPU before; --device intel loads it)")
+        return
     entries = {f.name: f.read_text(errors="replace").strip()
                for f in sorted(SYSTEM_VENDORS.glob("*.icd")) if f.is_file()} \
         if SYSTEM_VENDORS.is_dir() else {}
@@ -131,10 +164,59 @@ def register_runtimes() -> RuntimeSetup:
         folder = _write_vendors(entries)
     except OSError as exc:
         setup.notes.append(f"Intel CPU runtime: {exc}")
-        return setup
+        return
     os.environ[ICD_ENV] = str(folder)
     setup.vendors = str(folder)
-    return setup
+
+
+def machine_key() -> str:
+    """What decides whether PoCL builds here: the CPU (model and feature flags from
+    ``/proc/cpuinfo``; its LLVM knows CPUs up to its own release) and pyopencl's PoCL
+    (the library's name carries its build's hash)."""
+    try:
+        info = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        info = ""
+    cpu = [ln.split(":", 1)[1].strip() for ln in info.splitlines()
+           if ln.split(":", 1)[0].strip() in ("model name", "flags")][:2]
+    try:
+        import importlib.util
+        spec = importlib.util.find_spec("pyopencl")
+        libs = Path(spec.origin).parent / ".libs" if spec and spec.origin else None
+        pocl = sorted(p.name for p in libs.glob("libpocl*")) if libs and libs.is_dir() else []
+        version = metadata.version("pyopencl")
+    except (metadata.PackageNotFoundError, OSError, ValueError):
+        pocl, version = [], ""
+    text = repr((cpu, pocl, version, sys.platform))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _pocl_record() -> Path:
+    return cache_root() / "opencl" / f"pocl-passed-{machine_key()}"
+
+
+def pocl_passed_here() -> bool:
+    """Whether PoCL has passed skinpipe's probe on this CPU with this PoCL before."""
+    try:
+        return _pocl_record().is_file()
+    except OSError:
+        return False
+
+
+def note_pocl_probe(passed: bool) -> None:
+    """Keep (or drop) the record that PoCL passed the probe here; never fails."""
+    try:
+        record = _pocl_record()
+        if passed:
+            if not record.is_file():
+                record.parent.mkdir(parents=True, exist_ok=True)
+                tmp = record.with_name(f".{record.name}.{os.getpid()}")
+                tmp.write_text("passed\n")
+                tmp.replace(record)
+        else:
+            record.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def _listdir(folder: str) -> list[str]:

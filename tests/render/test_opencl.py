@@ -95,7 +95,7 @@ def test_no_working_device_names_each_one_and_what_to_install() -> None:
 
 
 def test_every_device_here_passes_the_probe_or_says_why() -> None:
-    found = opencl.candidates()
+    found = opencl.candidates(all_runtimes=True)
     assert found, "pyopencl[pocl] brings at least PoCL"
     for cand, device in found:
         reason = opencl.probe(device)
@@ -105,14 +105,47 @@ def test_every_device_here_passes_the_probe_or_says_why() -> None:
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
     # skinpipe first (it loads the newer TBB), pymeshlab after: Intel's platform stays
-    code = ("import pipeline, pymeshlab, pyopencl as cl;"
-            "print('|'.join(p.name for p in cl.get_platforms()))")
+    code = ("import pipeline, pymeshlab; from pipeline.render import opencl;"
+            "print('|'.join(c.platform for c, _ in opencl.candidates(all_runtimes=True)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert "Intel(R) OpenCL" in out and "Portable Computing Language" in out
     vendors = Path(os.environ["OCL_ICD_VENDORS"])
     icd = (vendors / "skinpipe-intel-cpu.icd").read_text().strip()
     assert Path(icd).is_absolute() and Path(icd).name == "libintelocl.so"
+
+
+_LOADED = ("from pipeline.render import opencl; c = opencl.device_choice();"
+           "maps = open('/proc/self/maps').read();"
+           "print(c.candidate.runtime, 'libintelocl' in maps, opencl.SETUP.notes)")
+
+
+@pytest.mark.skipif(not _intel_installed() or not Path("/proc/self/maps").exists(),
+                    reason="intel-opencl-rt is not installed, or no /proc")
+def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> None:
+    """Read from the process's own memory map: Intel's library is loaded by a first
+    process on a CPU (no record yet), not by a later one once PoCL has passed the probe
+    here, and again by one that asks for Intel or for every device."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OCL_ICD_VENDORS", "SKINPIPE_OPENCL_DEVICE")}
+    env["XDG_CACHE_HOME"] = str(tmp_path)  # no record of an earlier probe
+
+    def run(code: str = _LOADED, **extra: str) -> str:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=300, check=True, env={**env, **extra}).stdout
+
+    first = run()
+    assert first.startswith("pocl-cpu True") or first.startswith("intel-cpu True"), first
+    second = run()
+    if first.startswith("pocl-cpu"):
+        assert second.startswith("pocl-cpu False"), second
+        assert "PoCL passed skinpipe's probe on this CPU before" in second
+    else:  # PoCL failed the probe here (a CPU newer than its LLVM): Intel's every time
+        assert second.startswith("intel-cpu True"), second
+    assert run(SKINPIPE_OPENCL_DEVICE="intel").startswith("intel-cpu True")
+    every = run("from pipeline.render import opencl;"
+                "print(sorted({c.runtime for c, _ in opencl.candidates(all_runtimes=True)}))")
+    assert "intel-cpu" in every and "pocl-cpu" in every, every
 
 
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
