@@ -22,6 +22,14 @@ BAND_ITEMS = 1 << 20
 numpy calls cost little beside its work, small enough that bands even out the cores."""
 
 
+BAND_THREADS = 4
+"""Threads that work on bands at once, at most, whatever the core count: these steps
+are bound by memory bandwidth, which few cores fill, and each thread that allocates
+gets a heap arena of its own from glibc, whose free memory outlives the step (16 band
+threads held 0.12 GB more than two through a texture 4096 render's diffusion, its
+peak; and 16 bands of a million texels at once hold the whole texture's temporaries)."""
+
+
 def host_threads() -> int:
     """The cores this process may run on (its CPU affinity, not the machine's count)."""
     try:
@@ -38,9 +46,10 @@ def band_slices(n: int, items: int = BAND_ITEMS) -> list[slice]:
 
 def in_bands(work: Callable[[slice], T], n: int, items: int = BAND_ITEMS) -> list[T]:
     """``work(band)`` for each band of :func:`band_slices` (``n`` items), on the host's
-    cores; the results in band order. One band, or one core: on this thread."""
+    cores (:data:`BAND_THREADS` at most); the results in band order. One band, or one
+    core: on this thread."""
     bands = band_slices(n, items)
-    threads = min(host_threads(), len(bands))
+    threads = min(host_threads(), len(bands), BAND_THREADS)
     if threads <= 1:
         return [work(b) for b in bands]
     with ThreadPoolExecutor(threads, thread_name_prefix="skinpipe-bands") as pool:

@@ -44,6 +44,27 @@ def test_in_bands_is_the_whole_step(monkeypatch: pytest.MonkeyPatch) -> None:
             assert seen == {threading.get_ident()}
 
 
+def test_at_most_band_threads_work_at_once_on_many_cores(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """On 64 cores no more than BAND_THREADS bands run at once (each thread's heap arena
+    keeps its free memory), and they do run side by side."""
+    monkeypatch.setattr(bands, "host_threads", lambda: 64)
+    lock, now, most = threading.Lock(), [0], [0]
+    gate = threading.Barrier(bands.BAND_THREADS, timeout=10)
+
+    def band(rows: slice) -> None:
+        with lock:
+            now[0] += 1
+            most[0] = max(most[0], now[0])
+        if rows.start < bands.BAND_THREADS:  # the first bands wait for each other
+            gate.wait()
+        with lock:
+            now[0] -= 1
+
+    in_bands(band, 40, 1)
+    assert most[0] == bands.BAND_THREADS
+
+
 def test_beside_runs_on_a_named_thread_of_its_own_and_hands_back_errors() -> None:
     names: list[str] = []
 
