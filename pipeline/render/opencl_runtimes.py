@@ -16,8 +16,8 @@ The folder is written at the first platform query (:func:`register_vendors`, cal
 :func:`~.opencl.candidates`), not at import: Intel's runtime is loaded only where it may
 be used. Once PoCL has passed skinpipe's probe on this CPU (a record in the cache folder,
 :func:`pocl_passed_here`), a render asking for ``auto``, ``cpu``, ``gpu`` or PoCL leaves
-it out: loaded, its library and LLVM are 85 MB of the process's memory (a texture 4096
-render's peak 1.87-1.91 -> 1.81-1.82 GB) and 25 ms of its start, for a device that
+it out: loaded, its library and LLVM are 85 MiB of the process's memory (a texture 4096
+render's peak 1826-1864 -> 1769-1776 MiB) and 25 ms of its start, for a device that
 PoCL ranks ahead of.
 
 Intel's runtime needs a TBB newer than the one pymeshlab ships (2021.5): whichever
