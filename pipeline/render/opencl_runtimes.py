@@ -31,10 +31,12 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import importlib.util
 import os
 import sys
 import tempfile
 from dataclasses import dataclass, field
+from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 
@@ -154,7 +156,8 @@ def register_vendors(with_intel: bool, setup: RuntimeSetup | None = None) -> Non
     if not with_intel:
         setup.intel_left_out = True
         setup.notes.append("Intel CPU runtime: not loaded (PoCL passed skinpipe's probe on "
-                           "this CPU before; --device intel loads it)")
+                           "this CPU before; --device intel or $SKINPIPE_OPENCL_DEVICE=intel "
+                           "loads it)")
         return
     entries = {f.name: f.read_text(errors="replace").strip()
                for f in sorted(SYSTEM_VENDORS.glob("*.icd")) if f.is_file()} \
@@ -169,6 +172,7 @@ def register_vendors(with_intel: bool, setup: RuntimeSetup | None = None) -> Non
     setup.vendors = str(folder)
 
 
+@lru_cache(maxsize=1)
 def machine_key() -> str:
     """What decides whether PoCL builds here: the CPU (model and feature flags from
     ``/proc/cpuinfo``; its LLVM knows CPUs up to its own release) and pyopencl's PoCL
@@ -180,7 +184,6 @@ def machine_key() -> str:
     cpu = [ln.split(":", 1)[1].strip() for ln in info.splitlines()
            if ln.split(":", 1)[0].strip() in ("model name", "flags")][:2]
     try:
-        import importlib.util
         spec = importlib.util.find_spec("pyopencl")
         libs = Path(spec.origin).parent / ".libs" if spec and spec.origin else None
         pocl = sorted(p.name for p in libs.glob("libpocl*")) if libs and libs.is_dir() else []
