@@ -198,7 +198,13 @@ def candidates(all_runtimes: bool = False, spec: str | None = None
     not passed the probe on this CPU before; later queries list what the first one
     registered."""
     spec = (device_spec() if spec is None else spec).strip().lower()
-    register_vendors(all_runtimes or spec not in LEAN_SPECS or not pocl_passed_here())
+    wants_intel = all_runtimes or spec not in LEAN_SPECS
+    if SETUP.settled and SETUP.intel_left_out and wants_intel:
+        note = (f"Intel CPU runtime: left out at this process's first OpenCL query, before "
+                f"device '{spec}' was asked for (ask for it before any OpenCL work)")
+        if note not in SETUP.notes:
+            SETUP.notes.append(note)
+    register_vendors(wants_intel or not pocl_passed_here())
     try:
         platforms = cl.get_platforms()
     except cl.Error:  # ocl-icd raises PLATFORM_NOT_FOUND_KHR with no ICD
@@ -336,7 +342,8 @@ def choose_device(spec: str, found: Sequence[tuple[Candidate, Any]] | None = Non
         if reason is None and chosen is None:
             chosen = (cand, device, nt)
     if chosen is None:
-        if real and SETUP.intel_left_out:
+        if real and SETUP.intel_left_out and any(
+                c.runtime == "pocl-cpu" and r is not None for c, r in tried):
             SETUP.notes.append("PoCL fails here now: the next process loads Intel's runtime")
         raise InputError(no_device_message(spec, found, tried))
     tried += [(c, f"not matched by '{spec}'") for c, _ in found

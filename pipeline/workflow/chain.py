@@ -27,7 +27,7 @@ from ..profile.fit import FitOptions, check_terms, fit_sum_of_gaussians
 from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
 from ..profile.types import FitResult, MeasuredProfile
 from ..render.albedo import bake_sample_albedo
-from ..render.opencl import start_prewarm
+from ..render.opencl import set_device, start_prewarm
 from ..render.push_pull import push_pull_kernels
 from ..render.renderer import (
     Renderer,
@@ -202,6 +202,10 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
     start = time.perf_counter()
     result = ChainResult({"stages": {}, "regions": {}})
     report = result.report
+    if options.device:
+        # the device asked for from the first OpenCL work on (the painter's, its
+        # prewarm's): the loader lists its runtimes once, at that first query
+        set_device(options.device)
     if paint:
         # the painter's kernels are built (on PoCL, compiled) and MaterialX's libraries
         # loaded while the captures are ingested: 0.4-0.5 s of a 1 s paint stage otherwise
