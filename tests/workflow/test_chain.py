@@ -1,4 +1,5 @@
-"""The demo chain's figures (pipeline/workflow/chain.py), read back by OpenImageIO."""
+"""The demo chain (pipeline/workflow/chain.py): its figures read back by OpenImageIO, and
+the device it asks for before its first OpenCL work."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
+import pytest
 
 from pipeline.render.renderer import display_image, write_outputs
 from pipeline.workflow.chain import side_by_side
@@ -39,3 +41,29 @@ def test_side_by_side_lays_each_display_png_over_grey_once(tmp_path: Path) -> No
         tile = got[:, i * shape[1]:(i + 1) * shape[1]]
         rows = slice(40, None)  # below the label
         np.testing.assert_allclose(tile[rows], want[rows], atol=2.5 / 255)
+
+
+def test_the_chain_asks_for_its_device_before_its_first_opencl_work(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The OpenCL loader lists its runtimes once, at the process's first query, and the
+    painter's prewarm is the chain's first: `demo --device intel` had found no Intel
+    device where a render with `auto` would have left Intel's runtime out."""
+    from pipeline.render.options import RenderOptions
+    from pipeline.workflow import chain
+
+    calls: list[str] = []
+
+    class Stop(Exception):
+        pass
+
+    def prewarm(steps: object) -> None:
+        calls.append("prewarm")
+        raise Stop
+
+    monkeypatch.setattr(chain, "set_device", lambda spec: calls.append(f"device {spec}"))
+    monkeypatch.setattr(chain, "start_prewarm", prewarm)
+    with pytest.raises(Stop):
+        chain.run_chain(tmp_path / "captures", tmp_path / "mesh.ply", tmp_path / "lm.json",
+                        tmp_path / "out", 6, False, True, RenderOptions(device="intel"),
+                        "ocio://default")
+    assert calls == ["device intel", "prewarm"]
