@@ -40,6 +40,8 @@ from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 
+from ..fileio import atomic_write_text
+
 ICD_ENV = "OCL_ICD_VENDORS"
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
 INTEL_DIST, INTEL_LIBRARY = "intel-opencl-rt", "libintelocl.so"
@@ -212,10 +214,7 @@ def note_pocl_probe(passed: bool) -> None:
         record = _pocl_record()
         if passed:
             if not record.is_file():
-                record.parent.mkdir(parents=True, exist_ok=True)
-                tmp = record.with_name(f".{record.name}.{os.getpid()}")
-                tmp.write_text("passed\n")
-                tmp.replace(record)
+                atomic_write_text(record, "passed\n")
         else:
             record.unlink(missing_ok=True)
     except OSError:

@@ -41,7 +41,7 @@ from ..imageio import (
 from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
-from .bands import BAND_ITEMS, beside, host_threads, in_bands
+from .bands import BAND_ITEMS, BAND_THREADS, beside, host_threads, in_bands
 from .blur_switch import TUNE_STREAM, direct_limits
 from .diffusion import (
     DiffusionLayout,
@@ -1535,7 +1535,7 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
     # pixel's value does not depend on the band
     pixels = rgb.reshape(-1, 3)
     in_bands(lambda rows: proc.applyRGB(pixels[rows]), pixels.shape[0],
-             -(-pixels.shape[0] // min(host_threads(), 8)))
+             -(-pixels.shape[0] // min(host_threads(), BAND_THREADS)))
     return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
 
 

@@ -155,6 +155,24 @@ def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> No
     assert "intel-cpu" in every and "pocl-cpu" in every, every
 
 
+def test_the_pocl_record_is_kept_dropped_and_never_fails(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pass keeps the record, a failure drops it, and a cache folder that cannot hold
+    it (a file where the folder should be) neither raises nor claims a pass."""
+    from pipeline.render.opencl_runtimes import note_pocl_probe, pocl_passed_here
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    assert not pocl_passed_here()
+    note_pocl_probe(True)
+    assert pocl_passed_here()
+    note_pocl_probe(False)
+    assert not pocl_passed_here()
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file"))
+    note_pocl_probe(True)
+    assert not pocl_passed_here()
+
+
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_pymeshlab_first_is_reported() -> None:
     code = "import pymeshlab, pipeline.render.opencl_runtimes as r; print(r.SETUP.notes)"
