@@ -33,10 +33,9 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from .blur_switch import prefers_direct
 from .chart_tiles import (
-    FinestTexels,
     SeamGeometry,
     TileLevel,
-    finest_texels,
+    chart_boxes,
     seam_read_kernel,
     texel_coverage,
     tile_level,
@@ -1053,11 +1052,10 @@ class DiffusionLayout:
             # transforms, read taps) run beside the other's ray casts (the layout alone
             # at texture 2048: 13.6 -> 10.3 s; the render's peak RSS 2.56 -> 2.80 GB)
             c = self.charts
-            assert self._mm is not None
-            finest = finest_texels(c.chart, c.n_charts, self._mm[0], self._mm[1], c.coverage)
+            boxes = chart_boxes(c.chart, c.n_charts)
 
             def make(level: int, margin: int) -> None:
-                self.grid(level, margin, finest)
+                self.grid(level, margin, boxes)
                 release_freed_heap()  # before the next level's intermediates
 
             with ThreadPoolExecutor(LAYOUT_LEVELS_AT_ONCE) as pool:
@@ -1067,10 +1065,10 @@ class DiffusionLayout:
             # the diffusion after it (texture 4096: 1.1 s of a 9 s diffusion)
             self.grid(*km).device_buffers()
 
-    def grid(self, level: int, margin: int, finest: FinestTexels | None = None) -> LevelGrid:
+    def grid(self, level: int, margin: int, boxes: list[Any] | None = None) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made
-        on first use (:func:`~.chart_tiles.tile_level`; ``finest``: the layout's
-        :class:`~.chart_tiles.FinestTexels`, when the caller has them)."""
+        on first use (:func:`~.chart_tiles.tile_level`; ``boxes``: the charts'
+        :func:`~.chart_tiles.chart_boxes`, when the caller has them)."""
         key = self._made(level, margin)
         if key is None and self._load(level, margin):
             key = self._made(level, margin)
@@ -1081,7 +1079,7 @@ class DiffusionLayout:
                                    f"new tiles (level {level}, margin {margin}) can be made")
             assert self._mm is not None
             tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
-                               c.geometry, c.coverage, finest)
+                               c.geometry, c.coverage, boxes)
             key = (level, margin)
             grid = self._grids[key] = LevelGrid(tiles)
             if self.store is not None:  # with what its blurs need of the texel sizes

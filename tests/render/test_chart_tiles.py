@@ -312,7 +312,7 @@ def test_splat_geometry_and_sums_by_their_definition(level: int) -> None:
     ys[:9], xs[:9] = 0, np.arange(9)
     chart = rng.integers(0, 5, n)
     share = rng.random(n).astype(np.float32)
-    finest = FinestTexels(ys, xs, chart, share, None, [])
+    finest = FinestTexels(ys, xs, chart, share, [])
     shift = rng.integers(1, 40, (5, 2))
     w = 400
     base, phase, got_share = splat_geometry(finest, shift, level, w)
@@ -334,6 +334,53 @@ def test_splat_geometry_and_sums_by_their_definition(level: int) -> None:
             np.add.at(want[:, d], base.astype(np.intp) + off,
                       (weight * values[:, d]).astype(np.float64))
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("level", range(6))
+def test_chart_splats_sum_what_the_scatter_sums(level: int) -> None:
+    """chart_splats (per chart over its box, one product per axis) against _splat (the
+    scatter of every finest texel, the definition above) on charts whose boxes overlap
+    and whose texels interleave, with holes, partial shares and texels at the map's
+    edges: the counts and the mean sizes within float32 rounding, and 0 in both where
+    no finest texel reaches."""
+    from pipeline.render.chart_tiles import (
+        _chart_cells,
+        _pack,
+        _splat,
+        chart_boxes,
+        chart_splats,
+        finest_texels,
+        splat_geometry,
+    )
+
+    rng = np.random.default_rng(10 + level)
+    size, n_charts, margin = 97, 4, 3
+    yy, xx = np.mgrid[:size, :size]
+    chart = np.where((xx + 2 * yy) % 7 < 3, 0, 1).astype(np.int32)  # interleaved stripes
+    chart[20:60, 30:90] = 2
+    chart[(xx - 70) ** 2 + (yy - 75) ** 2 < 300] = 3
+    chart[rng.random(chart.shape) < 0.1] = -1
+    coverage = np.where(chart >= 0, rng.uniform(0.05, 1.0, chart.shape), 0).astype(np.float32)
+    mm_u, mm_v = (rng.uniform(0.05, 0.2, chart.shape).astype(np.float32) for _ in range(2))
+    boxes = chart_boxes(chart, n_charts)
+    lo, hi, empty = _chart_cells(boxes, n_charts, level)
+    pos, shape = _pack(np.where(empty[:, None], 0, hi - lo + 1 + 2 * margin))
+    shift = pos + margin - lo
+    count, mean_mm = chart_splats(chart, coverage, mm_u, mm_v, boxes, shift, level, shape)
+
+    finest = finest_texels(chart, n_charts, coverage)
+    geometry = splat_geometry(finest, shift, level, shape[1])
+    ys, xs = finest.ys, finest.xs
+    want_count = _splat(*geometry, level, shape, np.ones((ys.size, 1), np.float32))[:, 0]
+    reached = want_count > 0
+    assert reached.sum() > 0.8 * (chart >= 0).sum() / 4**level
+    np.testing.assert_allclose(count, want_count, rtol=1e-6, atol=0)
+    assert np.array_equal(count > 0, reached)
+    for k, m in enumerate((mm_u, mm_v)):
+        sums = _splat(*geometry, level, shape, m[ys, xs][:, None])[:, 0]
+        np.testing.assert_allclose(mean_mm[k][reached], sums[reached] / want_count[reached],
+                                   rtol=1e-6)
+        assert not mean_mm[k][~reached].any()
 
 
 def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
