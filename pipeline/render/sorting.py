@@ -15,7 +15,7 @@ def stable_order(keys: NDArray[Any]) -> NDArray[np.int64]:
     """``np.argsort(keys, kind="stable")`` of non-negative integers: one sort of (key,
     index) packed in a uint64 where both fit, numpy's integer sort being several times
     faster than a stable argsort (0.06 against 0.32 s for 1.9 M Morton codes); the same
-    order."""
+    order. The packed keys are distinct, so either of numpy's sorts gives it."""
     k = np.asarray(keys)
     if k.size == 0:
         return np.zeros(0, np.int64)
@@ -24,7 +24,13 @@ def stable_order(keys: NDArray[Any]) -> NDArray[np.int64]:
         return np.argsort(k, kind="stable").astype(np.int64, copy=False)
     packed = (k.astype(np.uint64) << np.uint64(index_bits)) | np.arange(k.size,
                                                                        dtype=np.uint64)
-    packed.sort()
+    # keys that come nearly in order (the seam reads', texel by texel: a few hundred
+    # descents in millions) take numpy's stable sort, which follows their runs: 11
+    # against 485 ms for 8.0 M of them at texture 4096, and faster up to a quarter of
+    # descents (133 against 232 ms); keys in no order (Morton codes: half descents)
+    # its default sort, 15% faster there
+    descents = int(np.count_nonzero(k[1:] < k[:-1]))
+    packed.sort(kind="stable" if 3 * descents < k.size else "quicksort")
     return (packed & np.uint64((1 << index_bits) - 1)).astype(np.int64)
 
 

@@ -12,10 +12,13 @@ from pipeline.render.sorting import stable_order, unique_keys
 def test_packed_sorts_are_numpys_stable_sort_and_unique(n: int, high: int) -> None:
     """stable_order against np.argsort(kind="stable") and unique_keys against
     np.unique's first indices, inverse and counts: keys with many repeats, wide keys
-    (the packed sort's bits run out at 2^62 with these indices: numpy's own sort), and
-    negative keys (numpy's own sort too)."""
+    (the packed sort's bits run out at 2^62 with these indices: numpy's own sort),
+    negative keys (numpy's own sort too), and keys nearly in order (the stable sort of
+    the packed keys, where the others take the default one)."""
     rng = np.random.default_rng(n)
-    for keys in (rng.integers(0, high, n), rng.integers(-high, high, n)):
+    nearly = np.sort(rng.integers(0, high, n))  # in order but for a few (the other sort)
+    nearly[rng.integers(0, n, max(1, n // 100))] = rng.integers(0, high, max(1, n // 100))
+    for keys in (rng.integers(0, high, n), rng.integers(-high, high, n), nearly):
         np.testing.assert_array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
         _, first, inverse, counts = np.unique(keys, return_index=True, return_inverse=True,
                                               return_counts=True)
