@@ -685,7 +685,7 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
         mm[outside] = mm[nearest[outside]]  # a margin texel: its nearest tile texel's
         typical = float(np.median(mm[inner])) if inner.any() else 1.0
         mm_out.append(np.where(in_tile, mm, np.float32(typical)).reshape(h, w))
-    del mean_mm
+    del mean_mm, mm  # the loop's last row holds all of mean_mm (0.16 GB at level 0)
     mm_u_out, mm_v_out = mm_out
     index = np.zeros(0, np.int64)
     source = np.zeros((0, 2), np.float32)
