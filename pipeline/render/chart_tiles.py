@@ -585,6 +585,40 @@ def _splat_last_axis(values: NDArray[np.float64], first: int, level: int
     return first_cell, out
 
 
+SPLAT_BAND_TEXELS = 1 << 19
+"""Texels of a chart's bounding box :func:`chart_splats` takes at a time, in whole rows:
+tens of MB of float64 intermediates however large the chart (one chart over most of a
+4096 texture held 1 GB of them at level 1 as one piece)."""
+
+
+def _chart_cell_sums(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
+                     sizes: tuple[NDArray[Any], NDArray[Any]], c: int, box: Any,
+                     level: int) -> tuple[int, int, NDArray[np.float64]]:
+    """Chart ``c``'s finest texels in ``box`` splatted to its level-k cells (level > 0):
+    (first cell row, first cell column, (3, rows, columns) sums of the covered share
+    and of share x size along u and v), a band of :data:`SPLAT_BAND_TEXELS` at a time,
+    each band's cells added to the chart's (neighbouring bands share a row of them)."""
+    s = 1 << level
+    rows, columns = box
+    first_y = (2 * rows.start + 1 - s) >> (level + 1)
+    last_y = ((2 * (rows.stop - 1) + 1 - s) >> (level + 1)) + 1
+    step = max(1, SPLAT_BAND_TEXELS // (columns.stop - columns.start))
+    cells: NDArray[np.float64] | None = None
+    first_x = 0
+    for top in range(rows.start, rows.stop, step):
+        band = (slice(top, min(top + step, rows.stop)), columns)
+        share = np.where(chart[band] == c, 1.0 if coverage is None else coverage[band],
+                         0.0).astype(np.float64)
+        sums = np.stack([share, share * sizes[0][band], share * sizes[1][band]])
+        first_x, along_x = _splat_last_axis(sums, columns.start, level)
+        band_y, part = _splat_last_axis(along_x.swapaxes(1, 2), top, level)
+        if cells is None:
+            cells = np.zeros((3, last_y - first_y + 1, part.shape[1]))
+        cells[:, band_y - first_y:band_y - first_y + part.shape[2]] += part.swapaxes(1, 2)
+    assert cells is not None  # a box has rows
+    return first_y, first_x, cells
+
+
 def chart_splats(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
                  mm_u: NDArray[Any], mm_v: NDArray[Any], boxes: list[Any],
                  shift: NDArray[np.int64], level: int, shape: tuple[int, int]
@@ -604,28 +638,33 @@ def chart_splats(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
     h, w = shape
     count = np.zeros((h, w), np.float32)
     mean_mm = np.zeros((2, h, w), np.float32)
+
+    def put(c: int, first_y: int, first_x: int, weight: NDArray[np.float32],
+            sizes: list[NDArray[Any]]) -> None:
+        # a chart's cells lie in its own tile: no other chart's
+        y0, x0 = first_y + int(shift[c, 1]), first_x + int(shift[c, 0])
+        at = (slice(y0, y0 + weight.shape[0]), slice(x0, x0 + weight.shape[1]))
+        count[at] = weight
+        mean_mm[0][at], mean_mm[1][at] = sizes
+
     for c, box in enumerate(boxes):
         if box is None:
             continue
-        share = np.where(chart[box] == c, 1.0 if coverage is None else coverage[box],
-                         0.0).astype(np.float64)
         if level == 0:  # each finest texel its own cell: its share, and its sizes
-            first_y, first_x = box[0].start, box[1].start
-            weight = share.astype(np.float32)
-            sizes = [np.where(weight > 0, m[box], np.float32(0)) for m in (mm_u, mm_v)]
-        else:
-            sums = np.stack([share, share * mm_u[box], share * mm_v[box]])
-            first_x, along_x = _splat_last_axis(sums, box[1].start, level)
-            first_y, cells = _splat_last_axis(along_x.swapaxes(1, 2), box[0].start, level)
-            cells = cells.swapaxes(1, 2)
-            weight = cells[0].astype(np.float32)
-            sizes = [np.divide(cells[k], cells[0], out=np.zeros_like(cells[0]),
-                               where=cells[0] > 0) for k in (1, 2)]
-        gh, gw = weight.shape
-        y0, x0 = first_y + int(shift[c, 1]), first_x + int(shift[c, 0])
-        at = (slice(y0, y0 + gh), slice(x0, x0 + gw))
-        count[at] = weight  # a chart's cells lie in its own tile: no other chart's
-        mean_mm[0][at], mean_mm[1][at] = sizes
+            rows, columns = box
+            step = max(1, SPLAT_BAND_TEXELS // (columns.stop - columns.start))
+            for top in range(rows.start, rows.stop, step):
+                band = (slice(top, min(top + step, rows.stop)), columns)
+                weight = np.where(chart[band] == c, np.float32(1) if coverage is None
+                                  else coverage[band], np.float32(0))
+                put(c, top, columns.start, weight,
+                    [np.where(weight > 0, m[band], np.float32(0)) for m in (mm_u, mm_v)])
+            continue
+        first_y, first_x, cells = _chart_cell_sums(chart, coverage, (mm_u, mm_v), c, box,
+                                                   level)
+        put(c, first_y, first_x, cells[0].astype(np.float32),
+            [np.divide(cells[k], cells[0], out=np.zeros_like(cells[0]),
+                       where=cells[0] > 0) for k in (1, 2)])
     return count.ravel(), mean_mm.reshape(2, -1)
 
 

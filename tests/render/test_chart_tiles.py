@@ -336,13 +336,19 @@ def test_splat_geometry_and_sums_by_their_definition(level: int) -> None:
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
 
 
+@pytest.mark.parametrize("band_texels", [1 << 19, 150])
 @pytest.mark.parametrize("level", range(6))
-def test_chart_splats_sum_what_the_scatter_sums(level: int) -> None:
+def test_chart_splats_sum_what_the_scatter_sums(level: int, band_texels: int,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """chart_splats (per chart over its box, one product per axis) against _splat (the
     scatter of every finest texel, the definition above) on charts whose boxes overlap
     and whose texels interleave, with holes, partial shares and texels at the map's
     edges: the counts and the mean sizes within float32 rounding, and 0 in both where
-    no finest texel reaches."""
+    no finest texel reaches. Each box whole, and in bands of one to a few rows (whose
+    cells the bands share)."""
+    import pipeline.render.chart_tiles as chart_tiles
+
+    monkeypatch.setattr(chart_tiles, "SPLAT_BAND_TEXELS", band_texels)
     from pipeline.render.chart_tiles import (
         _chart_cells,
         _pack,
