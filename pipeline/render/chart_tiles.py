@@ -702,18 +702,22 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     # int32 (n < 2^31): 0.3 GiB less at level 0 of texture 4096
     nearest = np.full(n, -1, np.int32)
     owner = np.full(n, -1, np.int32)
+    # each tile a rectangle of the atlas: views of it, not (th, tw) flat indices, and
+    # the transform's indices alone (its float64 distances were never read)
+    tiles_of = [a.reshape(h, w) for a in (full, inner, nearest, owner)]
     for c in np.flatnonzero(~empty):
         x0, y0 = pos[c]
         tw, th = sizes[c]
-        idx = (np.arange(y0, y0 + th)[:, None] * w + np.arange(x0, x0 + tw)[None, :])
-        mine = full[idx]
+        full_t, inner_t, nearest_t, owner_t = (a[y0:y0 + th, x0:x0 + tw] for a in tiles_of)
+        mine = full_t
         if not mine.any():
-            mine = inner[idx]  # a chart without one full cell: its partial ones
+            mine = inner_t  # a chart without one full cell: its partial ones
         if not mine.any():
             continue
-        _, (iy, ix) = distance_transform_edt(~mine, return_indices=True)
-        nearest[idx] = (iy + y0) * w + ix + x0
-        owner[idx] = c
+        iy, ix = distance_transform_edt(~mine, return_distances=False, return_indices=True)
+        nearest_t[...] = (iy + y0) * w + ix + x0
+        owner_t[...] = c
+    del tiles_of
     in_tile = owner >= 0
     outside = in_tile & ~inner
     partial = in_tile & ~full  # cells a seam may cross: the margin and the chart's edge
