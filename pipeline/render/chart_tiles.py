@@ -23,7 +23,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
@@ -591,27 +591,41 @@ tens of MB of float64 intermediates however large the chart (one chart over most
 4096 texture held 1 GB of them at level 1 as one piece)."""
 
 
+def _box_bands(box: Any) -> Iterator[tuple[slice, slice]]:
+    """A chart's bounding box (a pair of slices) in bands of whole rows of at most
+    :data:`SPLAT_BAND_TEXELS` texels."""
+    rows, columns = box
+    step = max(1, SPLAT_BAND_TEXELS // (columns.stop - columns.start))
+    for top in range(rows.start, rows.stop, step):
+        yield slice(top, min(top + step, rows.stop)), columns
+
+
+def _covered_share(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
+                   c: int, band: tuple[slice, slice]) -> NDArray[np.float32]:
+    """Over ``band`` the share of each texel's square chart ``c`` covers (0 where the
+    texel is another chart's or none)."""
+    return np.where(chart[band] == c, np.float32(1) if coverage is None else coverage[band],
+                    np.float32(0))
+
+
 def _chart_cell_sums(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
                      sizes: tuple[NDArray[Any], NDArray[Any]], c: int, box: Any,
                      level: int) -> tuple[int, int, NDArray[np.float64]]:
     """Chart ``c``'s finest texels in ``box`` splatted to its level-k cells (level > 0):
     (first cell row, first cell column, (3, rows, columns) sums of the covered share
-    and of share x size along u and v), a band of :data:`SPLAT_BAND_TEXELS` at a time,
-    each band's cells added to the chart's (neighbouring bands share a row of them)."""
+    and of share x size along u and v), a band (:func:`_box_bands`) at a time, each
+    band's cells added to the chart's (neighbouring bands share a row of them)."""
     s = 1 << level
     rows, columns = box
     first_y = (2 * rows.start + 1 - s) >> (level + 1)
     last_y = ((2 * (rows.stop - 1) + 1 - s) >> (level + 1)) + 1
-    step = max(1, SPLAT_BAND_TEXELS // (columns.stop - columns.start))
     cells: NDArray[np.float64] | None = None
     first_x = 0
-    for top in range(rows.start, rows.stop, step):
-        band = (slice(top, min(top + step, rows.stop)), columns)
-        share = np.where(chart[band] == c, 1.0 if coverage is None else coverage[band],
-                         0.0).astype(np.float64)
+    for band in _box_bands(box):
+        share = _covered_share(chart, coverage, c, band).astype(np.float64)
         sums = np.stack([share, share * sizes[0][band], share * sizes[1][band]])
         first_x, along_x = _splat_last_axis(sums, columns.start, level)
-        band_y, part = _splat_last_axis(along_x.swapaxes(1, 2), top, level)
+        band_y, part = _splat_last_axis(along_x.swapaxes(1, 2), band[0].start, level)
         if cells is None:
             cells = np.zeros((3, last_y - first_y + 1, part.shape[1]))
         cells[:, band_y - first_y:band_y - first_y + part.shape[2]] += part.swapaxes(1, 2)
@@ -651,13 +665,9 @@ def chart_splats(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
         if box is None:
             continue
         if level == 0:  # each finest texel its own cell: its share, and its sizes
-            rows, columns = box
-            step = max(1, SPLAT_BAND_TEXELS // (columns.stop - columns.start))
-            for top in range(rows.start, rows.stop, step):
-                band = (slice(top, min(top + step, rows.stop)), columns)
-                weight = np.where(chart[band] == c, np.float32(1) if coverage is None
-                                  else coverage[band], np.float32(0))
-                put(c, top, columns.start, weight,
+            for band in _box_bands(box):
+                weight = _covered_share(chart, coverage, c, band)
+                put(c, band[0].start, band[1].start, weight,
                     [np.where(weight > 0, m[band], np.float32(0)) for m in (mm_u, mm_v)])
             continue
         first_y, first_x, cells = _chart_cell_sums(chart, coverage, (mm_u, mm_v), c, box,
