@@ -187,38 +187,12 @@ class SeamGeometry:
                 "tri_chart": host_buffer(self.tri_chart.astype(np.int32))}
 
 
-@dataclass(frozen=True)
-class FinestTexels:
-    """The covered finest texels of a chart map in row order (:func:`finest_texels`):
-    their charts and covered shares, and each chart's bounding box. What the host's
-    reference fill (:meth:`TileLevel.fill`) scatters from."""
-
-    ys: NDArray[np.int64]
-    xs: NDArray[np.int64]
-    chart: NDArray[np.int64]
-    share: NDArray[np.float32]
-    """The share of each texel's square its chart covers (1 where no coverage map)."""
-    boxes: list[Any]
-    """Per chart its finest texels' bounding box (:func:`chart_boxes`)."""
-
-
 def chart_boxes(chart: NDArray[np.int32], n_charts: int) -> list[Any]:
     """Per chart of a chart map (H, W; -1: none) the bounding box of its texels, a pair of
     slices (``scipy.ndimage.find_objects``; None: no texel)."""
     from scipy.ndimage import find_objects  # lazy: 0.25 s to import
 
     return find_objects(chart + 1, max_label=n_charts)
-
-
-def finest_texels(chart: NDArray[np.int32], n_charts: int,
-                  coverage: NDArray[np.float32] | None = None) -> FinestTexels:
-    """:class:`FinestTexels` of a chart map (H, W; -1: none) and the share of each texel
-    its chart covers (:func:`texel_coverage`; None: all)."""
-    ys, xs = np.nonzero(chart >= 0)
-    share = np.ones(ys.size, np.float32) if coverage is None else \
-        coverage[ys, xs].astype(np.float32)
-    return FinestTexels(ys, xs, chart[ys, xs].astype(np.int64), share,
-                        chart_boxes(chart, n_charts))
 
 
 @dataclass(frozen=True)
@@ -274,7 +248,7 @@ class TileLevel:
     Each covered finest texel is splatted to the level-k cells of its chart's tile
     around its centre (level 0: its own; above: bilinearly, so its mass keeps its
     centre, where a cell's mean would move it to the cell's centre, up to
-    (2^k - 1) / 2 finest texels): :func:`splat_geometry`."""
+    (2^k - 1) / 2 finest texels): :func:`chart_splats`."""
     count: NDArray[np.float32]
     """Per atlas texel: the finest texels of its chart splatted to it, in texels (its
     coverage x 4^k; 0 outside the charts)."""
@@ -289,15 +263,9 @@ class TileLevel:
     nearest tile texel's); None once a diffusion layout's level holds them as log2
     steps (``LevelGrid``)."""
 
-    def fill(self, values: NDArray[np.float32], chart: NDArray[np.int32],
-             coverage: NDArray[np.float32] | None) -> NDArray[np.float32]:
-        """The atlas as RGBA (H, W, 4) float32 for a normalised convolution: rgb the sum
-        of the chart's finest ``values`` (N covered, 3) under each texel over 4^k (E x
-        coverage), alpha its coverage; to each texel not covered in full, what the other
-        chart's tile holds (rgb and coverage alike) where its centre lies across the
-        seam. ``chart`` and ``coverage``: those the tiles were made from
-        (:func:`tile_level`). The diffusion splats on the device instead (then
-        :meth:`read_across_seams`); this is its reference.
+    def read_across_seams(self, splatted: NDArray[np.float32]) -> NDArray[np.float32]:
+        """``splatted`` (H W, 4: the tiles' own texels) with what each texel not covered
+        in full reads across the seams added, in place (:attr:`reads`).
 
         The read adds coverage with the light, unnormalised: the two sides' splats of a
         texel a seam crosses are complementary parts of one cell, and a cubic read
@@ -305,18 +273,6 @@ class TileLevel:
         texel's light whole. Reading the light per covered area instead (rgb / alpha)
         lost 31% of a pencil at a seam at levels 2-4: a splat's tent reaches past the
         border, where the reader does not look."""
-        h, w = self.shape
-        area = float(4**self.level)
-        out = np.empty((h * w, 4), np.float32)
-        finest = finest_texels(chart, int(chart.max(initial=-1)) + 1, coverage)
-        geometry = splat_geometry(finest, self.shift.astype(np.int64), self.level, w)
-        out[:, :3] = _splat(*geometry, self.level, self.shape, values) / area
-        out[:, 3] = self.count / area
-        return self.read_across_seams(out).reshape(h, w, 4)
-
-    def read_across_seams(self, splatted: NDArray[np.float32]) -> NDArray[np.float32]:
-        """``splatted`` (H W, 4: the tiles' own texels) with what each texel not covered
-        in full reads across the seams added, in place (:attr:`reads`)."""
         # read among the tiles' own texels only, before any margin is filled (16 taps a
         # read at 1.6 M reads: 0.9 s a fill as numpy gathers, 0.1 s as one product)
         splatted += self.reads.matrix @ splatted
@@ -475,86 +431,6 @@ def _pack(sizes: NDArray[np.int64]) -> tuple[NDArray[np.int64], tuple[int, int]]
     return pos, (y + row, width)
 
 
-def _splat_table(level: int) -> NDArray[np.float32]:
-    """(4^k, 4) the bilinear weights of a finest texel's four level-k cells by its phase
-    in the cell (:func:`splat_geometry`): its centre at ((x + 0.5) / 2^k - 0.5) in cells, whose
-    fraction depends on x mod 2^k alone (exactly: 2^k is a power of two)."""
-    scale = 1 << level
-    r = np.arange(scale * scale)
-    fx = (r % scale + 0.5) / scale - 0.5
-    fy = (r // scale + 0.5) / scale - 0.5
-    fx, fy = fx - np.floor(fx), fy - np.floor(fy)
-    return np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy],
-                    axis=1).astype(np.float32)
-
-
-SPLAT_ROWS = 65536
-"""Finest texels :func:`splat_geometry` works through at a time."""
-
-
-def splat_geometry(finest: FinestTexels, shift: NDArray[np.int64], level: int, w: int
-                   ) -> tuple[NDArray[np.int32], NDArray[np.uint16], NDArray[np.float32]]:
-    """Per covered finest texel (:class:`FinestTexels`, row order) where it is splatted
-    in a level-k atlas ``w`` texels wide whose charts sit at ``shift`` (atlas = global
-    cell + shift): the flat index of the first of its cells (level 0: the one; above:
-    it, the next, the one below and the next), its phase in the cell, (y mod 2^k) 2^k +
-    x mod 2^k, which picks the weights (:func:`_splat_table`), and the share of its
-    square its chart covers."""
-    scale = 1 << level
-    n = finest.ys.size
-    base = np.empty(n, np.int32)
-    phase = np.empty(n, np.uint16)
-    shift = np.asarray(shift, np.int64)
-    mask = scale - 1  # y mod 2^k and x mod 2^k of texels at y, x >= 0
-    # in chunks whose temporaries stay in cache (whole arrays' took 0.3 s a level at
-    # texture 4096, 0.86 s at the first, in fresh pages), and in integers: the first
-    # cell, floor((x + 0.5) / 2^k - 0.5) = floor((2 x + 1 - 2^k) / 2^(k+1)), by an
-    # arithmetic shift, which floors: the same cells as in floats
-    for s in range(0, n, SPLAT_ROWS):
-        part = slice(s, s + SPLAT_ROWS)
-        ys, xs = finest.ys[part].astype(np.int64), finest.xs[part].astype(np.int64)
-        cell_shift = np.take(shift, finest.chart[part], axis=0)
-        gy = (2 * ys + (1 - scale)) >> (level + 1)
-        gx = (2 * xs + (1 - scale)) >> (level + 1)
-        base[part] = (gy + cell_shift[:, 1]) * w + gx + cell_shift[:, 0]
-        phase[part] = (ys & mask) * scale + (xs & mask)
-    return base, phase, finest.share
-
-
-def _splat(base: NDArray[np.int32], phase: NDArray[np.uint16], share: NDArray[np.float32],
-           level: int, shape: tuple[int, int], values: NDArray[Any]) -> NDArray[np.float64]:
-    """(H W, D): per atlas texel (``shape``) the splat-weighted sum of ``values`` (N, D)
-    over the finest texels splatted to it (:func:`splat_geometry`). One corner of the
-    four at a time, each an accumulation at ``base`` shifted by the corner's offset: no
-    (4, N) cells or weights are made (1.5 GB of temporaries at texture 4096)."""
-    n = shape[0] * shape[1]
-    at = base.astype(np.intp)
-    if level == 0:  # the texel itself
-        corners = [(0, share)]
-    else:
-        table = _splat_table(level)
-        corners = [(off, table[:, j][phase] * share)
-                   for j, off in enumerate((0, 1, shape[1], shape[1] + 1))]
-    # a value's column and its sums in one piece each (strided (N, D) columns took a
-    # third of the splat at texture 2048)
-    columns = np.ascontiguousarray(np.asarray(values).T)
-    out = np.empty((values.shape[1], n))
-    # each corner's weighted values in one array for all: the product in the values'
-    # precision as before, held as the doubles bincount sums (a product and bincount's
-    # copy of it in doubles were 93 MB of fresh pages a corner at texture 4096)
-    weighted = np.empty(at.size, np.float64)
-    for d, column in enumerate(columns):
-        for off, weight in corners:
-            np.multiply(weight, column, out=weighted,
-                        dtype=np.result_type(weight, column))
-            summed = np.bincount(at, weights=weighted, minlength=n)
-            if off == 0:  # the first corner: its sums as they are (bincount's are never
-                out[d] = summed  # -0.0, so 0 + x would be x)
-            else:
-                out[d, off:] += summed[:n - off]  # a splat never reaches past the atlas
-    return out.T
-
-
 def _phase_weights(level: int) -> NDArray[np.float64]:
     """(2^k, 2): along one axis, the bilinear weights of a finest texel to its first
     level-k cell and to the next, by its phase j in the cell's block: the texels whose
@@ -567,8 +443,9 @@ def _phase_weights(level: int) -> NDArray[np.float64]:
 def _splat_last_axis(values: NDArray[np.float64], first: int, level: int
                      ) -> tuple[int, NDArray[np.float64]]:
     """``values`` (..., L), finest texels ``first`` to ``first`` + L - 1 along the last
-    axis, splatted bilinearly to level-k cells along it (level > 0; :func:`splat_geometry`
-    per axis): (the first cell, (..., G) the sums over the cells it reaches). The texels
+    axis, splatted bilinearly to level-k cells along it (level > 0; the first cell of
+    texel x is floor((x + 0.5) / 2^k - 0.5)): (the first cell, (..., G) the sums over
+    the cells it reaches). The texels
     are laid out in blocks of 2^k per first cell, and each block meets the weights of
     its phases in one product."""
     s = 1 << level
@@ -638,17 +515,18 @@ def chart_splats(chart: NDArray[np.int32], coverage: NDArray[np.float32] | None,
                  shift: NDArray[np.int64], level: int, shape: tuple[int, int]
                  ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Per texel of a level-k tile atlas (``shape``; chart c's level-k cell g at g +
-    ``shift[c]``) what :func:`_splat` sums over the finest texels of its chart: (H W,)
+    ``shift[c]``) the bilinear splat's sums over the finest texels of its chart: (H W,)
     their splat weights x covered share (the count, in finest texels), and (2, H W)
     the weighted mean of their sizes in mm along u and v (0 where no texel reaches).
 
     Chart by chart over its bounding box (``boxes``, :func:`chart_boxes`) rather than a
     scatter of every finest texel: the bilinear splat is separable, a product per
     axis (:func:`_splat_last_axis`), and each chart's cells lie in its own tile. The
-    products and sums in float64, where :func:`_splat` rounds each product to float32:
-    on the demo face at texture 4096 the means differ from its by up to 1.2e-7 of their
-    value and the counts not at all, and its three splats of levels 0-4 took 3.5-4.0 s
-    (``np.bincount``) against 0.8-1.5 s here."""
+    products and sums in float64, where the scatter of every finest texel it replaced
+    (``np.bincount``; tests/render/splat_reference.py, the reference it is tested
+    against) rounded each product to float32: on the demo face at texture 4096 the
+    means differ from its by up to 1.2e-7 of their value and the counts not at all, and
+    its three splats of levels 0-4 took 3.5-4.0 s against 0.8-1.5 s here."""
     h, w = shape
     count = np.zeros((h, w), np.float32)
     mean_mm = np.zeros((2, h, w), np.float32)
@@ -759,7 +637,7 @@ def _chart_cells(boxes: list[Any], n_charts: int, level: int
                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
     """Per chart the lowest and highest level-k cell (x, y) its finest texels splat to,
     and which charts cover no texel (theirs 0 and -1): from each chart's bounding box
-    of finest texels (:attr:`FinestTexels.boxes`), as a texel's first cell grows with
+    of finest texels (:func:`chart_boxes`), as a texel's first cell grows with
     its position."""
     scale = 1 << level
     lo = np.zeros((n_charts, 2), np.int64)

@@ -512,8 +512,8 @@ __kernel void accumulate_terms(__global const float4 *terms, __global const floa
     rgb[3 * i] = sum.x; rgb[3 * i + 1] = sum.y; rgb[3 * i + 2] = sum.z;
 }
 
-// A pyramid level's chart tiles from the finest texels (chart_tiles.TileLevel.fill,
-// whose reference this follows; the reads across the seams are added on the host):
+// A pyramid level's chart tiles from the finest texels (the reference this follows:
+// tests/render/splat_reference.py's fill; the reads across the seams come after it):
 // each atlas texel of chart c's tile sums, over the finest texels of chart c whose
 // bilinear splat reaches it, weight x (E share, share), over 4^level. A finest texel x
 // splats to its first cell g0 = floor((x + 0.5) / 2^k - 0.5) with 1 - f and to g0 + 1
@@ -1161,13 +1161,13 @@ def release_freed_heap() -> None:
 def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scratch: Any,
                 into: Any) -> Any:
     """``grid``'s tile atlas filled with ``irradiance`` (a device buffer of the RGB per
-    finest texel, which the splat reads as (E, 1); :meth:`TileLevel.fill`): the splat on
-    the device (``splat_level``: numpy's accumulations took half of a 4096 diffusion,
-    4.8 of 12 s) into ``scratch``, then the reads across the seams from there into
-    ``into`` (``read_seams``), which it returns; on a device without doubles the host
-    reads across the seams into an atlas of its own, returned instead. ``scratch`` and
-    ``into``: device buffers of at least the atlas (float4). Host memory a device on
-    this machine reads in place."""
+    finest texel, which the splat reads as (E, 1); tests/render/splat_reference.py's
+    ``fill`` is its reference): the splat on the device (``splat_level``: numpy's
+    accumulations took half of a 4096 diffusion, 4.8 of 12 s) into ``scratch``, then
+    the reads across the seams from there into ``into`` (``read_seams``), which it
+    returns; on a device without doubles the host reads across the seams into an atlas
+    of its own, returned instead. ``scratch`` and ``into``: device buffers of at least
+    the atlas (float4). Host memory a device on this machine reads in place."""
     kernel = pyramid_kernels(layout.n_regions)["splat_level"]
     queue = layout.iir.queue
     lh, lw = grid.shape

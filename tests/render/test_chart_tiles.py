@@ -36,6 +36,7 @@ from pipeline.usd.mesh import MeshData
 from pipeline.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
 from ..render_scenes import distant_down, exact_fit, scene_over
+from .splat_reference import fill
 
 pytestmark = pytest.mark.usefixtures("cl_device")
 
@@ -298,7 +299,7 @@ def test_splat_geometry_and_sums_by_their_definition(level: int) -> None:
     floor((x + 0.5) / 2^k - 0.5) over whole arrays, texels at the edges (x, y = 0, where
     the first cell is -1 above level 0) and across chunk borders; and _splat's sums
     against numpy's add.at of the same weighted values (float32 products, float64 sums)."""
-    from pipeline.render.chart_tiles import (
+    from .splat_reference import (
         SPLAT_ROWS,
         FinestTexels,
         _splat,
@@ -349,15 +350,9 @@ def test_chart_splats_sum_what_the_scatter_sums(level: int, band_texels: int,
     import pipeline.render.chart_tiles as chart_tiles
 
     monkeypatch.setattr(chart_tiles, "SPLAT_BAND_TEXELS", band_texels)
-    from pipeline.render.chart_tiles import (
-        _chart_cells,
-        _pack,
-        _splat,
-        chart_boxes,
-        chart_splats,
-        finest_texels,
-        splat_geometry,
-    )
+    from pipeline.render.chart_tiles import _chart_cells, _pack, chart_boxes, chart_splats
+
+    from .splat_reference import _splat, finest_texels, splat_geometry
 
     rng = np.random.default_rng(10 + level)
     size, n_charts, margin = 97, 4, 3
@@ -391,7 +386,7 @@ def test_chart_splats_sum_what_the_scatter_sums(level: int, band_texels: int,
 
 def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
     """The tiles' fill on the device (a gather per atlas texel, float32) against
-    TileLevel.fill (numpy's scatter of the same splat, float64 sums), levels 0-3 of the
+    splat_reference.fill (numpy's scatter of the same splat, float64 sums), levels 0-3 of the
     two-chart patch, margins read across the seam included: within float32 rounding."""
     import pyopencl as cl
 
@@ -407,7 +402,7 @@ def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
     _, queue = cl_context()
     covered = charts.chart >= 0
     for k, grid in grids.items():
-        want = grid.tiles.fill(e[covered], charts.chart, charts.coverage)
+        want = fill(grid.tiles, e[covered], charts.chart, charts.coverage)
         mine = np.empty_like(want)
         cl.enqueue_copy(queue, mine, got[k])
         assert want[..., 3].max() > 0.99 and np.abs(want).max() < 2, k
