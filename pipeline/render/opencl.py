@@ -200,10 +200,9 @@ def candidates(all_runtimes: bool = False, spec: str | None = None
     spec = (device_spec() if spec is None else spec).strip().lower()
     wants_intel = all_runtimes or spec not in LEAN_SPECS
     if SETUP.settled and SETUP.intel_left_out and wants_intel:
-        note = (f"Intel CPU runtime: left out at this process's first OpenCL query, before "
-                f"device '{spec}' was asked for (ask for it before any OpenCL work)")
-        if note not in SETUP.notes:
-            SETUP.notes.append(note)
+        SETUP.note(f"Intel CPU runtime: left out at this process's first OpenCL query, "
+                   f"before device '{spec}' was asked for (ask for it before any OpenCL "
+                   f"work)")
     register_vendors(wants_intel or not pocl_passed_here())
     try:
         platforms = cl.get_platforms()
@@ -344,7 +343,7 @@ def choose_device(spec: str, found: Sequence[tuple[Candidate, Any]] | None = Non
     if chosen is None:
         if real and SETUP.intel_left_out and any(
                 c.runtime == "pocl-cpu" and r is not None for c, r in tried):
-            SETUP.notes.append("PoCL fails here now: the next process loads Intel's runtime")
+            SETUP.note("PoCL fails here now: the next process loads Intel's runtime")
         raise InputError(no_device_message(spec, found, tried))
     tried += [(c, f"not matched by '{spec}'") for c, _ in found
               if all(c != o for o, _ in ordered)]

@@ -62,6 +62,11 @@ class RuntimeSetup:
     settled: bool = False
     intel_left_out: bool = False
 
+    def note(self, text: str) -> None:
+        """Add ``text`` to :attr:`notes` once (a process may ask for devices again)."""
+        if text not in self.notes:
+            self.notes.append(text)
+
 
 def _dist_file(dist: str, name: str) -> Path | None:
     """Absolute path of the file ``name`` installed by distribution ``dist``, if any."""

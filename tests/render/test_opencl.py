@@ -144,12 +144,16 @@ def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> No
         assert second.startswith("intel-cpu True"), second
     assert run(SKINPIPE_OPENCL_DEVICE="intel").startswith("intel-cpu True")
     if first.startswith("pocl-cpu"):
-        # Intel's asked for only after a first query left it out: an error that says so
+        # Intel's asked for only after a first query left it out: an error that says so,
+        # and asked for again, the note once
         late = run("from pipeline.render import opencl; opencl.device_choice();"
                    "opencl.set_device('intel')\n"
-                   "try: opencl.device_choice()\n"
-                   "except Exception as exc: print(type(exc).__name__, exc)")
+                   "for _ in range(2):\n"
+                   "    try: opencl.device_choice()\n"
+                   "    except Exception as exc: print(type(exc).__name__, exc)\n"
+                   "print(sum('first OpenCL query' in n for n in opencl.SETUP.notes))")
         assert late.startswith("InputError") and "first OpenCL query" in late, late
+        assert late.splitlines()[-1] == "1", late
     every = run("from pipeline.render import opencl;"
                 "print(sorted({c.runtime for c, _ in opencl.candidates(all_runtimes=True)}))")
     assert "intel-cpu" in every and "pocl-cpu" in every, every
