@@ -151,10 +151,10 @@ def texel_coverage(chart: NDArray[np.int32], triangle: NDArray[np.int32],
 class SeamGeometry:
     """The surface the margins are read from: the Embree scene with the skin mesh in it
     (``mesh_index``), per triangle its chart, its UV corners in finest texel
-    coordinates and J = dP / d texel (scene units), and per finest texel its triangle,
-    and its position and normal (scene units) from ``surface()`` when tiles are made
-    (a renderer lets its maps go before the irradiance's peak where the tile store holds
-    every tile, and makes them again should one not read back)."""
+    coordinates and J = dP / d texel (scene units), per finest texel its triangle, and
+    ``surface_at``, the position and normal (scene units) at finest texels, made from
+    the triangles (:meth:`~.texture_maps.TexelSurface.at`: the maps' own floats, without
+    holding the maps)."""
 
     rays: Any  # ..raytrace.RayScene
     mesh_index: int
@@ -162,8 +162,8 @@ class SeamGeometry:
     uv_corners: NDArray[np.float64]
     jacobian: NDArray[np.float64]
     triangle: NDArray[np.int32]
-    surface: Callable[[], tuple[NDArray[np.float32], NDArray[np.float32]]]
-    """The (H, W, 3) position and normal maps."""
+    surface_at: Callable[[NDArray[np.int64]], tuple[NDArray[np.float32], NDArray[np.float32]]]
+    """(N, 3) position and normal at flat finest texel indices (N,)."""
 
     @cached_property
     def texels_per_scene_unit(self) -> NDArray[np.float64]:
@@ -1116,10 +1116,9 @@ def _cell_frames(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     f = np.clip(np.rint(centre).astype(np.int64), 0, [w0 - 1, h0 - 1])
     texel = f[:, 1] * w0 + f[:, 0]
     jac = np.take(g.jacobian, g.triangle.reshape(-1)[texel], axis=0)  # per finest texel
-    position, normal_map = g.surface()
-    point = np.take(position.reshape(-1, 3), texel, axis=0) + \
-        np.einsum("mij,mj->mi", jac, centre - f)
-    normal = np.take(normal_map.reshape(-1, 3), texel, axis=0).astype(np.float64)
+    position, normal = g.surface_at(texel)
+    point = position + np.einsum("mij,mj->mi", jac, centre - f)
+    normal = normal.astype(np.float64)
     normal /= np.maximum(_norm_axis1(normal), 1e-30)[:, None]
     return point, normal, jac * scale
 

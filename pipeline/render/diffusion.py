@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
@@ -664,29 +663,21 @@ class ChartLayout:
 
 def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
                  uv: NDArray[Any], uv_tris: NDArray[np.int32], rays: Any,
-                 mesh_index: int,
-                 surface: Callable[[], tuple[NDArray[np.float32], NDArray[np.float32]]]
-                 | None = None) -> ChartLayout:
+                 mesh_index: int) -> ChartLayout:
     """The charts of a UV layout rasterised into ``maps`` (a
     :class:`~.texture_maps.TextureMaps`) and the surface across their seams: the chart
     of each texel, each texel's covered share, and for the margins the ray scene
     ``rays`` (a :class:`~.raytrace.RayScene` holding the mesh as ``mesh_index``), each
     triangle's chart, UV corners (texels) and Jacobian, and each texel's triangle,
-    position and normal (``surface()``: where they come from when tiles are made; by
-    default ``maps.surface``, which the layout then holds)."""
+    position and normal (made from the triangles where tiles are made,
+    :class:`~.texture_maps.TexelSurface`: the layout holds no position or normal map)."""
     tri_chart, n_charts = uv_charts(uv_tris, uv.shape[0])
     chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)],
                      -1).astype(np.int32)
     corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
                                               maps.size)
-    if surface is None:
-        held = maps.surface
-
-        def surface() -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-            return held
-
     geometry = SeamGeometry(rays, mesh_index, tri_chart, corners, jacobian, maps.triangle,
-                            surface)
+                            maps.texel_surface.at)
     return ChartLayout(chart, n_charts, geometry,
                        texel_coverage(chart, maps.triangle, tri_chart, corners))
 
@@ -1086,23 +1077,11 @@ class DiffusionLayout:
                 self.store.save(tiles, grid.derived())
         return self._grids[key]
 
-    def makes_tiles(self, variances_mm2: NDArray[Any]) -> bool:
-        """Whether :meth:`prepare` for ``variances_mm2`` would make tiles here (reading
-        the surface): some level it needs is neither made nor in the store (one that
-        does not read back is made after all)."""
-        if not self.any_covered:
-            return False
-        store = self.store
-        stored = store.stored() if store is not None else []
-        return any(self._made(k, m) is None and
-                   (store is None or store.serving(k, m, stored) is None)
-                   for k, m in self.level_margins(variances_mm2).items())
-
     def release_surface(self) -> None:
-        """Let the surface the margins are read from go (the texture's position and
-        normal maps, 0.4 GB at texture 4096), and the stretch maps the tiles are made
-        from, once the tiles every diffusion to come needs are made: a render's last
-        frame. Asking for other tiles then is an error."""
+        """Let the surface the margins are read from go (the ray scene and the
+        triangles), and the stretch maps the tiles are made from, once the tiles every
+        diffusion to come needs are made: a render's last frame. Asking for other tiles
+        then is an error."""
         self.charts = replace(self.charts, geometry=None)
         self._surface_released = True
         self._mm = None  # no tiles are made any more: the stretch maps may go too

@@ -993,18 +993,6 @@ class Renderer:
         if layout is not None:
             self._release_layout(layout)
 
-    def _surface_of(self, tex: SkinTextures, meters_per_unit: float
-                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """``tex``'s position and normal maps for the seam layout's margins: its maps',
-        or where a last frame let them go as the tile store held every tile the layout
-        needs, and one then did not read back, rasterised again."""
-        maps = tex.maps
-        if maps.position is None:
-            maps = rasterize(tex.mesh.mesh.points, tex.tris, tex.uv, tex.uv_tris,
-                             self.options.texture_size, meters_per_unit,
-                             tex.mesh.region_weights)
-        return maps.surface
-
     def _keeps(self) -> tuple[bool, bool]:
         """Whether a last frame's maps keep their stretch maps and their region weights
         past the irradiance: both for the gather blur, which reads them, and each for
@@ -1032,7 +1020,7 @@ class Renderer:
 
     def _layout_beside(self, log: TaskLog, tex: SkinTextures, terms: DiffusionTerms,
                        rays: RayScene, mesh_index: int, geometry_key: str,
-                       meters_per_unit: float, release: _BothArrived | None = None
+                       release: _BothArrived | None = None
                        ) -> Future[DiffusionLayout] | None:
         """The diffusion layout's task for a recursive blur, started on a thread to run
         beside the irradiance (None for other blurs): it reads only the texture maps and
@@ -1049,11 +1037,12 @@ class Renderer:
         earlier process made them (:mod:`.tile_store`), and go there where this one
         makes them; ``render.json``'s ``tile_store`` says which.
 
-        In a render's last frame (``release``) the layout reads the surface maps only
-        where it makes tiles (:meth:`_surface_of`): where the store holds its tiles, or
-        once it knows it makes none, it says so, and the maps may go before the
-        irradiance's rays (:meth:`_release_maps`; a stored level that then does not read
-        back is made from maps rasterised again); its own surface goes as it ends."""
+        The layout reads no position or normal map: where it makes tiles it makes the
+        surface at its margins' start texels from the triangles
+        (:class:`~.texture_maps.TexelSurface`). In a render's last frame (``release``) it
+        says so once it holds the maps less their surface, so that they may go as soon
+        as the irradiance has taken its texels' rows (:meth:`_release_maps`), and its own
+        surface goes as it ends."""
         opts = self.options
         if not (opts.scattering and opts.blur == "recursive") or \
                 f"diffusion:{self._diffusion_key(tex, terms)}" in self._cache:
@@ -1065,26 +1054,22 @@ class Renderer:
             return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                                    maps.region_weights,
                                    chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
-                                                tex.uv_tris, rays, mesh_index,
-                                                lambda: self._surface_of(tex, meters_per_unit)),
+                                                tex.uv_tris, rays, mesh_index),
                                    store, maps.texel_regions)
 
         def make() -> DiffusionLayout:
             try:
-                # the maps less their surface, which the layout reads only to make tiles,
-                # taken before it says it needs them no more: the release then lets go
-                # of the surface, and of the stretch and region maps the layout holds
-                # where it still does
+                # the maps less their surface, taken before it says it needs no more of
+                # them: the release then lets go of the maps' surface, and of the stretch
+                # and region maps but where the layout holds them
                 maps = tex.maps.without_surface()
+                if release is not None:
+                    release.arrive("layout")
                 store = None if opts.layout_cache is None else \
                     TileStore(Path(opts.layout_cache), key)
-                if release is not None and store is not None and store.stored():
-                    release.arrive("layout")  # a render made its tiles before
                 prepared = self._cached(log, "diffusion_layout", key,
                                         partial(layout, maps, store), report=False)
                 del maps
-                if release is not None and not prepared.makes_tiles(terms.variances_mm2):
-                    release.arrive("layout")  # every tile it needs is made or stored
                 # other terms (one profile for every region) add the tiles they lack
                 start = time.perf_counter()
                 prepared.prepare(terms.variances_mm2)
@@ -1193,8 +1178,7 @@ class Renderer:
         # done with them
         release = _BothArrived(lambda: self._release_maps(tex)) if self.last_frame else None
         layout = self._layout_beside(log, tex, terms, rays, scene.meshes.index(mesh),
-                                     scene_geometry_key(scene), scene.meters_per_unit,
-                                     release)
+                                     scene_geometry_key(scene), release)
         if layout is None and release is not None:
             release.arrive("layout")
         look_up = camera is not None and self.last_frame and \

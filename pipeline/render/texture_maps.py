@@ -59,6 +59,52 @@ class TexelRegions:
 
 
 @dataclass(frozen=True)
+class TexelSurface:
+    """What each texel's position and normal are made from: the triangle map, each
+    triangle's UV corners in texel coordinates (``corners_texels`` (T, 3, 2) float64)
+    and the determinant of its UV edges, its vertices (``corners`` (T, 3) int32) and each
+    vertex's position and normal (``table`` (V, 6) float32). :meth:`at` makes them at
+    the texels asked for with :func:`rasterize`'s arithmetic, the maps' own floats: the
+    seam layout reads them at its margins' start texels (a few hundred thousand at
+    texture 4096) without holding the maps (0.4 GB)."""
+
+    triangle: NDArray[np.int32]
+    corners_texels: NDArray[np.float64]
+    det: NDArray[np.float64]
+    corners: NDArray[np.int32]
+    table: NDArray[np.float32]
+
+    def at(self, texels: NDArray[np.int64]
+           ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """(N, 3) position (scene units) and unit normal at flat texel indices (N,), zero
+        where no triangle covers the texel, as in the maps: ``texel_attributes``'
+        operations in its order (float64 barycentrics rounded to float32, float32 sums
+        without fused multiply-adds)."""
+        w = self.triangle.shape[1]
+        t = self.triangle.reshape(-1)[texels]
+        position = np.zeros((t.size, 3), np.float32)
+        normal = np.zeros((t.size, 3), np.float32)
+        on = np.flatnonzero(t >= 0)
+        t, texels = t[on], texels[on]
+        q = self.corners_texels[t]
+        ax, ay = q[:, 0, 0], q[:, 0, 1]
+        e1x, e1y = q[:, 1, 0] - ax, q[:, 1, 1] - ay
+        e2x, e2y = q[:, 2, 0] - ax, q[:, 2, 1] - ay
+        inv = 1.0 / self.det[t]  # a triangle that covers a texel is not degenerate
+        dx, dy = (texels % w).astype(np.float64) - ax, (texels // w).astype(np.float64) - ay
+        b1 = ((dx * e2y - dy * e2x) * inv).astype(np.float32)[:, None]
+        b2 = ((e1x * dy - e1y * dx) * inv).astype(np.float32)[:, None]
+        w0 = np.float32(1.0) - b1 - b2
+        v = self.corners[t]
+        attrs = self.table[v[:, 0]] * w0 + self.table[v[:, 1]] * b1 + self.table[v[:, 2]] * b2
+        n = attrs[:, 3:6]
+        length = np.sqrt(n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2])
+        position[on] = attrs[:, :3]
+        normal[on] = n * (np.float32(1.0) / np.maximum(length, np.float32(1e-12)))[:, None]
+        return position, normal
+
+
+@dataclass(frozen=True)
 class TextureMaps:
     """Maps of one UV layout at ``size`` x ``size`` texels."""
 
@@ -69,6 +115,8 @@ class TextureMaps:
     mm_per_texel_u: NDArray[np.float32]  # (H, W); see without_surface
     mm_per_texel_v: NDArray[np.float32]  # (H, W)
     region_weights: NDArray[np.float16] | None  # (H, W, R), see REGION_WEIGHT_DTYPE
+    texel_surface: TexelSurface
+    """What the position and normal are made from, texel by texel (kept once they go)."""
     tri_mm: NDArray[np.float32] | None = None
     """(T, 2): each triangle's mm per texel along u and v, which the stretch maps hold at
     its texels (:meth:`texel_area_mm2` once the maps let them go)."""
@@ -277,6 +325,7 @@ def rasterize_reference(
         regions = np.zeros((size, size, region_weights.shape[1]), REGION_WEIGHT_DTYPE)
         regions[covered] = np.maximum(attrs[:, 6:], np.float32(0.0))
     return TextureMaps(size, triangle, position, normal, mm_u, mm_v, regions,
+                       _texel_surface(triangle, tq, det, tris, table),
                        np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32),
                        _texel_regions(triangle, tq, det, tris, region_weights))
 
@@ -397,7 +446,8 @@ def rasterize(
                                                           (tris, np.int32)))
     tq_buf, det_buf = host_buffer(tq), host_buffer(det)
     corner_buf = host_buffer(tris)
-    table_buf = host_buffer(_attribute_table(points, normals, region_weights))
+    table = _attribute_table(points, normals, region_weights)
+    table_buf = host_buffer(table)
     tri_mm = np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32)
     tri_mm_buf = host_buffer(tri_mm)
     triangle = np.full((size, size), -1, np.int32)
@@ -419,8 +469,17 @@ def rasterize(
     for k, v in out.items():
         read_output(queue, bufs[k], v)
     return TextureMaps(size, triangle, out["position"], out["normal"], out["mm_u"],
-                       out["mm_v"], out["regions"] if n_regions else None, tri_mm,
+                       out["mm_v"], out["regions"] if n_regions else None,
+                       _texel_surface(triangle, tq, det, tris, table), tri_mm,
                        _texel_regions(triangle, tq, det, tris, region_weights))
+
+
+def _texel_surface(triangle: NDArray[np.int32], tq: NDArray[np.float64],
+                   det: NDArray[np.float64], tris: NDArray[Any], table: NDArray[np.float32]
+                   ) -> TexelSurface:
+    return TexelSurface(triangle, np.asarray(tq, np.float64).reshape(-1, 3, 2),
+                        np.asarray(det, np.float64), np.ascontiguousarray(tris, np.int32),
+                        np.ascontiguousarray(table[:, :6]))
 
 
 def _texel_regions(triangle: NDArray[np.int32], tq: NDArray[np.float64],

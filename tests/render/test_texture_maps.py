@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError, SkinpipeError
-from pipeline.render.texture_maps import rasterize, rasterize_reference, texels_in_blocks
+from pipeline.render.texture_maps import (
+    TextureMaps,
+    rasterize,
+    rasterize_reference,
+    texels_in_blocks,
+)
 from pipeline.render.unwrap import triangulate, unwrap
 from pipeline.usd.mesh import MeshData
 
@@ -168,6 +173,21 @@ def _same_maps(a: object, b: object) -> None:
     np.testing.assert_allclose(a.normal, b.normal, atol=2e-7)  # type: ignore[attr-defined]
 
 
+def _same_surface_at_texels(maps: TextureMaps) -> None:
+    """TexelSurface.at over every texel, covered or not, in a shuffled order: the maps'
+    position bit for bit (products and sums, which OpenCL rounds as numpy does) and their
+    normal within float32 rounding (OpenCL's square root and division may be off by an
+    ulp or two), zero where no triangle covers the texel."""
+    assert maps.position is not None and maps.normal is not None
+    texels = np.random.default_rng(5).permutation(maps.triangle.size)
+    position, normal = maps.texel_surface.at(texels)
+    assert position.dtype == normal.dtype == np.float32
+    np.testing.assert_array_equal(position, maps.position.reshape(-1, 3)[texels])
+    np.testing.assert_allclose(normal, maps.normal.reshape(-1, 3)[texels], rtol=0, atol=4e-7)
+    off = maps.triangle.reshape(-1)[texels] < 0
+    assert not normal[off].any() and not position[off].any()
+
+
 def test_device_rasteriser_equals_the_numpy_reference_on_awkward_triangles() -> None:
     # overlapping triangles (the highest index keeps a shared texel in both), a zero-area
     # one, one partly and one wholly outside the texture, texel centres on edges
@@ -185,8 +205,10 @@ def test_device_rasteriser_equals_the_numpy_reference_on_awkward_triangles() -> 
     w = rng.random((pts_all.shape[0], 3))
     for size in (8, 36, 127):  # 36: texel centres on the cells' diagonals (shared edges)
         args = (pts_all, tris_all, uv_all, tris_all, size, 0.001)
-        _same_maps(rasterize(*args, region_weights=w), rasterize_reference(*args, region_weights=w))
+        device = rasterize(*args, region_weights=w)
+        _same_maps(device, rasterize_reference(*args, region_weights=w))
         _same_maps(rasterize(*args), rasterize_reference(*args))
+        _same_surface_at_texels(device)
 
 
 def test_device_rasteriser_equals_the_numpy_reference_on_the_face_scan() -> None:
@@ -197,7 +219,9 @@ def test_device_rasteriser_equals_the_numpy_reference_on_the_face_scan() -> None
     layout = unwrap(mesh, resolution=512, timeout_s=120)
     args = (mesh.points, triangulate(mesh), layout.uv, layout.uv_indices.reshape(-1, 3), 512,
             mesh.meters_per_unit)
-    _same_maps(rasterize(*args), rasterize_reference(*args))
+    device = rasterize(*args)
+    _same_maps(device, rasterize_reference(*args))
+    _same_surface_at_texels(device)
 
 
 def test_texel_areas_from_the_triangles_are_the_stretch_maps_product() -> None:
