@@ -933,7 +933,8 @@ class DiffusionLayout:
     def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None,
                  charts: ChartLayout | None = None, store: TileStore | None = None,
-                 texel_regions: TexelRegions | None = None) -> None:
+                 texel_regions: TexelRegions | None = None,
+                 stretch: tuple[Any, Any] | None = None) -> None:
         cov = np.asarray(coverage, dtype=np.float32)
         if cov.ndim != 2:
             raise InputError(f"coverage must be (H, W), got {cov.shape}")
@@ -962,7 +963,10 @@ class DiffusionLayout:
         self.levels = _max_level(h, w) + 1
         self._grids: dict[tuple[int, int], LevelGrid] = {}
         self._buffers: dict[str, Any] = {}
-        self._mm: list[NDArray[np.float32]] | None = mm
+        # what the tiles read the texel sizes from: the maps, or where given boxes of
+        # them made from the triangles (TextureMaps.triangle_stretch), so that the maps
+        # need not outlive the irradiance (0.13 GB at texture 4096)
+        self._mm: list[Any] | None = mm if stretch is None else list(stretch)
         if not self.any_covered:
             return
         on_chart = [m[covered] for m in mm]

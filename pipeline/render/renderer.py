@@ -1055,7 +1055,9 @@ class Renderer:
                                    maps.region_weights,
                                    chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
                                                 tex.uv_tris, rays, mesh_index),
-                                   store, maps.texel_regions)
+                                   store, maps.texel_regions,
+                                   maps.triangle_stretch() if maps.tri_mm is not None
+                                   else None)
 
         def make() -> DiffusionLayout:
             try:

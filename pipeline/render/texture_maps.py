@@ -59,6 +59,25 @@ class TexelRegions:
 
 
 @dataclass(frozen=True)
+class TriangleStretch:
+    """One axis's stretch map made from the triangles where it is read: ``[box]`` (rows
+    and columns, as of the (H, W) map) gives the map's float32 values there, each
+    texel's triangle's own mm per texel (0 off the charts), which is what the maps hold.
+    The seam layout reads its charts' boxes of it rather than hold two texture-sized
+    maps (0.13 GB at texture 4096)."""
+
+    triangle: NDArray[np.int32]
+    mm: NDArray[np.float32]
+    """(T,) each triangle's mm per texel along this axis."""
+
+    def __getitem__(self, box: Any) -> NDArray[np.float32]:
+        t = self.triangle[box]
+        out = self.mm[np.maximum(t, 0)]
+        out[t < 0] = 0.0
+        return out
+
+
+@dataclass(frozen=True)
 class TexelSurface:
     """What each texel's position and normal are made from: the triangle map, each
     triangle's UV corners in texel coordinates (``corners_texels`` (T, 3, 2) float64)
@@ -159,12 +178,16 @@ class TextureMaps:
         triangles' (the same float32 products)."""
         if self.mm_per_texel_u is not None and self.mm_per_texel_v is not None:
             return self.mm_per_texel_u[rows] * self.mm_per_texel_v[rows]
-        assert self.tri_mm is not None  # without_surface keeps one or the other
-        t = self.triangle[rows]
-        at = np.maximum(t, 0)
-        area = self.tri_mm[at, 0] * self.tri_mm[at, 1]
-        area[t < 0] = 0.0
-        return area
+        u, v = self.triangle_stretch()  # without_surface keeps one or the other
+        return u[rows] * v[rows]
+
+    def triangle_stretch(self) -> tuple[TriangleStretch, TriangleStretch]:
+        """The stretch maps along u and v as made from the triangles where read (the
+        same float32 values as the maps')."""
+        if self.tri_mm is None:
+            raise ValueError("these texture maps have no per-triangle stretch")
+        return (TriangleStretch(self.triangle, np.ascontiguousarray(self.tri_mm[:, 0])),
+                TriangleStretch(self.triangle, np.ascontiguousarray(self.tri_mm[:, 1])))
 
     @cached_property
     def coverage(self) -> NDArray[np.float32]:

@@ -243,3 +243,11 @@ def test_texel_areas_from_the_triangles_are_the_stretch_maps_product() -> None:
             assert got.dtype == np.float32
             np.testing.assert_array_equal(got, want[rows])
         assert (let_go.texel_area_mm2()[maps.triangle < 0] == 0).all()
+        # the stretch maps made from the triangles where read (the seam layout's boxes)
+        u, v = maps.triangle_stretch()
+        for box in ((slice(None), slice(None)), (slice(3, 40), slice(5, 61)),
+                    (slice(0, 1), slice(63, 64))):
+            for made, held in ((u, maps.mm_per_texel_u), (v, maps.mm_per_texel_v)):
+                got = made[box]
+                assert got.dtype == np.float32
+                np.testing.assert_array_equal(got, held[box])
