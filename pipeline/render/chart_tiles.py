@@ -609,14 +609,16 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     in_tile = owner >= 0
     outside = in_tile & ~inner
     partial = in_tile & ~full  # cells a seam may cross: the margin and the chart's edge
-    mm_out = []
-    for mm in mean_mm:  # each axis's texel size: the mean of its finest texels' (mm)
+    # each axis's texel size, the mean of its finest texels' (mm), in place: the level's
+    # arrays are held through its margin reads, the peak of a first render
+    for mm in mean_mm:
         mm *= np.float32(scale)
         mm[outside] = mm[nearest[outside]]  # a margin texel: its nearest tile texel's
         typical = float(np.median(mm[inner])) if inner.any() else 1.0
-        mm_out.append(np.where(in_tile, mm, np.float32(typical)).reshape(h, w))
-    del mean_mm, mm  # the loop's last row holds all of mean_mm (0.16 GB at level 0)
-    mm_u_out, mm_v_out = mm_out
+        np.putmask(mm, ~in_tile, np.float32(typical))
+    del in_tile, outside, inner
+    mm_u_out, mm_v_out = (mm.reshape(h, w) for mm in mean_mm)
+    del mean_mm
     index = np.zeros(0, np.int64)
     source = np.zeros((0, 2), np.float32)
     if geometry is not None and margin > 0:
@@ -690,18 +692,23 @@ def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     the centre). Points that miss the skin (beyond the scan's edge), or land farther
     from the tangent plane than half the way out plus two texels, are dropped."""
     sub = _subsamples(level)
-    texels = np.flatnonzero(margin)
+    # int32 (the atlas holds fewer than 2^31 texels), each chunk int64 as it is read:
+    # the level's margin texels are held through its reads (12.8 M at level 0 of
+    # texture 4096)
+    texels = np.flatnonzero(margin).astype(np.int32)
     # in chunks of texels (a texel's points stay together): the points' float64
     # intermediates took 1.8 GiB beside the layout at texture 2048 in one piece
-    points = np.where(count[texels] <= 1e-6, 1, sub.shape[0])
+    points = np.cumsum(np.where(count[texels] <= 1e-6, np.int8(1), np.int8(sub.shape[0])),
+                       dtype=np.int64)
     per_chunk = MARGIN_POINTS_IN_FLIGHT // MARGIN_THREADS
-    bounds = np.searchsorted(np.cumsum(points), np.arange(per_chunk, int(points.sum()),
-                                                          per_chunk))
+    bounds = np.searchsorted(points, np.arange(per_chunk, int(points[-1]) if points.size
+                                               else 0, per_chunk))
+    del points
     key_of = int(g.tri_chart.max(initial=0)) + 1
 
-    def reads(chunk: NDArray[np.int64]) -> list[tuple[Any, Any, Any]]:
-        return _margin_reads(g, level, shift, count, full, nearest, owner, w, chunk, sub,
-                             key_of)
+    def reads(chunk: NDArray[np.int32]) -> list[tuple[Any, Any, Any]]:
+        return _margin_reads(g, level, shift, count, full, nearest, owner, w,
+                             chunk.astype(np.int64), sub, key_of)
 
     # numpy and Embree release the GIL for most of a chunk's work: chunks side by side
     with ThreadPoolExecutor(MARGIN_THREADS) as pool:
