@@ -1078,14 +1078,7 @@ class DiffusionLayout:
             key = (level, margin)
             grid = self._grids[key] = LevelGrid(tiles)
             if self.store is not None:  # with what its blurs need of the texel sizes
-                written = self.store.save(tiles, grid.derived())
-                del tiles, grid
-                # then mapped from its file, as a next render reads it: the arrays made
-                # here held 0.8 GB at texture 4096 through a first render's diffusion
-                stored = self.store.read_back(level, margin, LevelGrid, written)
-                if stored is not None:
-                    self._grids[key] = stored
-                    stored.release_pages()
+                self.store.save(tiles, grid.derived())
         return self._grids[key]
 
     def release_surface(self) -> None:

@@ -134,7 +134,6 @@ class TileStore:
         self.notes: list[str] = []
         self.loaded: list[tuple[int, int]] = []
         self.saved: list[tuple[int, int]] = []
-        self.read_back_levels: list[tuple[int, int]] = []
         self.read_s = self.write_s = 0.0
         self._lock = threading.Lock()
         self._unwritable = False
@@ -172,42 +171,10 @@ class TileStore:
         served = self.serving(level, margin)
         if served is None:
             return None
-        made = self._read(level, served, make)
-        if made is not None:
-            with self._lock:
-                self.loaded.append((level, served))
-            try:
-                os.utime(self.entry)  # most recently used: the last to go
-            except OSError:
-                pass
-        return made
-
-    def read_back(self, level: int, margin: int,
-                  make: Callable[[TileLevel, dict[str, NDArray[Any]]], Made],
-                  written: Future[None] | None) -> Made | None:
-        """``make`` of the tiles this store's :meth:`save` is writing as ``written``, once
-        written, mapped from their file as :meth:`load` maps them (None where the write
-        failed or the file does not read back): a first render then holds the tiles it
-        made as a next render does, their pages let go after each kernel, rather than
-        through the diffusion (0.8 GB at texture 4096)."""
-        if written is None:
-            return None
-        written.result()  # _write reports its own failures: a note, not an exception
-        with self._lock:
-            if (level, margin) not in self.saved:
-                return None
-        made = self._read(level, margin, make)
-        if made is not None:
-            with self._lock:
-                self.read_back_levels.append((level, margin))
-        return made
-
-    def _read(self, level: int, margin: int,
-              make: Callable[[TileLevel, dict[str, NDArray[Any]]], Made]) -> Made | None:
-        path = self.entry / f"L{level}_M{margin}.npz"
+        path = self.entry / f"L{level}_M{served}.npz"
         start = time.perf_counter()
         try:
-            made = make(*_read_tiles(path, level, margin))
+            made = make(*_read_tiles(path, level, served))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             try:
                 path.unlink(missing_ok=True)
@@ -219,24 +186,26 @@ class TileStore:
             return None
         with self._lock:
             self.read_s += time.perf_counter() - start
+            self.loaded.append((level, served))
+        try:
+            os.utime(self.entry)  # most recently used: the last to go
+        except OSError:
+            pass
         return made
 
-    def save(self, tiles: TileLevel, derived: dict[str, NDArray[Any]]
-             ) -> Future[None] | None:
+    def save(self, tiles: TileLevel, derived: dict[str, NDArray[Any]]) -> None:
         """Write ``tiles`` and the arrays ``derived`` from their texel sizes (a
         ``LevelGrid``'s, which :meth:`load` gives back in their place) on the store's
         writer thread, off the layout's path: a first render at texture 4096 writes
-        0.8 GB in about 1 s. :meth:`flush` waits for the writes; the write's future
-        (None: the folder cannot be written) for :meth:`read_back`."""
+        0.8 GB in about 1 s. :meth:`flush` waits for the writes."""
         if self._unwritable:
-            return None
+            return
         arrays = _tile_arrays(tiles, derived)
         with self._lock:
             if self._writer is None:
                 self._writer = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-tiles")
-            written = self._writer.submit(self._write, tiles.level, tiles.margin, arrays)
-            self._pending.append(written)
-        return written
+            self._pending.append(self._writer.submit(self._write, tiles.level,
+                                                     tiles.margin, arrays))
 
     def flush(self) -> None:
         """Wait for every write :meth:`save` started (a failed write is a note); the
@@ -316,7 +285,6 @@ class TileStore:
         """What this render did with the store, for render.json."""
         return {"folder": str(self.entry), "loaded": [list(km) for km in self.loaded],
                 "saved": [list(km) for km in self.saved],
-                "read_back": [list(km) for km in self.read_back_levels],
                 "read_s": round(self.read_s, 3), "write_s": round(self.write_s, 3),
                 "notes": list(self.notes)}
 

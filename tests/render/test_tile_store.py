@@ -56,13 +56,10 @@ def test_stored_tiles_read_back_give_the_same_diffusion(patch_layout, tmp_path: 
     sizes (stored in their place), and the same diffused light bit for bit."""
     reference, made = _diffused(patch_layout, None)
     first = TileStore(tmp_path, "patch")
-    out1, layout1 = _diffused(patch_layout, first)
+    out1, _ = _diffused(patch_layout, first)
     second = TileStore(tmp_path, "patch")
     out2, layout2 = _diffused(patch_layout, second)
     assert first.saved and not first.loaded
-    # the layout that made them holds them as the second does: mapped from the files
-    assert sorted(first.read_back_levels) == sorted(first.saved)
-    assert all(grid.stored for grid in layout1._grids.values())
     assert sorted(second.loaded) == sorted(first.saved) and not second.saved
     np.testing.assert_array_equal(out1, reference)
     np.testing.assert_array_equal(out2, reference)
@@ -150,29 +147,10 @@ def test_a_folder_that_cannot_be_written_costs_only_the_store(patch_layout,
     blocker.write_text("a file where the store's folder should be")
     store = TileStore(blocker, "patch")
     reference, _ = _diffused(patch_layout, None)
-    out, layout = _diffused(patch_layout, store)
+    out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
     assert not store.saved and any("cannot write" in n for n in store.notes)
     assert blocker.read_text().startswith("a file")  # nothing of the user's touched
-    assert not store.read_back_levels and not any(g.stored for g in layout._grids.values())
-
-
-def test_tiles_that_do_not_read_back_once_written_stay_in_memory(
-        patch_layout, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A level written to the store that then does not read back (here: every read
-    fails) is kept as made, and said so: the same diffused light."""
-    reference, _ = _diffused(patch_layout, None)
-
-    def unreadable(path: Path, level: int, margin: int) -> Any:
-        raise ValueError("damaged after its write")
-
-    monkeypatch.setattr(tile_store, "_read_tiles", unreadable)
-    store = TileStore(tmp_path, "patch")
-    out, layout = _diffused(patch_layout, store)
-    np.testing.assert_array_equal(out, reference)
-    assert store.saved and not store.read_back_levels
-    assert not any(g.stored for g in layout._grids.values())
-    assert sum("did not read back" in n for n in store.notes) == len(store.saved)
 
 
 def test_the_least_recently_used_layouts_go_past_the_limit(patch_layout,
@@ -577,9 +555,9 @@ def test_a_last_frame_from_stored_tiles_lets_the_maps_go_before_the_rays(
 
 def test_a_stored_level_that_does_not_read_back_after_the_maps_went_is_made_again(
         lit_patch: Path, tmp_path: Path) -> None:
-    """The maps went before the rays; the stored files then do not read back: the
-    layout makes the tiles again (its surface from the triangles), and the images are
-    the same bit for bit."""
+    """The maps went before the rays because the store listed the tiles; the files then
+    do not read back: the layout makes the tiles from maps rasterised again, and the
+    images are the same bit for bit."""
     want, got, log, let_go = _render_twice(lit_patch, tmp_path, spoil=True)
     assert let_go == [True]
     notes = log.measures["tile_store"]["notes"]
