@@ -562,7 +562,8 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
                coverage: NDArray[np.float32] | None = None,
                boxes: list[Any] | None = None) -> TileLevel:
     """Level ``level`` as a :class:`TileLevel`: ``chart`` (H, W) the chart of each finest
-    texel (-1: none), ``mm_u``/``mm_v`` its size in mm, ``coverage`` the share of its
+    texel (-1: none), ``mm_u``/``mm_v`` its size in mm ((H, W) maps, or what gives a
+    box of them: :class:`~.texture_maps.TriangleStretch`), ``coverage`` the share of its
     square the chart covers (:func:`texel_coverage`; None: all of it); ``boxes``: the
     charts' :func:`chart_boxes`, when a caller keeps them for several levels. With
     ``geometry`` the margins, and the shares of texels a chart's border crosses, are

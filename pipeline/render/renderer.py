@@ -1062,8 +1062,8 @@ class Renderer:
         def make() -> DiffusionLayout:
             try:
                 # the maps less their surface, taken before it says it needs no more of
-                # them: the release then lets go of the maps' surface, and of the stretch
-                # and region maps but where the layout holds them
+                # them: once made, the layout reads no map but the triangle map (its
+                # surface and texel sizes come from the triangles)
                 maps = tex.maps.without_surface()
                 if release is not None:
                     release.arrive("layout")

@@ -481,16 +481,17 @@ def test_stored_tiles_read_a_band_at_a_time_give_the_same_diffusion(
     assert len(dropped) > 10 * levels  # bands, not a drop a kernel
 
 
-def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool
+def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = True
                   ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], Any, list[bool]]:
     """The lit patch rendered into a tile store, then as a render's last frame from it
     (``spoil``: every stored file damaged first): both frames, the second's log, and
-    whether its maps had let their surface go when its irradiance cast its rays."""
+    whether its maps had let their surface go when its irradiance cast its rays
+    (``stored`` False: no tile store, each render makes its tiles)."""
     from dataclasses import replace
 
     from pipeline.render import renderer as renderer_module
 
-    options = replace(SMALL, layout_cache=str(tmp_path / "layouts"))
+    options = replace(SMALL, layout_cache=str(tmp_path / "layouts") if stored else None)
     first = Renderer(open_stage_guarded(lit_patch), options)
     want, _ = first.render()
     first.close()
@@ -549,6 +550,19 @@ def test_a_last_frame_from_stored_tiles_lets_the_maps_go_before_the_rays(
     want, got, log, let_go = _render_twice(lit_patch, tmp_path, spoil=False)
     assert let_go == [True]
     assert log.measures["tile_store"]["loaded"] and not log.measures["tile_store"]["saved"]
+    for aov, image in want.items():
+        np.testing.assert_array_equal(got[aov], image, err_msg=aov)
+
+
+def test_a_last_frame_that_makes_its_tiles_lets_the_maps_go_before_the_rays(
+        lit_patch: Path, tmp_path: Path) -> None:
+    """Without a tile store, the layout made in the process: a render's last frame lets
+    the position and normal maps go once the irradiance has its texels' rows, before its
+    rays (the layout makes its surface and texel sizes from the triangles): the same
+    images bit for bit as a frame that keeps them."""
+    want, got, _, let_go = _render_twice(lit_patch, tmp_path, spoil=False, stored=False)
+    assert let_go == [True]
+    assert not (tmp_path / "layouts").exists()
     for aov, image in want.items():
         np.testing.assert_array_equal(got[aov], image, err_msg=aov)
 
