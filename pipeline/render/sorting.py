@@ -38,24 +38,33 @@ def stable_order(keys: NDArray[Any]) -> NDArray[np.int64]:
     return packed.view(np.int64)
 
 
-def unique_keys(keys: NDArray[Any]) -> tuple[NDArray[np.int64], NDArray[np.int64],
-                                             NDArray[np.int64]]:
+def unique_keys(keys: NDArray[Any]) -> tuple[NDArray[np.signedinteger[Any]],
+                                             NDArray[np.signedinteger[Any]],
+                                             NDArray[np.signedinteger[Any]]]:
     """``np.unique(keys, return_index=True, return_inverse=True, return_counts=True)``
     of non-negative integers without the unique values: (the first index of each
     value, each entry's value's rank, each value's count), through :func:`stable_order`
-    (np.unique sorts by a stable argsort)."""
+    (np.unique sorts by a stable argsort); int32 where every index fits (fewer than 2^31
+    keys): for the 8.0 M seam reads of a layout at texture 4096 the arrays are the
+    peak of a first render, and int64 ones held 0.43 GB at once, these 0.25."""
     k = np.asarray(keys).ravel()
+    index = np.int32 if k.size < 2**31 else np.int64
     order = stable_order(k)
-    ranked = k[order]
     new = np.empty(k.size, bool)
-    new[:1] = True
-    np.not_equal(ranked[1:], ranked[:-1], out=new[1:])
-    del ranked  # each array goes once read (as in stable_order)
-    starts = np.flatnonzero(new)
-    rank = np.cumsum(new, dtype=np.int64)
+    if k.size:
+        ranked = k[order]
+        new[0] = True
+        np.not_equal(ranked[1:], ranked[:-1], out=new[1:])
+        del ranked  # each array goes once read (as in stable_order)
+    order = order.astype(index, copy=False)
+    starts = np.flatnonzero(new).astype(index, copy=False)
+    rank = np.cumsum(new, dtype=index)
     del new
     rank -= 1
-    inverse = np.empty(k.size, np.int64)
+    inverse = np.empty(k.size, index)
     inverse[order] = rank
     del rank
-    return order[starts], inverse, np.diff(np.append(starts, k.size))
+    first = order[starts]
+    del order
+    counts = np.diff(starts, append=index(k.size))
+    return first, inverse, counts
