@@ -62,7 +62,7 @@ from .recursive_blur import (
     iir_kernels,
     quantized_log2,
 )
-from .texture_maps import REGION_WEIGHT_DTYPE, TexelRegions, triangle_jacobians
+from .texture_maps import REGION_WEIGHT_DTYPE, TexelRegions, at_texels, triangle_jacobians
 from .tile_store import TileStore, drop_resident_pages, extremes
 
 FloatImage = NDArray[np.float32]
@@ -672,8 +672,7 @@ def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
     position and normal (made from the triangles where tiles are made,
     :class:`~.texture_maps.TexelSurface`: the layout holds no position or normal map)."""
     tri_chart, n_charts = uv_charts(uv_tris, uv.shape[0])
-    chart = np.where(maps.triangle >= 0, tri_chart[np.maximum(maps.triangle, 0)],
-                     -1).astype(np.int32)
+    chart = at_texels(maps.triangle, tri_chart.astype(np.int32, copy=False), -1)
     corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
                                               maps.size)
     geometry = SeamGeometry(rays, mesh_index, tri_chart, corners, jacobian, maps.triangle,

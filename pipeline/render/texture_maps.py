@@ -58,6 +58,15 @@ class TexelRegions:
     weights: NDArray[np.float32]
 
 
+def at_texels(triangle: NDArray[np.int32], per_triangle: NDArray[Any], off: Any
+              ) -> NDArray[Any]:
+    """A per-triangle value (T,) at each texel of ``triangle`` (a triangle map or a box of
+    one; -1 where no triangle), ``off`` where none covers it, in ``per_triangle``'s
+    dtype."""
+    return np.where(triangle >= 0, per_triangle[np.maximum(triangle, 0)],
+                    per_triangle.dtype.type(off))
+
+
 @dataclass(frozen=True)
 class TriangleStretch:
     """One axis's stretch map made from the triangles where it is read: ``[box]`` (rows
@@ -71,10 +80,7 @@ class TriangleStretch:
     """(T,) each triangle's mm per texel along this axis."""
 
     def __getitem__(self, box: Any) -> NDArray[np.float32]:
-        t = self.triangle[box]
-        out = self.mm[np.maximum(t, 0)]
-        out[t < 0] = 0.0
-        return out
+        return at_texels(self.triangle[box], self.mm, 0.0)
 
 
 @dataclass(frozen=True)
