@@ -54,6 +54,12 @@ def test_stretch_is_mm_per_texel(su: float, sv: float) -> None:
     np.testing.assert_allclose(maps.mm_per_texel_u[cov], 100.0 / (su * 256), rtol=1e-5)
     np.testing.assert_allclose(maps.mm_per_texel_v[cov], 100.0 / (sv * 256), rtol=1e-5)
     assert abs(cov.mean() - su * sv) < 0.02
+    # as the seam layout reads them, from the triangles: the same analytic sizes
+    u, v = maps.triangle_stretch()
+    box = (slice(None), slice(None))
+    np.testing.assert_allclose(u[box][cov], 100.0 / (su * 256), rtol=1e-5)
+    np.testing.assert_allclose(v[box][cov], 100.0 / (sv * 256), rtol=1e-5)
+    assert not u[box][~cov].any() and not v[box][~cov].any()
 
 
 def test_positions_and_normals_interpolate_exactly_on_a_plane() -> None:
@@ -67,6 +73,46 @@ def test_positions_and_normals_interpolate_exactly_on_a_plane() -> None:
     np.testing.assert_allclose(maps.position[cov][:, 1], expected_y, atol=1e-4)
     np.testing.assert_allclose(maps.normal[cov], [[0, 0, 1]] * cov.sum(), atol=1e-6)
     assert cov.all()
+    # as the seam layout reads them, texel by texel from the triangles
+    position, normal = maps.texel_surface.at(np.flatnonzero(cov))
+    np.testing.assert_allclose(position[:, 0], expected_x, atol=1e-4)
+    np.testing.assert_allclose(position[:, 1], expected_y, atol=1e-4)
+    np.testing.assert_allclose(normal, [[0, 0, 1]] * cov.sum(), atol=1e-6)
+
+
+def test_the_texel_surface_of_a_cylinder_lies_on_its_chords() -> None:
+    """TexelSurface.at on a half cylinder of radius 40 mm (u the angle over pi, v the
+    height 0-60 mm, 32 x 8 cells): each texel centre's point lies on its cell's flat
+    triangles, between the chord's distance from the axis, R cos(dtheta / 2), and R; at
+    the angle and height its texel centre's u and v give (to within the triangles'
+    sag); and its normal, interpolated from the vertex normals, is within a cell's angle
+    of the radial direction there."""
+    n_u, n_v, radius, height = 32, 8, 40.0, 60.0
+    us, vs = np.meshgrid(np.linspace(0, 1, n_u + 1), np.linspace(0, 1, n_v + 1))
+    uv = np.stack([us.ravel(), vs.ravel()], axis=1)
+    theta = np.pi * uv[:, 0]
+    pts = np.stack([radius * np.cos(theta), radius * np.sin(theta), height * uv[:, 1]], 1)
+    tris = []
+    for r in range(n_v):
+        for c in range(n_u):
+            a = r * (n_u + 1) + c
+            tris += [[a, a + 1, a + n_u + 2], [a, a + n_u + 2, a + n_u + 1]]
+    tris = np.array(tris, np.int32)
+    size = 128
+    maps = rasterize(pts, tris, uv, tris, size, 0.001)
+    texels = np.flatnonzero(maps.triangle.ravel() >= 0)
+    position, normal = maps.texel_surface.at(texels)
+    step = np.pi / n_u
+    r_xy = np.hypot(position[:, 0], position[:, 1])
+    assert r_xy.max() <= radius * (1 + 1e-6)
+    assert r_xy.min() >= radius * np.cos(step / 2) * (1 - 1e-6)
+    y, x = np.divmod(texels, size)
+    angle = np.arctan2(position[:, 1], position[:, 0])
+    np.testing.assert_allclose(angle, np.pi * (x + 0.5) / size, atol=step / 4)
+    np.testing.assert_allclose(position[:, 2], height * (y + 0.5) / size, atol=1e-4)
+    radial = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], axis=1)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-6)
+    assert np.arccos(np.clip((normal * radial).sum(axis=1), -1, 1)).max() < step
 
 
 def test_region_weights_are_interpolated() -> None:
