@@ -20,16 +20,23 @@ from pipeline.usd.mesh import MeshData
 pytestmark = pytest.mark.usefixtures("cl_device")
 
 
-def _grid(n: int, size_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1))
+def _cells(n_u: int, n_v: int) -> tuple[np.ndarray, np.ndarray]:
+    """The unit square's UVs on an (n_u + 1) x (n_v + 1) grid and its two triangles a
+    cell."""
+    xs, ys = np.meshgrid(np.linspace(0, 1, n_u + 1), np.linspace(0, 1, n_v + 1))
     uv = np.stack([xs.ravel(), ys.ravel()], axis=1)
-    pts = np.stack([uv[:, 0] * size_mm, uv[:, 1] * size_mm, np.zeros(uv.shape[0])], axis=1)
     tris = []
-    for r in range(n):
-        for c in range(n):
-            a = r * (n + 1) + c
-            tris += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
-    return pts, np.array(tris, np.int32), uv
+    for r in range(n_v):
+        for c in range(n_u):
+            a = r * (n_u + 1) + c
+            tris += [[a, a + 1, a + n_u + 2], [a, a + n_u + 2, a + n_u + 1]]
+    return uv, np.array(tris, np.int32)
+
+
+def _grid(n: int, size_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    uv, tris = _cells(n, n)
+    pts = np.stack([uv[:, 0] * size_mm, uv[:, 1] * size_mm, np.zeros(uv.shape[0])], axis=1)
+    return pts, tris, uv
 
 
 @pytest.mark.parametrize(("shape", "block"), [((8, 8), 4), ((5, 7), 2), ((33, 65), 32),
@@ -88,16 +95,9 @@ def test_the_texel_surface_of_a_cylinder_lies_on_its_chords() -> None:
     sag); and its normal, interpolated from the vertex normals, is within a cell's angle
     of the radial direction there."""
     n_u, n_v, radius, height = 32, 8, 40.0, 60.0
-    us, vs = np.meshgrid(np.linspace(0, 1, n_u + 1), np.linspace(0, 1, n_v + 1))
-    uv = np.stack([us.ravel(), vs.ravel()], axis=1)
+    uv, tris = _cells(n_u, n_v)
     theta = np.pi * uv[:, 0]
     pts = np.stack([radius * np.cos(theta), radius * np.sin(theta), height * uv[:, 1]], 1)
-    tris = []
-    for r in range(n_v):
-        for c in range(n_u):
-            a = r * (n_u + 1) + c
-            tris += [[a, a + 1, a + n_u + 2], [a, a + n_u + 2, a + n_u + 1]]
-    tris = np.array(tris, np.int32)
     size = 128
     maps = rasterize(pts, tris, uv, tris, size, 0.001)
     texels = np.flatnonzero(maps.triangle.ravel() >= 0)
