@@ -128,6 +128,106 @@ def test_a_pencil_on_a_seam_gives_the_profile_on_both_sides(side: int) -> None:
                 assert error.min() > 0.9, (side, chart, error)
 
 
+NOTCH_MM = 10.0  # the L: a 20 x 20 mm patch less the square x, y > NOTCH_MM
+
+
+def notched_patch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points (mm), triangles and per-vertex UVs of a flat 20 x 20 mm patch in 1 mm quads
+    (z = 0, facing +z) cut into two charts: an L, laid out at LEFT_UV, and the square of
+    its notch (x, y > NOTCH_MM), laid out at RIGHT_UV, both at UV_PER_MM. The L's tile
+    is its bounding box: the notch lies in it, most of it farther from the L than a
+    margin."""
+    n = 20
+    xs, ys = np.meshgrid(np.arange(n + 1.0), np.arange(n + 1.0))
+    x, y = xs.ravel(), ys.ravel()
+    pts, uvs, tris = [], [], []
+    for notch, (u0, v0), lo in ((False, LEFT_UV, 0.0), (True, RIGHT_UV, NOTCH_MM)):
+        base = sum(p.shape[0] for p in pts)
+        for r in range(n):
+            for c in range(n):
+                if (min(r, c) >= NOTCH_MM) == notch:
+                    a = base + r * (n + 1) + c
+                    tris += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
+        pts.append(np.stack([x, y, np.zeros_like(x)], axis=1))
+        uvs.append(np.stack([u0 + (x - lo) * UV_PER_MM, v0 + (y - lo) * UV_PER_MM], axis=1))
+    return np.concatenate(pts), np.asarray(tris, np.int32), np.concatenate(uvs)
+
+
+def _notched_layout(size: int):
+    pts, tris, uv = notched_patch()
+    maps = rasterize(pts, tris, uv, tris, size, 0.001)
+    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    assert charts.n_charts == 2
+    at = int((LEFT_UV[1] + UV_PER_MM) * size), int((LEFT_UV[0] + UV_PER_MM) * size)
+    return maps, charts, int(charts.chart[at])
+
+
+@pytest.mark.parametrize("level", range(4))
+def test_margins_read_the_surface_as_far_as_the_blurs_reach(level: int) -> None:
+    """The L's tile on the notched patch, margin 6: every texel of it no more than the
+    margin from the L (chessboard distance, scipy's transform) whose point lies in the
+    notch reads the surface there; none farther than the margin and one reads anything
+    (the notch beyond the blur's reach: 48, 29 and 15% of the L's tile texels off the L
+    at levels 0-2, which the tiles read before; at level 3 the farthest, 5%, lie off the
+    patch)."""
+    from scipy.ndimage import distance_transform_cdt
+
+    size, margin = 256, 6
+    maps, charts, ell = _notched_layout(size)
+    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+                             None, charts)
+    tiles = layout.grid(level, margin).tiles
+    h, w = tiles.shape
+    mine = tiles.owner.reshape(h, w) == ell
+    covered = mine & (tiles.count.reshape(h, w) > 1e-6)
+    reads = (np.diff(tiles.reads.rows) > 0).reshape(h, w)
+    dist = distance_transform_cdt(~covered, metric="chessboard")
+    # each atlas texel's point on the L's parameterisation, in mm
+    scale = 1 << level
+    ay, ax = np.mgrid[0:h, 0:w].astype(np.float64)
+    mm_of = [((a - tiles.shift[ell, i] + 0.5) * scale / size - uv0) / UV_PER_MM
+             for i, (a, uv0) in enumerate(((ax, LEFT_UV[0]), (ay, LEFT_UV[1])))]
+    cell_mm = scale / size / UV_PER_MM
+    in_notch = np.ones((h, w), bool)
+    for m in mm_of:
+        in_notch &= (m > NOTCH_MM + cell_mm) & (m < 20.0 - cell_mm)
+    near = mine & ~covered & (dist <= margin) & in_notch
+    far = mine & (dist > margin + 1)
+    assert near.sum() >= 10 and far.sum() >= 20, level
+    assert reads[near].all(), level
+    assert not reads[far].any(), level
+
+
+@pytest.mark.parametrize("lit", ["notch", "L"])
+def test_a_pencil_at_an_ls_inner_corner_gives_the_profile_on_both_charts(lit: str) -> None:
+    """A pencil of light a texel inside the notch's or the L's corner of the notched
+    patch: the diffused light on both charts against d'Eon's profile at each texel's
+    distance (0.3-3.5 mm, eq. 2c per channel) within 3%, on the L as in the notch: the
+    L reads the notch's light only within the blur's reach of its own texels."""
+    v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
+    maps, charts, _ = _notched_layout(1024)
+    cov = maps.coverage > 0
+    pos = maps.position.astype(np.float64)
+    inside = 0.03 if lit == "notch" else -0.03
+    target = np.array([NOTCH_MM + inside, NOTCH_MM + inside, 0.0])
+    lit_at = np.unravel_index(int(np.argmin(np.where(
+        cov, np.linalg.norm(pos - target, axis=2), np.inf))), cov.shape)
+    e = np.zeros((*cov.shape, 3), np.float32)
+    e[lit_at] = 1.0
+    out, _ = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage, v, w,
+                     charts=charts)
+    assert charts.coverage is not None
+    area = float(maps.mm_per_texel_u[lit_at] * maps.mm_per_texel_v[lit_at]
+                 * charts.coverage[lit_at])
+    r = np.linalg.norm(pos - pos[lit_at], axis=2)
+    for chart in (0, 1):
+        sel = cov & (charts.chart == chart) & (r > 0.3) & (r < 3.5)
+        order = np.argsort(r[sel])
+        rr, got = r[sel][order], (out[sel] / area)[order]
+        error = fit_error_eq2c(rr, got, sum_of_gaussians(v, w, rr))
+        assert error.max() < 0.03, (lit, chart, error)
+
+
 VARIANCES_MM2 = (0.05, 0.5, 4.0)
 WEIGHTS = (0.3, 0.4, 0.3)
 
