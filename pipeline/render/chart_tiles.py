@@ -643,7 +643,7 @@ def _within_reach(covered: NDArray[np.bool_], reach: int) -> NDArray[np.bool_]:
     """The atlas texels within ``reach`` texels along each axis of a ``covered`` one. A
     tile is its chart's bounding box grown by the margin, so many of its texels lie
     farther from the chart than that, in its corners and concavities (level 0 of the
-    demo face at texture 4096: 6.6 M of its 9.8 M margin texels): there the level's
+    demo face at texture 4096: 6.0 M of its 9.8 M margin texels): there the level's
     widest blur carries less than its 3-sigma tail to the chart, and a read across the
     seam only fed texels no chart texel reads. A chart's texels are farther than
     ``reach`` (the margin and one) from any other tile: its own margin and TILE_GAP."""
