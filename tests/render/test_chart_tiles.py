@@ -94,6 +94,34 @@ def _layout(size: int = 1024, geometry: bool = True):
     return maps, charts if geometry else ChartLayout(charts.chart, charts.n_charts)
 
 
+def _pencil_errors(maps, charts, target_mm: np.ndarray
+                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """A pencil of light on the covered texel nearest ``target_mm``, diffused with
+    d'Eon's profile: per chart, the eq. 2c error per channel of the light at its texels
+    0.3-3.5 mm from the pencil (per mm^2 of the lit part of the pencil's texel) against
+    the profile at their distance, and those texels' points (mm)."""
+    v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
+    cov = maps.coverage > 0
+    pos = maps.position.astype(np.float64)
+    d = np.where(cov, np.linalg.norm(pos - target_mm, axis=2), np.inf)
+    lit = np.unravel_index(int(np.argmin(d)), d.shape)
+    e = np.zeros((*cov.shape, 3), np.float32)
+    e[lit] = 1.0
+    out, _ = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage, v, w,
+                     charts=charts)
+    # the light falls on the part of the texel's square its chart covers
+    share = 1.0 if charts.coverage is None else float(charts.coverage[lit])
+    area = float(maps.mm_per_texel_u[lit] * maps.mm_per_texel_v[lit]) * share
+    r = np.linalg.norm(pos - pos[lit], axis=2)
+    errors = {}
+    for chart in range(charts.n_charts):
+        sel = cov & (charts.chart == chart) & (r > 0.3) & (r < 3.5)
+        order = np.argsort(r[sel])
+        rr, got = r[sel][order], (out[sel] / area)[order]
+        errors[chart] = fit_error_eq2c(rr, got, sum_of_gaussians(v, w, rr)), pos[sel]
+    return errors
+
+
 @pytest.mark.parametrize("side", [-1, 1], ids=["lit-left", "lit-right"])
 def test_a_pencil_on_a_seam_gives_the_profile_on_both_sides(side: int) -> None:
     """A pencil of light a texel from the seam: the diffused light at every texel of both
@@ -101,30 +129,13 @@ def test_a_pencil_on_a_seam_gives_the_profile_on_both_sides(side: int) -> None:
     channel): within 3% on the lit side and across the seam (measured 0.3-0.7% and
     0.5-1.2%).
     Without the margins (each chart blurred alone) the far side gets nothing."""
-    v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
     for geometry in (True, False):
         maps, charts = _layout(geometry=geometry)
-        cov = maps.coverage > 0
-        pos = maps.position.astype(np.float64)
-        target = np.array([side * 0.03, 0.0, 0.0])
-        d = np.where(cov, np.linalg.norm(pos - target, axis=2), np.inf)
-        lit = np.unravel_index(int(np.argmin(d)), d.shape)
-        e = np.zeros((*cov.shape, 3), np.float32)
-        e[lit] = 1.0
-        out, _ = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage, v, w,
-                         charts=charts)
-        # the light falls on the part of the texel's square its chart covers
-        share = 1.0 if charts.coverage is None else float(charts.coverage[lit])
-        area = float(maps.mm_per_texel_u[lit] * maps.mm_per_texel_v[lit]) * share
-        r = np.linalg.norm(pos - pos[lit], axis=2)
-        for chart in (0, 1):
-            sel = cov & (charts.chart == chart) & (r > 0.3) & (r < 3.5)
-            order = np.argsort(r[sel])
-            rr, got = r[sel][order], (out[sel] / area)[order]
-            error = fit_error_eq2c(rr, got, sum_of_gaussians(v, w, rr))
+        errors = _pencil_errors(maps, charts, np.array([side * 0.03, 0.0, 0.0]))
+        for chart, (error, points) in errors.items():
             if geometry:
                 assert error.max() < 0.03, (side, chart, error)
-            elif np.sign(pos[sel][:, 0].mean()) != side:  # the far side, alone
+            elif np.sign(points[:, 0].mean()) != side:  # the far side, alone
                 assert error.min() > 0.9, (side, chart, error)
 
 
@@ -204,27 +215,10 @@ def test_a_pencil_at_an_ls_inner_corner_gives_the_profile_on_both_charts(lit: st
     patch: the diffused light on both charts against d'Eon's profile at each texel's
     distance (0.3-3.5 mm, eq. 2c per channel) within 3%, on the L as in the notch: the
     L reads the notch's light only within the blur's reach of its own texels."""
-    v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
     maps, charts, _ = _notched_layout(1024)
-    cov = maps.coverage > 0
-    pos = maps.position.astype(np.float64)
     inside = 0.03 if lit == "notch" else -0.03
     target = np.array([NOTCH_MM + inside, NOTCH_MM + inside, 0.0])
-    lit_at = np.unravel_index(int(np.argmin(np.where(
-        cov, np.linalg.norm(pos - target, axis=2), np.inf))), cov.shape)
-    e = np.zeros((*cov.shape, 3), np.float32)
-    e[lit_at] = 1.0
-    out, _ = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage, v, w,
-                     charts=charts)
-    assert charts.coverage is not None
-    area = float(maps.mm_per_texel_u[lit_at] * maps.mm_per_texel_v[lit_at]
-                 * charts.coverage[lit_at])
-    r = np.linalg.norm(pos - pos[lit_at], axis=2)
-    for chart in (0, 1):
-        sel = cov & (charts.chart == chart) & (r > 0.3) & (r < 3.5)
-        order = np.argsort(r[sel])
-        rr, got = r[sel][order], (out[sel] / area)[order]
-        error = fit_error_eq2c(rr, got, sum_of_gaussians(v, w, rr))
+    for chart, (error, _) in _pencil_errors(maps, charts, target).items():
         assert error.max() < 0.03, (lit, chart, error)
 
 
