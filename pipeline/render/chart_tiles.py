@@ -610,11 +610,13 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     del tiles_of
     in_tile = owner >= 0
     outside = in_tile & ~inner
-    partial = in_tile & ~full  # cells a seam may cross: the margin and the chart's edge
+    reading = None  # the texels that read across the seams, where the level has margins
     if geometry is not None and margin > 0:
-        partial &= _within_reach(inner.reshape(h, w), margin + 1).ravel()
+        # those a seam may cross (the margin and the chart's edge), within the blurs'
+        # reach of the chart
+        reading = in_tile & ~full & _within_reach(inner.reshape(h, w), margin + 1).ravel()
     # each axis's texel size, the mean of its finest texels' (mm), in place: the level's
-    # arrays are held through its margin reads, the peak of a first render
+    # arrays are held through its margin reads
     for mm in mean_mm:
         mm *= np.float32(scale)
         mm[outside] = mm[nearest[outside]]  # a margin texel: its nearest tile texel's
@@ -625,8 +627,8 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
     del mean_mm
     index = np.zeros(0, np.int64)
     source = np.zeros((0, 2), np.float32)
-    if geometry is not None and margin > 0:
-        index, source = _margin_sources(geometry, level, shift, count, partial, full,
+    if geometry is not None and reading is not None:
+        index, source = _margin_sources(geometry, level, shift, count, reading, full,
                                         nearest, owner, w)
     if source.shape[0] >= 2**31:
         raise InputError(f"{source.shape[0]} reads across the seams at level {level} are "
@@ -710,7 +712,7 @@ def _margin_sources(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     from the tangent plane than half the way out plus two texels, are dropped."""
     sub = _subsamples(level)
     # int32 (the atlas holds fewer than 2^31 texels), each chunk int64 as it is read:
-    # the level's margin texels are held through its reads (12.8 M at level 0 of
+    # the level's margin texels are held through its reads (3.8 M at level 0 of
     # texture 4096)
     texels = np.flatnonzero(margin).astype(np.int32)
     # in chunks of texels (a texel's points stay together): the points' float64

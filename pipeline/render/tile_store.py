@@ -153,13 +153,10 @@ class TileStore:
             return []
         return sorted((int(m[1]), int(m[2])) for m in map(_FILE.match, names) if m)
 
-    def serving(self, level: int, margin: int,
-                stored: list[tuple[int, int]] | None = None) -> int | None:
+    def serving(self, level: int, margin: int) -> int | None:
         """The narrowest stored margin of level ``level`` of at least ``margin`` (a wider
-        one holds what a narrower would), None where there is none; ``stored``: the
-        folder's listing, where the caller has it (:meth:`stored`)."""
-        fits = [m for (k, m) in (self.stored() if stored is None else stored)
-                if k == level and m >= margin]
+        one holds what a narrower would), None where there is none."""
+        fits = [m for (k, m) in self.stored() if k == level and m >= margin]
         return min(fits) if fits else None
 
     def load(self, level: int, margin: int,
