@@ -635,7 +635,8 @@ def tile_level(chart: NDArray[np.int32], n_charts: int, mm_u: NDArray[Any],
                          "beyond 2^31")
     # the reads come sorted by texel (_mean_per_key)
     rows = np.zeros(n + 1, np.int32)
-    rows[1:] = np.cumsum(np.bincount(index, minlength=n))
+    # summed into the int32 rows: no int64 sums (0.16 GB at level 0 of texture 4096)
+    np.cumsum(np.bincount(index, minlength=n), out=rows[1:], dtype=np.int32)
     reads = SeamReads(shape, level, rows, source)
     return TileLevel(level, margin, shape, shift.astype(np.float32), owner, count, reads,
                      mm_u_out, mm_v_out)
