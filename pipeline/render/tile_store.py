@@ -306,7 +306,19 @@ def write_aligned_npz(f: IO[bytes], arrays: dict[str, Any]) -> None:
             pad = -(f.tell() + fixed) % ALIGN
             info.extra = struct.pack("<HH", _PAD_ID, pad) + bytes(pad)
             with zf.open(info, "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+                write_npy(member, np.asanyarray(value))
+
+
+def write_npy(f: IO[bytes], array: NDArray[Any]) -> None:
+    """``array`` in the ``.npy`` format to ``f``, as ``np.lib.format.write_array`` writes
+    it; a C-contiguous array's bytes in one write from its own memory (write_array
+    copies them into a new 16 MiB bytes object at a time for a file object that is not
+    a real file, such as a zip member)."""
+    if not array.flags.c_contiguous or array.dtype.hasobject:
+        np.lib.format.write_array(f, array, allow_pickle=False)
+        return
+    np.lib.format.write_array_header_1_0(f, np.lib.format.header_data_from_array_1_0(array))
+    f.write(memoryview(array.reshape(-1).view(np.uint8)))
 
 
 class _StoreMapping(mmap.mmap):

@@ -290,6 +290,21 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
     np.testing.assert_array_equal(back.reads.xy, tiles.reads.xy)
 
 
+@pytest.mark.parametrize("array", [
+    np.arange(10, dtype=np.int32), np.zeros((3, 4), np.float32), np.zeros((0, 2), np.uint16),
+    np.full((), 3.5), np.arange(12.0).reshape(3, 4).T, np.arange(6, dtype=">i4")],
+    ids=["int32", "2d", "empty", "0d", "fortran", "big-endian"])
+def test_write_npy_writes_numpys_bytes(array: np.ndarray) -> None:
+    """write_npy gives the bytes numpy's own np.lib.format.write_array gives, for C- and
+    Fortran-ordered, empty, 0-d and big-endian arrays."""
+    import io
+
+    ours, numpys = io.BytesIO(), io.BytesIO()
+    tile_store.write_npy(ours, array)
+    np.lib.format.write_array(numpys, array, allow_pickle=False)
+    assert ours.getvalue() == numpys.getvalue()
+
+
 def test_aligned_npz_is_an_npz_whose_arrays_map_in_place(tmp_path: Path) -> None:
     """write_aligned_npz: numpy's np.load and zipfile's own CRC check read it; each
     member's array data starts at a multiple of ALIGN bytes in the file (from the zip's
