@@ -9,6 +9,7 @@ import pytest
 from pipeline.errors import InputError, SkinpipeError
 from pipeline.render.texture_maps import (
     TextureMaps,
+    at_texels,
     rasterize,
     rasterize_reference,
     texels_in_blocks,
@@ -297,3 +298,22 @@ def test_texel_areas_from_the_triangles_are_the_stretch_maps_product() -> None:
                 got = made[box]
                 assert got.dtype == np.float32
                 np.testing.assert_array_equal(got, held[box])
+
+
+@pytest.mark.parametrize(("dtype", "off"), [(np.int32, -1), (np.float32, 0.0),
+                                            (np.float64, np.nan)])
+def test_at_texels_is_the_masked_gather(dtype: type, off: float) -> None:
+    """at_texels (one gather through a table with ``off`` first) gives what numpy's
+    masked gather gives, on a map and on a strided box of it, in the values' dtype; a
+    map no triangle covers gives ``off`` even with no triangles at all."""
+    rng = np.random.default_rng(7)
+    triangle = rng.integers(-1, 50, size=(40, 60)).astype(np.int32)
+    triangle[:, :10] = -1
+    per_triangle = rng.random(50).astype(dtype) * 100
+    for tri in (triangle, triangle[5:30:2, 3:50]):
+        want = np.where(tri >= 0, per_triangle[np.maximum(tri, 0)], dtype(off))
+        got = at_texels(tri, per_triangle, off)
+        assert got.dtype == np.dtype(dtype) and got.shape == tri.shape
+        np.testing.assert_array_equal(got, want)
+    none = at_texels(np.full((3, 4), -1, np.int32), np.zeros(0, dtype), off)
+    np.testing.assert_array_equal(none, np.full((3, 4), off, dtype))
