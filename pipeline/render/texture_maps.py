@@ -208,6 +208,13 @@ class TextureMaps:
         same float32 values as the maps')."""
         if self.tri_mm is None:
             raise ValueError("these texture maps have no per-triangle stretch")
+        return self._stretch_tables
+
+    @cached_property
+    def _stretch_tables(self) -> tuple[TriangleStretch, TriangleStretch]:
+        """:meth:`triangle_stretch`'s tables, made once (the flux reads them band by
+        band)."""
+        assert self.tri_mm is not None
         return (TriangleStretch(self.triangle, off_first(self.tri_mm[:, 0], 0.0)),
                 TriangleStretch(self.triangle, off_first(self.tri_mm[:, 1], 0.0)))
 
