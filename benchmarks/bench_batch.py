@@ -23,9 +23,9 @@ from pathlib import Path
 
 from distributed import Client, LocalCluster
 
-from pipeline.profile.fit import FitOptions, fit_sum_of_gaussians
-from pipeline.profile.io import read_profile_csv
-from pipeline.workflow.batch import read_batch, run_batch
+from skinpipe.profile.fit import FitOptions, fit_sum_of_gaussians
+from skinpipe.profile.io import read_profile_csv
+from skinpipe.workflow.batch import read_batch, run_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 

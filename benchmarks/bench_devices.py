@@ -37,7 +37,7 @@ def _run(cmd: list[str], env: dict[str, str]) -> None:
 
 def working_devices() -> list[str]:
     """Runtime ids of the devices that pass the probe (one per runtime)."""
-    from pipeline.render import opencl
+    from skinpipe.render import opencl
 
     out: list[str] = []
     for cand, device in opencl.candidates(all_runtimes=True):
@@ -59,7 +59,7 @@ def bench_device(runtime: str, scene: Path, size: int, sigmas: str, tmp: Path
     builds = {}
     for kind in ("cold", "warm"):
         out = tmp / f"render-{runtime}-{kind}"
-        _run([py, "-m", "pipeline", "render", str(scene), "--texture-size", "1024",
+        _run([py, "-m", "skinpipe", "render", str(scene), "--texture-size", "1024",
               "--resolution", "768x768", "-o", str(out)],
              # the programs' caches cold then warm; the seam layout made both times
              {**env, "XDG_CACHE_HOME": str(cache), "POCL_CACHE_DIR": str(cache / "pocl"),
@@ -89,7 +89,7 @@ def main() -> None:
         tmp = Path(tmp_name)
         scene = args.scene
         if scene is None:
-            _run([sys.executable, "-m", "pipeline", "demo", "-o", str(tmp / "demo")], {})
+            _run([sys.executable, "-m", "skinpipe", "demo", "-o", str(tmp / "demo")], {})
             scene = tmp / "demo" / "scene.usda"
         rows = [bench_device(d, scene.resolve(), args.size, args.sigmas, tmp) for d in devices]
     base = rows[0]

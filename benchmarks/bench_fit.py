@@ -23,15 +23,15 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize, nnls
 
-from pipeline.capture.ingest import IngestOptions, ingest_region, read_capture_set
-from pipeline.profile.fit import FitOptions, MeasuredProfile, fit_multistart, fit_sum_of_gaussians
-from pipeline.profile.models import (
+from skinpipe.capture.ingest import IngestOptions, ingest_region, read_capture_set
+from skinpipe.profile.fit import FitOptions, MeasuredProfile, fit_multistart, fit_sum_of_gaussians
+from skinpipe.profile.models import (
     dipole_profile,
     dipole_total_reflectance,
     ring_widths_mm,
     sum_of_gaussians,
 )
-from pipeline.profile.reference_data import DEON_2007_SKIN, JENSEN_2001
+from skinpipe.profile.reference_data import DEON_2007_SKIN, JENSEN_2001
 
 CAPTURES = Path(__file__).resolve().parent.parent / "sample_assets" / "captures"
 

@@ -40,10 +40,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.render.lighting import cosine_direction
-from pipeline.render.raytrace import CHUNK_RAYS, RayScene, morton_order, offset_ray_origin
-from pipeline.render.renderer import Renderer, RenderOptions, TaskLog, triangulate
-from pipeline.usd.io import open_stage_guarded
+from skinpipe.render.lighting import cosine_direction
+from skinpipe.render.raytrace import CHUNK_RAYS, RayScene, morton_order, offset_ray_origin
+from skinpipe.render.renderer import Renderer, RenderOptions, TaskLog, triangulate
+from skinpipe.usd.io import open_stage_guarded
 
 ROUNDS = 4
 """Rounds of peers and tasks, taken in turns (the best of each is kept)."""
@@ -206,7 +206,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         scene = args.scene
         if scene is None:
-            subprocess.run([sys.executable, "-m", "pipeline", "demo", "-o",
+            subprocess.run([sys.executable, "-m", "skinpipe", "demo", "-o",
                             str(Path(tmp) / "demo")], check=True, capture_output=True)
             scene = Path(tmp) / "demo" / "scene.usda"
         doc = {"machine": {"platform": platform.platform(), "cores": os.cpu_count()},

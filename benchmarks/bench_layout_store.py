@@ -39,7 +39,7 @@ def render(scene: Path, out: Path, size: int, cache: str) -> dict[str, Any]:
     log = out.with_suffix(".log")
     out.parent.mkdir(parents=True, exist_ok=True)
     with log.open("wb") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline", "render", str(scene),
+        proc = subprocess.Popen([sys.executable, "-m", "skinpipe", "render", str(scene),
                                  "-o", str(out), "--resolution", "768x768",
                                  "--texture-size", str(size), "--layout-cache", cache,
                                  "--force"], stdout=err, stderr=err)
@@ -112,7 +112,7 @@ def main() -> None:
         work = Path(tmp)
         scene = args.scene
         if scene is None:
-            subprocess.run([sys.executable, "-m", "pipeline", "demo", "-o", str(work / "demo"),
+            subprocess.run([sys.executable, "-m", "skinpipe", "demo", "-o", str(work / "demo"),
                             "--layout-cache", "off"], check=True, capture_output=True)
             scene = work / "demo" / "scene.usda"
         doc = {"machine": {"platform": platform.platform(), "cores": os.cpu_count()},

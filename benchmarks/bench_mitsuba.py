@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.render.renderer import Renderer, RenderOptions, triangulate
-from pipeline.usd.io import open_stage_guarded
+from skinpipe.render.renderer import Renderer, RenderOptions, triangulate
+from skinpipe.usd.io import open_stage_guarded
 
 LLVM_PROBE = """
 import mitsuba as mi
@@ -188,7 +188,7 @@ def main() -> None:
         folder = Path(tmp)
         scene = args.scene
         if scene is None:
-            subprocess.run([sys.executable, "-m", "pipeline", "demo", "-o",
+            subprocess.run([sys.executable, "-m", "skinpipe", "demo", "-o",
                             str(folder / "demo")], check=True)
             scene = folder / "demo" / "scene.usda"
         bench = seal_free_scene(scene, folder / "bench_scene.usda")

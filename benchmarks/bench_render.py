@@ -10,7 +10,7 @@ each texture size the same irradiance (after the albedo split) is diffused by:
   irradiance by the gather kernel, weighted by the region's weight map, summed;
 - gather: the renderer's first diffusion (shared 12-variance grid, incremental gather
   blurs, `--blur gather`);
-- ours: the recursive Gaussian on a pyramid (`pipeline.render.diffusion.diffuse_prepared`) on
+- ours: the recursive Gaussian on a pyramid (`skinpipe.render.diffusion.diffuse_prepared`) on
   the shared 12- and 6-variance grids and on each region's own variances, with the
   texture layout prepared once (`DiffusionLayout`: what a renderer keeps for every
   frame and light; its build is timed on its own, and `ours grid 6, layout included`
@@ -46,7 +46,7 @@ def best_of(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
 
 def naive_diffusion(pre: np.ndarray, maps: Any, fits: Any) -> np.ndarray:
     """Each region's own terms, each a gather blur of the irradiance, region-weighted."""
-    from pipeline.render.diffusion import diffuse_gather
+    from skinpipe.render.diffusion import diffuse_gather
 
     out = np.zeros_like(pre)
     for r, fit in enumerate(fits):
@@ -63,10 +63,10 @@ def naive_diffusion(pre: np.ndarray, maps: Any, fits: Any) -> np.ndarray:
 
 def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[str, Any]:
     """Texture maps and irradiance at ``size``, then every diffusion timed on them."""
-    from pipeline.render.diffusion import DiffusionLayout, diffuse, diffuse_gather, diffuse_prepared
-    from pipeline.render.raytrace import RayScene
-    from pipeline.render.renderer import Renderer, RenderOptions, TaskLog, diffusion_terms
-    from pipeline.render.unwrap import triangulate
+    from skinpipe.render.diffusion import DiffusionLayout, diffuse, diffuse_gather, diffuse_prepared
+    from skinpipe.render.raytrace import RayScene
+    from skinpipe.render.renderer import Renderer, RenderOptions, TaskLog, diffusion_terms
+    from skinpipe.render.unwrap import triangulate
 
     # no image (8 x 8 pixels): interleaving period 2 at every size, the texture-space
     # work per texel the same
@@ -148,7 +148,7 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
 
 
 def main() -> None:
-    from pipeline.usd.io import open_stage_guarded
+    from skinpipe.usd.io import open_stage_guarded
 
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from pxr import Usd
 
-from pipeline.usd.validate import validate_files
+from skinpipe.usd.validate import validate_files
 
 CLEAN = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "usd" / "clean" / \
     "two_regions.usda"

@@ -64,12 +64,12 @@ def main() -> None:
         # kept layouts; benchmarks/bench_layout_store.py measures reading one back)
         os.environ["SKINPIPE_LAYOUT_CACHE"] = str(Path(tmp) / "layouts")
         demo = Path(tmp) / "demo"
-        summary["demo"] = run_measured([py, "-m", "pipeline", "demo", "-o", str(demo)])
+        summary["demo"] = run_measured([py, "-m", "skinpipe", "demo", "-o", str(demo)])
         summary["demo"]["stages"] = json.loads((demo / "report.json").read_text())["stages"]
         scene = demo / "scene.usda"
         render_out = Path(tmp) / "render"
         summary["render"] = run_measured(
-            [py, "-m", "pipeline", "render", str(scene), "--texture-size", str(size),
+            [py, "-m", "skinpipe", "render", str(scene), "--texture-size", str(size),
              "--resolution", "1024x1024", "-o", str(render_out)])
         frame = json.loads((render_out / "render.json").read_text())
         frame = frame["frames"][0] if "frames" in frame else frame

@@ -12,18 +12,18 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.profile.fit import MeasuredProfile
-from pipeline.render import opencl
-from pipeline.render.blur_switch import SWITCH_ENV
-from pipeline.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
-from pipeline.render.options import LAYOUT_CACHE_ENV
+from skinpipe.profile.fit import MeasuredProfile
+from skinpipe.render import opencl
+from skinpipe.render.blur_switch import SWITCH_ENV
+from skinpipe.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
+from skinpipe.render.options import LAYOUT_CACHE_ENV
 
 from .reference_profiles import deon_profile
 
-# Which blur runs is measured per device (pipeline.render.blur_switch); tests that count blur
+# Which blur runs is measured per device (skinpipe.render.blur_switch); tests that count blur
 # passes pin it to the values measured on PoCL. tests/render/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
-# The CLI keeps seam layouts between renders (pipeline.render.tile_store): the test run's
+# The CLI keeps seam layouts between renders (skinpipe.render.tile_store): the test run's
 # go to a folder of its own, not the user's cache, and go with it.
 _LAYOUTS = tempfile.mkdtemp(prefix="skinpipe-test-layouts-")
 atexit.register(shutil.rmtree, _LAYOUTS, ignore_errors=True)
@@ -63,7 +63,7 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str]:
     """`skinpipe demo` at its defaults (the README's first command), run once per test
     session: its output folder, stdout and stderr. Tests read what it wrote; none
     writes into it."""
-    from pipeline.cli import main
+    from skinpipe.cli import main
 
     out = tmp_path_factory.mktemp("demo") / "demo_out"
     stdout, stderr = io.StringIO(), io.StringIO()

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.profile.fit import FitResult
-from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.usd.author import RegionAssignment, author_asset
-from pipeline.usd.mesh import MeshData
+from skinpipe.profile.fit import FitResult
+from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.usd.author import RegionAssignment, author_asset
+from skinpipe.usd.mesh import MeshData
 
 
 def exact_fit(name: str, variances_mm2: Any, weights: Any) -> FitResult:

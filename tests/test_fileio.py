@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pipeline.fileio import atomic_directory, relocate_paths, stale_siblings
+from skinpipe.fileio import atomic_directory, relocate_paths, stale_siblings
 
 
 def test_stale_temporaries_are_found(tmp_path: Path) -> None:

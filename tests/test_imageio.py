@@ -10,7 +10,7 @@ import colour
 import numpy as np
 import OpenImageIO as oiio
 
-from pipeline.imageio import ACESCG, read_image, write_exr, write_texture
+from skinpipe.imageio import ACESCG, read_image, write_exr, write_texture
 
 
 def _acescg_chromaticities() -> list[float]:
@@ -48,7 +48,7 @@ def test_ldr_images_read_back_as_their_code_values(tmp_path: Path) -> None:
     """8-bit PNG (written at zlib's fastest level) and 16-bit TIFF: OpenImageIO reads back
     every pixel's rounded code value; compression loses nothing. (Opaque: OpenImageIO
     takes colour with alpha as premultiplied and stores it divided by alpha.)"""
-    from pipeline.imageio import write_ldr
+    from skinpipe.imageio import write_ldr
 
     pixels = np.random.default_rng(3).random((37, 61, 4))
     pixels[..., 3] = 1.0

@@ -6,7 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "pipeline"
+PACKAGE = Path(__file__).resolve().parents[1] / "skinpipe"
 RANK = {"cli": 5, "workflow": 4, "capture": 3, "usd": 3, "render": 3, "profile": 2,
         "errors": 1, "fileio": 1, "imageio": 1}
 ALSO_ALLOWED = {("render", "usd")}
@@ -20,7 +20,7 @@ def _module(path: Path) -> str:
 
 
 def _imports(path: Path) -> set[str]:
-    """Every pipeline module ``path`` imports, at its head or inside a function."""
+    """Every skinpipe module ``path`` imports, at its head or inside a function."""
     mod = _module(path)
     pkg = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
     out = set()
@@ -35,12 +35,12 @@ def _imports(path: Path) -> set[str]:
             out |= {n for n in [target, *names] if _exists(n)}
         elif isinstance(node, ast.Import):
             out |= {a.name for a in node.names if _exists(a.name)}
-    return {m for m in out if m.startswith("pipeline") and m != mod}
+    return {m for m in out if m.startswith("skinpipe") and m != mod}
 
 
 def _exists(name: str) -> bool:
     rel = Path(*name.split(".")[1:]) if "." in name else Path()
-    return name.startswith("pipeline") and (
+    return name.startswith("skinpipe") and (
         (PACKAGE / rel).with_suffix(".py").is_file() or (PACKAGE / rel / "__init__.py").is_file())
 
 
@@ -54,7 +54,7 @@ def _layer(mod: str) -> str | None:
 
 def test_nothing_outside_the_cli_imports_it() -> None:
     bad = [(m, t) for m, ts in GRAPH.items() for t in ts
-           if _layer(t) == "cli" and _layer(m) != "cli" and m != "pipeline.__main__"]
+           if _layer(t) == "cli" and _layer(m) != "cli" and m != "skinpipe.__main__"]
     assert not bad
 
 

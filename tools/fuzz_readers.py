@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import seed as hypothesis_seed
 from hypothesis import strategies as st
 
-from pipeline.errors import InputError
+from skinpipe.errors import InputError
 
 USDA_SEED = b'''#usda 1.0
 (
@@ -51,7 +51,7 @@ PLY_SEED = (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\npropert
 
 
 def _image_seed(suffix: str) -> bytes:
-    from pipeline.imageio import write_exr, write_ldr
+    from skinpipe.imageio import write_exr, write_ldr
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"seed{suffix}"
@@ -91,14 +91,14 @@ def mutated(draw: st.DrawFn, seed: bytes) -> bytes:
 def _reader(target: str) -> Callable[[Path], object]:
     """The skinpipe reader that a file of ``target``'s kind goes through."""
     if target == "usd":
-        from pipeline.usd.io import open_stage_guarded
+        from skinpipe.usd.io import open_stage_guarded
 
         return open_stage_guarded
     if target in ("obj", "ply"):
-        from pipeline.usd.mesh import load_mesh
+        from skinpipe.usd.mesh import load_mesh
 
         return load_mesh
-    from pipeline.imageio import read_image
+    from skinpipe.imageio import read_image
 
     return read_image
 

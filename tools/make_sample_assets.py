@@ -6,7 +6,7 @@ Deterministic (fixed seed). The simulator's realistic preset (every capture effe
 on: coarse pixels, a Gaussian projector footprint, a black level, a field the red tail
 leaves, a P3 camera; docs/ingest.md). The forehead follows the seed paper's fitted
 table; the other regions are dipoles from Jensen et al. 2001's measured skin
-coefficients, varied per region (see pipeline.capture.simulate.sample_subject_truths).
+coefficients, varied per region (see skinpipe.capture.simulate.sample_subject_truths).
 Lips and chin have hair strands across the spot; nose and cheek carry their exposure
 times in EXIF only.
 """
@@ -17,7 +17,7 @@ import shutil
 from dataclasses import replace
 from pathlib import Path
 
-from pipeline.capture.simulate import PRESETS, sample_subject_truths, simulate_capture_set
+from skinpipe.capture.simulate import PRESETS, sample_subject_truths, simulate_capture_set
 
 ROOT = Path(__file__).resolve().parents[1] / "sample_assets" / "captures"
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.usd.mesh import load_mesh, pymeshlab_face_scan
+from skinpipe.usd.mesh import load_mesh, pymeshlab_face_scan
 
 PICKS_XY_MM = {
     "forehead": [(-10, 8), (-30, 5), (10, 5), (-10, 16)],
@@ -56,7 +56,7 @@ def main() -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from pipeline.usd.author import assign_regions_from_landmarks, read_landmarks
+        from skinpipe.usd.author import assign_regions_from_landmarks, read_landmarks
 
         regions = assign_regions_from_landmarks(mesh, read_landmarks(OUT))
         c = mesh.face_centroids()

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, Vt
 
-from pipeline.profile.fit import FitResult, MeasuredProfile
-from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.usd.author import RegionAssignment, author_asset
-from pipeline.usd.mesh import MeshData
+from skinpipe.profile.fit import FitResult, MeasuredProfile
+from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.usd.author import RegionAssignment, author_asset
+from skinpipe.usd.mesh import MeshData
 
 ROOT = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "usd"
 PROFILE = "/Face/Looks/Profiles/forehead"

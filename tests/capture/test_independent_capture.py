@@ -22,11 +22,11 @@ import OpenImageIO as oiio
 import pytest
 from scipy.special import ndtr
 
-from pipeline.capture.ingest import ingest_capture_set
-from pipeline.errors import SkinpipeError
-from pipeline.profile.io import read_profile_csv
-from pipeline.profile.models import fit_error_eq2c
-from pipeline.profile.reference_data import PARK_OH_2009_FOREHEAD, normalized_weights
+from skinpipe.capture.ingest import ingest_capture_set
+from skinpipe.errors import SkinpipeError
+from skinpipe.profile.io import read_profile_csv
+from skinpipe.profile.models import fit_error_eq2c
+from skinpipe.profile.reference_data import PARK_OH_2009_FOREHEAD, normalized_weights
 
 MM_PER_PIXEL = 0.04
 SIZE = 256

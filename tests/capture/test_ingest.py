@@ -11,19 +11,19 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from pipeline.capture.ingest import IngestOptions, ingest_capture_set, read_capture_set
-from pipeline.capture.simulate import (
+from skinpipe.capture.ingest import IngestOptions, ingest_capture_set, read_capture_set
+from skinpipe.capture.simulate import (
     PRESETS,
     CaptureSettings,
     read_truth,
     sample_subject_truths,
     simulate_capture_set,
 )
-from pipeline.cli import main
-from pipeline.errors import InputError
-from pipeline.imageio import write_exr
-from pipeline.profile.fit import fit_sum_of_gaussians
-from pipeline.profile.io import read_profile_csv
+from skinpipe.cli import main
+from skinpipe.errors import InputError
+from skinpipe.imageio import write_exr
+from skinpipe.profile.fit import fit_sum_of_gaussians
+from skinpipe.profile.io import read_profile_csv
 
 TRUTHS = {t.name: t for t in sample_subject_truths()}
 
@@ -290,9 +290,9 @@ def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
     (measured: 0.73-1.73x, the forehead 1.9-2.4x). The scale (the tail beyond the image)
     is stated apart: the truth's share beyond the image within the stated uncertainty
     on every channel of every region."""
-    from pipeline.capture.ingest import ingest_capture_set
-    from pipeline.capture.simulate import read_truth
-    from pipeline.profile.io import read_profile_csv
+    from skinpipe.capture.ingest import ingest_capture_set
+    from skinpipe.capture.simulate import read_truth
+    from skinpipe.profile.io import read_profile_csv
 
     captures = Path(__file__).parents[2] / "sample_assets" / "captures"
     truth = read_truth(captures / "truth.json")
@@ -343,10 +343,10 @@ def test_hair_beside_the_entry_point_is_masked_and_over_it_refused(tmp_path: Pat
     0.34% without the mask, 0.20% without the strands); a strand through the entry
     point is a clear refusal naming the region. (A strand 4 px away still pulls the
     entry point 2.6 px and the profile to 1-3%: not solved.)"""
-    from pipeline.capture.ingest import ingest_capture_set
-    from pipeline.capture.simulate import read_truth
-    from pipeline.errors import SkinpipeError
-    from pipeline.profile.io import read_profile_csv
+    from skinpipe.capture.ingest import ingest_capture_set
+    from skinpipe.capture.simulate import read_truth
+    from skinpipe.errors import SkinpipeError
+    from skinpipe.profile.io import read_profile_csv
 
     truths = [t for t in sample_subject_truths() if t.name == "cheek"]
     caps = tmp_path / "caps"
@@ -396,9 +396,9 @@ def test_regions_ingested_side_by_side_equal_each_region_alone(small_capture: Pa
     """The capture set's regions run on threads side by side: each region's profile and
     merged HDR are the same, bit for bit, as ingesting it alone, in the manifest's order;
     and a region that fails fails the set, which writes nothing."""
-    from pipeline.capture.ingest import ingest_region
-    from pipeline.imageio import read_image
-    from pipeline.profile.io import write_profile_csv
+    from skinpipe.capture.ingest import ingest_region
+    from skinpipe.imageio import read_image
+    from skinpipe.profile.io import write_profile_csv
 
     report = ingest_capture_set(small_capture, tmp_path / "out")
     captures = read_capture_set(small_capture)

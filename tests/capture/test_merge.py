@@ -12,7 +12,7 @@ def _flat_brackets(level: float, exposures: list[float], seed: int = 1) -> list:
     independent sensor model here (numpy's Poisson shot noise of a 20,000 e well, 4 e
     Gaussian read noise, clipping at 0 and 1, 16-bit quantisation), not skinpipe's
     simulator."""
-    from pipeline.imageio import LoadedImage
+    from skinpipe.imageio import LoadedImage
 
     rng = np.random.default_rng(seed)
     out = []
@@ -31,8 +31,8 @@ def test_the_hdr_merge_is_unbiased_in_the_dark() -> None:
     the true flux where the hat merge is 0.8-1.1% high; its noise model, estimated from
     the brackets alone, finds the gain within 15% (11% on this one flat level; 1-5% on
     the sample captures, whose spots span the range)."""
-    from pipeline.capture.merge import _merge_hat, estimate_sensor_noise, merge_exposures
-    from pipeline.imageio import convert_colorspace
+    from skinpipe.capture.merge import _merge_hat, estimate_sensor_noise, merge_exposures
+    from skinpipe.imageio import convert_colorspace
 
     exposures = [1 / 500 * 4.0 ** i for i in range(5)]
     images = _flat_brackets(0.02, exposures)

@@ -10,7 +10,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from pipeline.capture.study import (
+from skinpipe.capture.study import (
     MUST_HOLD,
     IngestCase,
     must_hold,

@@ -23,12 +23,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.capture.simulate import (
+from skinpipe.capture.simulate import (
     CaptureSettings,
     sample_subject_truths,
     simulate_capture_set,
 )
-from pipeline.profile.io import write_fit_json, write_profile_csv
+from skinpipe.profile.io import write_fit_json, write_profile_csv
 
 from ..reference_profiles import deon_profile
 from ..render_scenes import deon_fit, distant_down, patch_asset, scene_over, top_camera
@@ -83,7 +83,7 @@ def _dirs(root: Path) -> set[str]:
 
 
 def skinpipe(ws: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-c", "import sys; from pipeline.cli import main; "
+    return subprocess.run([sys.executable, "-c", "import sys; from skinpipe.cli import main; "
                            "sys.exit(main(sys.argv[1:]))", *args], cwd=ws, capture_output=True,
                           text=True, timeout=timeout, env={**os.environ, "PYTHONPATH": str(
                               Path(__file__).resolve().parents[2])})
@@ -228,7 +228,7 @@ def test_hostile_input_is_refused_cleanly(ws: Path, case: Case) -> None:
 
 
 def test_render_never_replaces_the_asset_texture(ws: Path) -> None:
-    from pipeline.render.albedo import bake_sample_albedo
+    from skinpipe.render.albedo import bake_sample_albedo
 
     bake_sample_albedo(ws / "asset" / "asset.usda", 64)
     before, dirs = _snapshot(ws), _dirs(ws)
@@ -256,8 +256,8 @@ def test_disk_full_while_ingesting_leaves_nothing(ws: Path, monkeypatch: pytest.
     removed), and the error is one line."""
     import errno
 
-    from pipeline import fileio
-    from pipeline.cli import main
+    from skinpipe import fileio
+    from skinpipe.cli import main
 
     real = fileio.os.fsync
     calls = {"n": 0}
@@ -283,8 +283,8 @@ def test_read_only_output_is_one_line(ws: Path, monkeypatch: pytest.MonkeyPatch,
     root) ends in one line naming the file, and nothing is left."""
     import errno
 
-    from pipeline import fileio
-    from pipeline.cli import main
+    from skinpipe import fileio
+    from skinpipe.cli import main
 
     def read_only(src: str, dst: str) -> None:
         raise OSError(errno.EROFS, "Read-only file system", str(dst))
@@ -301,8 +301,8 @@ def test_read_only_output_is_one_line(ws: Path, monkeypatch: pytest.MonkeyPatch,
 def test_a_crashing_reader_child_is_an_error(ws: Path) -> None:
     """pymeshlab's reader killed by a signal in its child process (the pre-check
     bypassed) is a one-line InputError here."""
-    from pipeline.errors import InputError
-    from pipeline.usd.mesh_files import MeshFileFacts, load_in_child
+    from skinpipe.errors import InputError
+    from skinpipe.usd.mesh_files import MeshFileFacts, load_in_child
 
     (ws / "segv.obj").write_text(OBJ_QUAD + "f 1 2 -999999\n")
     with pytest.raises(InputError, match="crashed"):
@@ -312,8 +312,8 @@ def test_a_crashing_reader_child_is_an_error(ws: Path) -> None:
 def test_unexpected_errors_are_one_line(monkeypatch: pytest.MonkeyPatch,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     """A bug is reported in one line (the traceback only with SKINPIPE_DEBUG=1)."""
-    from pipeline.cli import main
-    from pipeline.cli import simulate as verb
+    from skinpipe.cli import main
+    from skinpipe.cli import simulate as verb
 
     def boom(args: object) -> int:
         raise ZeroDivisionError("division by zero")
@@ -421,8 +421,8 @@ _json_values = st.recursive(
                 "exposure_s": _json_values}), max_size=3)}) | _json_values, max_size=3)}))
 def test_any_capture_manifest_is_read_or_refused(tmp_path: Path, doc: dict) -> None:
     """capture.json of any shape: read, or an InputError naming the manifest."""
-    from pipeline.capture.ingest import read_capture_set
-    from pipeline.errors import InputError
+    from skinpipe.capture.ingest import read_capture_set
+    from skinpipe.errors import InputError
 
     root = tmp_path / "caps"
     root.mkdir(exist_ok=True)
@@ -448,8 +448,8 @@ def test_any_profile_csv_is_read_or_refused(tmp_path: Path, header: str,
                                             rows: list[list[str]]) -> None:
     """PROFILE.csv with any cells: a profile of finite-or-flagged numbers, or an
     InputError naming the file."""
-    from pipeline.errors import InputError
-    from pipeline.profile.io import read_profile_csv
+    from skinpipe.errors import InputError
+    from skinpipe.profile.io import read_profile_csv
 
     path = tmp_path / "p.csv"
     path.write_text("\n".join([header] + [",".join(r) for r in rows]) + "\n")
@@ -479,8 +479,8 @@ def test_child_processes_find_packages_on_pythonpath(tmp_path: Path) -> None:
     script = (
         "import sys\n"
         "from pathlib import Path\n"
-        "from pipeline.render.unwrap import unwrap\n"
-        "from pipeline.usd.mesh import load_mesh\n"
+        "from skinpipe.render.unwrap import unwrap\n"
+        "from skinpipe.usd.mesh import load_mesh\n"
         "mesh = load_mesh(Path(sys.argv[1]))\n"
         "layout = unwrap(mesh, resolution=64, timeout_s=60)\n"
         "print(mesh.n_faces, layout.uv_indices.size)\n")

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import build_parser, main
-from pipeline.profile.io import write_profile_csv
+from skinpipe.cli import build_parser, main
+from skinpipe.profile.io import write_profile_csv
 
 from ..reference_profiles import deon_profile, dipole_normalised
 
@@ -113,7 +113,7 @@ def test_usage_error_exit_2() -> None:
 
 
 def test_console_script_runs() -> None:
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "--version"],
+    proc = subprocess.run([sys.executable, "-m", "skinpipe", "--version"],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0 and "skinpipe" in proc.stdout
 
@@ -155,7 +155,7 @@ def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:
 def test_the_progress_bar_in_a_log(capsys: pytest.CaptureFixture[str]) -> None:
     """Not a terminal: one line per task with the share done rising, other messages as
     they are, a finished bar's total; a failed one ends without it."""
-    from pipeline.cli.common import TaskBar
+    from skinpipe.cli.common import TaskBar
 
     shares = {"irradiance": 0.5, "diffusion": 0.3, "shade": 0.2}
     with TaskBar(shares) as bar:
@@ -176,7 +176,7 @@ def test_interleave_period_is_auto_or_a_period(capsys: pytest.CaptureFixture[str
     anything else an argparse error naming the choices."""
     import argparse
 
-    from pipeline.cli.common import add_render_options, render_options
+    from skinpipe.cli.common import add_render_options, render_options
 
     parser = argparse.ArgumentParser()
     add_render_options(parser)

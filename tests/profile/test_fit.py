@@ -11,21 +11,21 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.errors import InputError
-from pipeline.profile.fit import (
+from skinpipe.errors import InputError
+from skinpipe.profile.fit import (
     FitOptions,
     MeasuredProfile,
     fit_multistart,
     fit_profiles,
     fit_sum_of_gaussians,
 )
-from pipeline.profile.models import (
+from skinpipe.profile.models import (
     burley_profile,
     fit_error_eq2c,
     ring_widths_mm,
     sum_of_gaussians,
 )
-from pipeline.profile.reference_data import (
+from skinpipe.profile.reference_data import (
     DEON_2007_SKIN,
     PARK_OH_2009_FOREHEAD,
     normalized_weights,
@@ -294,7 +294,7 @@ def test_sample_forehead_reaches_the_multistart_optimum(seed: int) -> None:
     """The GA + IPOPT fit of the sample forehead is no worse than an independent 20-start
     optimiser (issue 23). Before the one-term hops (``_hop_refined``) every seed settled
     28-32% above it (a term on the tail where the optimum puts one in the core)."""
-    from pipeline.capture.ingest import IngestOptions, ingest_region, read_capture_set
+    from skinpipe.capture.ingest import IngestOptions, ingest_region, read_capture_set
 
     prof = ingest_region(read_capture_set(SAMPLE_CAPTURES), "forehead", IngestOptions()).profile
     fit = fit_sum_of_gaussians(prof, k=6, seed=seed)
@@ -337,7 +337,7 @@ def test_pivoting_weights_match_lawson_hanson(free_scale: bool) -> None:
     (w >= 0, multipliers of the zero weights >= 0, stationarity on the others)."""
     from scipy.optimize import nnls
 
-    from pipeline.profile.fit import gram_weights_pivoting
+    from skinpipe.profile.fit import gram_weights_pivoting
 
     hess, grad = _gram_systems(400, 6, seed=3)
     w, left = gram_weights_pivoting(hess, grad, free_scale)
@@ -373,7 +373,7 @@ def test_pivoting_leaves_what_it_cannot_settle_to_lawson_hanson() -> None:
     """A Gram matrix of zeros (Gaussians that underflow at every sample) and a system
     after zero rounds come back as unsettled, so the caller's NNLS answers them; the
     fitness' weights are then still on the simplex."""
-    from pipeline.profile.fit import _gram_weights, gram_weights_pivoting
+    from skinpipe.profile.fit import _gram_weights, gram_weights_pivoting
 
     hess, grad = _gram_systems(8, 4, seed=5)
     hess[2], grad[2] = 0.0, 0.0
@@ -392,7 +392,7 @@ def test_gauss_newton_hessian_is_2_jt_j_by_finite_differences(fixed: bool) -> No
     2 J'J with J the finite-difference Jacobian of the weighted residuals sqrt(a) (q - G w),
     computed here in numpy; two sample sets (one profile's channels sharing weights, one
     with per-channel standard deviations), so both groupings are covered."""
-    from pipeline.profile.fit import HESS_REG, _gauss_newton_problem, _layout, _make_curves
+    from skinpipe.profile.fit import HESS_REG, _gauss_newton_problem, _layout, _make_curves
 
     rng = np.random.default_rng(11)
     r = np.linspace(0.0, 3.0, 40)
@@ -432,7 +432,7 @@ def test_moves_refined_side_by_side_equal_moves_refined_in_turn(monkeypatch) -> 
     """The hop round's moves refined on the solver threads (each with IPOPT solvers of its
     own) give the fit, bit for bit, that refining them one after another gives; a move
     that fails there fails the fit."""
-    import pipeline.profile.fit as fit_module
+    import skinpipe.profile.fit as fit_module
 
     clean = dipole_normalised("skin1")
     noise = 1 + 0.01 * np.random.default_rng(4).standard_normal(clean.values.shape)

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.profile.fit import MeasuredProfile, fit_sum_of_gaussians
-from pipeline.profile.io import (
+from skinpipe.errors import InputError
+from skinpipe.profile.fit import MeasuredProfile, fit_sum_of_gaussians
+from skinpipe.profile.io import (
     read_fit_inputs,
     read_fit_json,
     read_profile_csv,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from pipeline.profile.models import (
+from skinpipe.profile.models import (
     burley_profile,
     dipole_profile,
     dipole_total_reflectance,
@@ -16,7 +16,7 @@ from pipeline.profile.models import (
     sum_of_gaussians,
     total_reflectance_numeric,
 )
-from pipeline.profile.reference_data import (
+from skinpipe.profile.reference_data import (
     DEON_2007_SKIN,
     JENSEN_2001,
     PARK_OH_2009_FOREHEAD,
@@ -111,7 +111,7 @@ def test_fit_error_ignores_the_entry_point_weight() -> None:
 def test_expected_eq2c_error_matches_monte_carlo() -> None:
     """The eq. 2c error that independent noise of known standard deviation gives a
     profile, predicted, against 400 noisy copies measured."""
-    from pipeline.profile.models import expected_error_eq2c, fit_error_eq2c
+    from skinpipe.profile.models import expected_error_eq2c, fit_error_eq2c
 
     r = np.linspace(0.01, 4.0, 160)
     p = sum_of_gaussians(DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights, r)
@@ -126,7 +126,7 @@ def test_tail_beyond_the_image_follows_its_model() -> None:
     """A profile seen to 4 mm whose widest term leaves the frame: the flux beyond the
     disk from the measured tail, against the analytic one (a sum of Gaussians, whose
     tail is its widest Gaussian: 2 pi int_R^inf w G(v) r dr = w exp(-R^2 / 2v))."""
-    from pipeline.profile.models import disk_radius_mm, extrapolated_tail, ring_areas_mm2
+    from skinpipe.profile.models import disk_radius_mm, extrapolated_tail, ring_areas_mm2
 
     r = np.arange(0.025, 4.0, 0.025)
     v, w = np.array([0.05, 0.5, 2.5]), np.array([0.3, 0.4, 0.3])
@@ -147,7 +147,7 @@ def test_dipole_tail_is_extrapolated_with_its_far_field(material: str) -> None:
     """A diffusion dipole with Jensen et al. 2001's measured skin (an independent model
     and data) seen to 4 mm: the share of its light beyond the image is recovered within
     the stated uncertainty, per channel."""
-    from pipeline.profile.models import disk_radius_mm, extrapolated_tail
+    from skinpipe.profile.models import disk_radius_mm, extrapolated_tail
 
     coeffs = JENSEN_2001[material]
     r = np.arange(0.025, 4.0, 0.025)
@@ -170,7 +170,7 @@ def test_a_channel_holding_another_channels_longer_tail() -> None:
     dipole of its own reads the green's share beyond the image 10% of itself low; the
     own dipole with some of the red's ("dipole+mix") within 3% (measured 0.03%), and the
     stated uncertainty covers it."""
-    from pipeline.profile.models import disk_radius_mm, extrapolated_tail
+    from skinpipe.profile.models import disk_radius_mm, extrapolated_tail
 
     coeffs = JENSEN_2001["skin1"]
     r = np.arange(0.02, 6.4, 0.04)

@@ -1,7 +1,7 @@
 """The splat of the finest texels into a level's chart tiles by its definition: a scatter
 of every finest texel to its level-k cells with their bilinear weights (numpy's
 ``bincount``). The reference against which the layout's own splats
-(:func:`pipeline.render.chart_tiles.chart_splats`: separable, chart by chart) and the
+(:func:`skinpipe.render.chart_tiles.chart_splats`: separable, chart by chart) and the
 diffusion's fill on the device (``splat_level``) are tested; it was the layout's own
 until the twentieth session (3.5-4.0 s of its levels at texture 4096, against
 0.8-1.5)."""
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.render.chart_tiles import TileLevel, chart_boxes
+from skinpipe.render.chart_tiles import TileLevel, chart_boxes
 
 
 @dataclass(frozen=True)

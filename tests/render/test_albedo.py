@@ -11,11 +11,11 @@ import OpenImageIO as oiio
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline.imageio import ACESCG, CHROMATICITIES
-from pipeline.render.albedo import ALBEDO_NAME, REGION_TONES
-from pipeline.render.renderer import ensure_skin_uvs
-from pipeline.render.texture_maps import rasterize
-from pipeline.render.unwrap import triangulate
+from skinpipe.imageio import ACESCG, CHROMATICITIES
+from skinpipe.render.albedo import ALBEDO_NAME, REGION_TONES
+from skinpipe.render.renderer import ensure_skin_uvs
+from skinpipe.render.texture_maps import rasterize
+from skinpipe.render.unwrap import triangulate
 
 
 def test_demo_albedo_reads_back_as_a_texture(demo_run: tuple[Path, str, str]) -> None:

@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from pipeline.render import bands
-from pipeline.render.bands import band_slices, beside, in_bands
+from skinpipe.render import bands
+from skinpipe.render.bands import band_slices, beside, in_bands
 
 
 def test_band_slices_cover_every_item_once() -> None:

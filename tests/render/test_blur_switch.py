@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render import blur_switch, opencl
-from pipeline.render.blur_switch import (
+from skinpipe.errors import InputError
+from skinpipe.render import blur_switch, opencl
+from skinpipe.render.blur_switch import (
     FIR_MAX_RADIUS_TUNED,
     SWITCH_ENV,
     DirectLimits,
@@ -15,7 +15,7 @@ from pipeline.render.blur_switch import (
     fixed_limits,
     prefers_direct,
 )
-from pipeline.render.direct_blur import FIR_MAX_RADIUS_PER_TEXEL
+from skinpipe.render.direct_blur import FIR_MAX_RADIUS_PER_TEXEL
 
 
 def test_crossover_reference_values() -> None:

@@ -18,22 +18,22 @@ import pytest
 from pxr import Gf, Sdf, UsdGeom
 from scipy.special import ndtr
 
-from pipeline.cli import main
-from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
-from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render.diffusion import (
+from skinpipe.cli import main
+from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
+from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render.diffusion import (
     ChartLayout,
     DiffusionLayout,
     _fill_level,
     chart_layout,
     diffuse,
 )
-from pipeline.render.opencl import cl_context, host_buffer
-from pipeline.render.raytrace import RayScene
-from pipeline.render.texture_maps import rasterize
-from pipeline.usd.author import RegionAssignment, author_asset
-from pipeline.usd.mesh import MeshData
-from pipeline.usd.schema import CAMERA_VISIBILITY_PRIMVAR
+from skinpipe.render.opencl import cl_context, host_buffer
+from skinpipe.render.raytrace import RayScene
+from skinpipe.render.texture_maps import rasterize
+from skinpipe.usd.author import RegionAssignment, author_asset
+from skinpipe.usd.mesh import MeshData
+from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
 from ..render_scenes import distant_down, exact_fit, scene_over
 from .splat_reference import fill
@@ -332,7 +332,7 @@ def test_kept_uv_charts_are_the_connected_components(tmp_path: Path,
     triangle, with a UV vertex no triangle uses), the same after they are kept and read
     back from skinpipe's cache folder; a damaged kept file is made again, and other
     triangles are another file."""
-    from pipeline.render.chart_tiles import connected_uv_charts, uv_charts
+    from skinpipe.render.chart_tiles import connected_uv_charts, uv_charts
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     uv_tris = np.array([[0, 1, 2], [2, 1, 3],  # a quad: one chart
@@ -441,10 +441,10 @@ def test_chart_splats_sum_what_the_scatter_sums(level: int, band_texels: int,
     edges: the counts and the mean sizes within float32 rounding, and 0 in both where
     no finest texel reaches. Each box whole, and in bands of one to a few rows (whose
     cells the bands share)."""
-    import pipeline.render.chart_tiles as chart_tiles
+    import skinpipe.render.chart_tiles as chart_tiles
 
     monkeypatch.setattr(chart_tiles, "SPLAT_BAND_TEXELS", band_texels)
-    from pipeline.render.chart_tiles import _chart_cells, _pack, chart_boxes, chart_splats
+    from skinpipe.render.chart_tiles import _chart_cells, _pack, chart_boxes, chart_splats
 
     from .splat_reference import _splat, finest_texels, splat_geometry
 
@@ -510,7 +510,7 @@ def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
     against numpy's, levels 0-3 of the two-chart patch, flat and bent into a trough
     (z = bend x^2: points land on the other chart off their tangent plane, some miss):
     the same reads bit for bit."""
-    import pipeline.render.chart_tiles as chart_tiles
+    import skinpipe.render.chart_tiles as chart_tiles
 
     if not chart_tiles._device_has_doubles():
         pytest.skip("the device has no doubles: the margins are numpy's alone")
@@ -537,8 +537,8 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     at level 0, Catmull-Rom above) at random atlas positions including ones past every
     edge (the clamps), 0-3 reads a texel, against scipy's product with
     SeamReads.matrix (numpy's taps): the same texels bit for bit."""
-    import pipeline.render.chart_tiles as chart_tiles
-    from pipeline.render.opencl import host_output, read_output
+    import skinpipe.render.chart_tiles as chart_tiles
+    from skinpipe.render.opencl import host_output, read_output
 
     kernel = chart_tiles.seam_read_kernel()
     if kernel is None:
@@ -567,7 +567,7 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
     UV layout turned 0.3 rad (its borders cross the texels at every phase): the same
     shares bit for bit (test_texel_coverage_is_the_share_of_the_square_on_its_chart
     holds the device's to the exact overlap)."""
-    import pipeline.render.chart_tiles as chart_tiles
+    import skinpipe.render.chart_tiles as chart_tiles
 
     if not chart_tiles._device_has_doubles():
         pytest.skip("the device has no doubles: the coverage is numpy's alone")
@@ -590,7 +590,7 @@ def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
     across the seams (scipy's product with SeamReads.matrix) into an atlas of its own:
     the same diffused light bit for bit as the device's reads, on the two-chart patch
     with random light and d'Eon's six terms."""
-    import pipeline.render.diffusion as diffusion
+    import skinpipe.render.diffusion as diffusion
 
     maps, charts = _layout(256)
     e = np.random.default_rng(5).random((256, 256, 3)).astype(np.float32)
@@ -610,8 +610,8 @@ def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
     """The reads across the seams on the device (``read_seams``: each row's products in
     turn, float32) against TileLevel.read_across_seams (scipy's sparse product), levels
     0-3 of the two-chart patch with random light: the same texels bit for bit."""
-    import pipeline.render.chart_tiles as chart_tiles
-    from pipeline.render.opencl import host_output, read_output
+    import skinpipe.render.chart_tiles as chart_tiles
+    from skinpipe.render.opencl import host_output, read_output
 
     maps, charts = _layout(256)
     layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
-from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render.diffusion import (
+from skinpipe.errors import InputError
+from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
+from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render.diffusion import (
     OpenCLBlur,
     _added_variance_texels2,
     blur_reference,
@@ -76,7 +76,7 @@ def test_pencil_under_a_one_texture_term_cap_reproduces_the_profile(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # the term buffer's byte cap (large textures) splits the terms into batches; the
     # pencil still gives d'Eon's profile (the analytic sum of Gaussians) and its energy
-    import pipeline.render.diffusion as d
+    import skinpipe.render.diffusion as d
 
     v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
     mm = 0.1
@@ -91,7 +91,7 @@ def test_pencil_under_a_one_texture_term_cap_reproduces_the_profile(
 
 
 def test_energy_is_conserved_away_from_borders() -> None:
-    import pipeline.render.diffusion as d
+    import skinpipe.render.diffusion as d
 
     v = np.array([0.05, 0.5])
     w = np.array([[0.4, 0.5, 0.6], [0.6, 0.5, 0.4]])
@@ -153,7 +153,7 @@ def test_a_term_on_a_pyramid_level_keeps_its_centre_and_variance(
         level: int, monkeypatch: pytest.MonkeyPatch) -> None:
     # the pyramid's own spread is taken off the blur: through level k an impulse
     # comes back centred where it was, with variance v (averaged over its 2^k phases)
-    import pipeline.render.diffusion as d
+    import skinpipe.render.diffusion as d
 
     assert _added_variance_texels2(0) == 0.0
     n = 96
@@ -252,7 +252,7 @@ def test_a_prepared_layout_serves_many_diffusions_like_a_fresh_one() -> None:
     # the layout keeps its device maps and work buffers between calls: different term
     # sets (other levels, merged equal variances, a sub-texel term) and irradiances
     # on it give what a fresh `diffuse` gives, and a wrong-sized irradiance is refused
-    from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
+    from skinpipe.render.diffusion import DiffusionLayout, diffuse_prepared
 
     rng = np.random.default_rng(5)
     n = 75  # odd: pyramid levels of odd size, rows not a multiple of four
@@ -280,7 +280,7 @@ def test_a_layout_lets_its_work_go_and_makes_it_again_the_same() -> None:
     # a render's last diffusion lets the work buffers and level tiles go before the
     # push-pull (0.6 GB at texture 4096); a later diffusion on the layout (tiles made
     # again from its surface) gives the same floats
-    from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
+    from skinpipe.render.diffusion import DiffusionLayout, diffuse_prepared
 
     e, mm_u, mm_v, cov, rw = _stretched_layout(90)
     v, w = np.array([0.002, 0.05, 0.6, 3.0]), np.random.default_rng(2).random((2, 4, 3))
@@ -308,8 +308,8 @@ def _stretched_layout(n: int) -> tuple[np.ndarray, ...]:
 def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> None:
     # per-texel direct blur (one pass a term): each texel's Gaussian of v / (mm per
     # texel)^2 on its own axis, as a normalised convolution, against float64
-    from pipeline.render.direct_blur import direct_texel_reference, fir_weight_table
-    from pipeline.render.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
+    from skinpipe.render.direct_blur import direct_texel_reference, fir_weight_table
+    from skinpipe.render.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
 
     n = 131
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
@@ -358,7 +358,7 @@ def test_a_few_tiny_texels_do_not_set_the_direct_radius() -> None:
 def test_term_batches_add_up_like_one(monkeypatch: pytest.MonkeyPatch) -> None:
     # blurred terms are kept TERM_BUFFER_TEXTURES at a time before they are added up;
     # one at a time (an accumulator pass between batches) gives the same sum
-    import pipeline.render.diffusion as d
+    import skinpipe.render.diffusion as d
 
     n = 96
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
@@ -374,7 +374,7 @@ def test_term_buffer_byte_cap_batches_and_adds_up_like_one(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # the blurred terms' buffer is capped in bytes too (large textures): under a cap of
     # one texture the terms go in several batches, and the sum is the same
-    import pipeline.render.diffusion as d
+    import skinpipe.render.diffusion as d
 
     n = 96
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
@@ -399,7 +399,7 @@ def test_term_buffer_byte_cap_batches_and_adds_up_like_one(
 def test_region_presence_is_each_regions_maximum_above_zero(texels: int) -> None:
     """The regions any texel uses, grouped 64 texels a row for speed: numpy's own
     maximum over every texel says the same, whatever the count's remainder."""
-    from pipeline.render.diffusion import _region_presence
+    from skinpipe.render.diffusion import _region_presence
 
     rng = np.random.default_rng(texels)
     weights = (rng.random((texels, 1, 5)) * (rng.random((texels, 1, 5)) < 0.02)
@@ -436,7 +436,7 @@ def test_region_weights_are_read_as_a_partition_of_unity(path: str) -> None:
 
 
 def test_region_presence_reads_half_weights_by_their_bits() -> None:
-    from pipeline.render.diffusion import _region_presence
+    from skinpipe.render.diffusion import _region_presence
 
     rw = np.zeros((130, 70, 4), np.float16)  # rows past a whole number of 64-texel groups
     rw[..., 0] = 1.0
@@ -452,7 +452,7 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
     # its level's `source` (the level's last term, recursive) instead of the term
     # buffer, and the other terms to tmp's room past their levels' atlases; the sum is
     # the same bit for bit as through a term buffer of its own
-    import pipeline.render.diffusion as d
+    import skinpipe.render.diffusion as d
 
     n = 256  # coarse terms beside level 1 in tmp's room (not at 160: margins)
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
@@ -491,9 +491,9 @@ def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
     the maps' half floats within their rounding (three regions, blends of two and of
     three; measured 1.2e-4 relative at most on PoCL and Intel's runtime), without
     holding the map."""
-    from pipeline.render.diffusion import DiffusionLayout, diffuse_prepared
-    from pipeline.render.renderer import diffusion_terms
-    from pipeline.render.texture_maps import rasterize
+    from skinpipe.render.diffusion import DiffusionLayout, diffuse_prepared
+    from skinpipe.render.renderer import diffusion_terms
+    from skinpipe.render.texture_maps import rasterize
 
     from ..render_scenes import exact_fit, grid_patch
 

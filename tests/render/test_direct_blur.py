@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render.blur_switch import prefers_direct
-from pipeline.render.direct_blur import (
+from skinpipe.errors import InputError
+from skinpipe.render.blur_switch import prefers_direct
+from skinpipe.render.direct_blur import (
     FIR_MAX_ERROR,
     DirectBlur,
     band_columns,

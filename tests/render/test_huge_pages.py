@@ -1,4 +1,4 @@
-"""The choice of transparent huge pages for large buffers (pipeline/render/huge_pages.py)."""
+"""The choice of transparent huge pages for large buffers (skinpipe/render/huge_pages.py)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render import huge_pages
-from pipeline.render.huge_pages import HUGE_PAGES_ENV, apply_to_numpy, reports_free_pages
+from skinpipe.errors import InputError
+from skinpipe.render import huge_pages
+from skinpipe.render.huge_pages import HUGE_PAGES_ENV, apply_to_numpy, reports_free_pages
 
 
 def _virtio(root: Path, name: str, device: str, features: str) -> None:

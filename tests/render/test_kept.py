@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render import kept as kept_module
-from pipeline.render.kept import LIMIT_ENV, evict, kept, kept_path, limit_bytes, read_kept
+from skinpipe.errors import InputError
+from skinpipe.render import kept as kept_module
+from skinpipe.render.kept import LIMIT_ENV, evict, kept, kept_path, limit_bytes, read_kept
 
 
 def _made(value: int, size: int = 1000):
@@ -85,9 +85,9 @@ def test_a_bad_limit_stops_the_command_before_it_renders(
         capsys: pytest.CaptureFixture[str]) -> None:
     """Exit 2 with the variable named and nothing written, with the layout store off
     too: the kept results are written whatever the store does."""
-    from pipeline.cli import main
-    from pipeline.errors import EXIT_BAD_INPUT
-    from pipeline.render import renderer
+    from skinpipe.cli import main
+    from skinpipe.errors import EXIT_BAD_INPUT
+    from skinpipe.render import renderer
 
     def no_render(*_args: object, **_kwargs: object) -> None:
         raise AssertionError("rendered before the limit was checked")

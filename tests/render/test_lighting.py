@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render import lighting
-from pipeline.render.lighting import (
+from skinpipe.errors import InputError
+from skinpipe.render import lighting
+from skinpipe.render.lighting import (
     IrradianceResult,
     LightSampler,
     beckmann_ndf,
@@ -36,10 +36,10 @@ from pipeline.render.lighting import (
     visibility_plane,
     visibility_planes,
 )
-from pipeline.render.options import INTERLEAVE_PERIODS
-from pipeline.render.raytrace import OFFSET_ROWS, RayScene, morton_order, offset_ray_origin
-from pipeline.render.scene import Light
-from pipeline.render.texture_maps import texels_in_blocks
+from skinpipe.render.options import INTERLEAVE_PERIODS
+from skinpipe.render.raytrace import OFFSET_ROWS, RayScene, morton_order, offset_ray_origin
+from skinpipe.render.scene import Light
+from skinpipe.render.texture_maps import texels_in_blocks
 
 from .test_raytrace import hard_origins, offset_by_listing
 
@@ -76,7 +76,7 @@ def test_rho_dt_quadrature_against_scipys_adaptive_integral() -> None:
     cos 0.70 and 1.0 for roughness 0.35, 3e-5 at cos 0.30)."""
     from scipy import integrate
 
-    from pipeline.render.lighting import rho_dt_quadrature, torrance_sparrow
+    from skinpipe.render.lighting import rho_dt_quadrature, torrance_sparrow
 
     table = rho_dt_quadrature(0.35, 0.25)
     for i in (44, 63):
@@ -101,7 +101,7 @@ def test_kept_rho_dt_table_is_the_quadrature(tmp_path: Path,
     """The specular albedo's table, made and then read back from skinpipe's cache
     folder, is the quadrature's own, bit for bit; a damaged kept file (not JSON, another
     size, a negative value) is made again; another roughness is another file."""
-    from pipeline.render.lighting import _rho_dt_table, rho_dt_quadrature
+    from skinpipe.render.lighting import _rho_dt_table, rho_dt_quadrature
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     want = rho_dt_quadrature(0.3, 0.2)

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render import opencl
-from pipeline.render.opencl import Candidate, choose_device, order_candidates
+from skinpipe.errors import InputError
+from skinpipe.render import opencl
+from skinpipe.render.opencl import Candidate, choose_device, order_candidates
 
 POCL = Candidate("Portable Computing Language", "pthread-AMD EPYC", "cpu", 1, 0)
 INTEL = Candidate("Intel(R) OpenCL", "AMD EPYC", "cpu", 0, 0)
@@ -105,7 +105,7 @@ def test_every_device_here_passes_the_probe_or_says_why() -> None:
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
     # skinpipe first (it loads the newer TBB), pymeshlab after: Intel's platform stays
-    code = ("import pipeline, pymeshlab; from pipeline.render import opencl;"
+    code = ("import skinpipe, pymeshlab; from skinpipe.render import opencl;"
             "print('|'.join(c.platform for c, _ in opencl.candidates(all_runtimes=True)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout
@@ -115,7 +115,7 @@ def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
     assert Path(icd).is_absolute() and Path(icd).name == "libintelocl.so"
 
 
-_LOADED = ("from pipeline.render import opencl; c = opencl.device_choice();"
+_LOADED = ("from skinpipe.render import opencl; c = opencl.device_choice();"
            "maps = open('/proc/self/maps').read();"
            "print(c.candidate.runtime, 'libintelocl' in maps, opencl.SETUP.notes)")
 
@@ -146,7 +146,7 @@ def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> No
     if first.startswith("pocl-cpu"):
         # Intel's asked for only after a first query left it out: an error that says so,
         # and asked for again, the note once
-        late = run("from pipeline.render import opencl; opencl.device_choice();"
+        late = run("from skinpipe.render import opencl; opencl.device_choice();"
                    "opencl.set_device('intel')\n"
                    "for _ in range(2):\n"
                    "    try: opencl.device_choice()\n"
@@ -154,7 +154,7 @@ def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> No
                    "print(sum('first OpenCL query' in n for n in opencl.SETUP.notes))")
         assert late.startswith("InputError") and "first OpenCL query" in late, late
         assert late.splitlines()[-1] == "1", late
-    every = run("from pipeline.render import opencl;"
+    every = run("from skinpipe.render import opencl;"
                 "print(sorted({c.runtime for c, _ in opencl.candidates(all_runtimes=True)}))")
     assert "intel-cpu" in every and "pocl-cpu" in every, every
 
@@ -163,7 +163,7 @@ def test_the_pocl_record_is_kept_dropped_and_never_fails(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A pass keeps the record, a failure drops it, and a cache folder that cannot hold
     it (a file where the folder should be) neither raises nor claims a pass."""
-    from pipeline.render.opencl_runtimes import note_pocl_probe, pocl_passed_here
+    from skinpipe.render.opencl_runtimes import note_pocl_probe, pocl_passed_here
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     assert not pocl_passed_here()
@@ -179,7 +179,7 @@ def test_the_pocl_record_is_kept_dropped_and_never_fails(
 
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_pymeshlab_first_is_reported() -> None:
-    code = "import pymeshlab, pipeline.render.opencl_runtimes as r; print(r.SETUP.notes)"
+    code = "import pymeshlab, skinpipe.render.opencl_runtimes as r; print(r.SETUP.notes)"
     env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True, env=env).stdout
@@ -187,7 +187,7 @@ def test_pymeshlab_first_is_reported() -> None:
 
 
 def _skinpipe(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "skinpipe", *args], capture_output=True,
                           text=True, timeout=300, env={**os.environ, **env})
 
 
@@ -253,14 +253,14 @@ __kernel void encode(__global const float *f, const int n, __global ushort *out)
 
 
 def _half_kernel(name: str) -> object:
-    from pipeline.render.opencl import HALF_BITS, Kernel, build
+    from skinpipe.render.opencl import HALF_BITS, Kernel, build
 
     return Kernel(build(HALF_BITS + _HALF_TEST_KERNELS), name, 1)
 
 
 @pytest.mark.usefixtures("cl_device")
 def test_half_bits_decode_as_numpy_does_every_finite_half() -> None:
-    from pipeline.render.opencl import cl_context, run_on_host_arrays
+    from skinpipe.render.opencl import cl_context, run_on_host_arrays
 
     bits = np.arange(1 << 16, dtype=np.uint16)
     bits = bits[np.isfinite(bits.view(np.float16))]
@@ -275,7 +275,7 @@ def test_half_bits_decode_as_numpy_does_every_finite_half() -> None:
 def test_half_bits_encode_rounds_as_numpy_does() -> None:
     # every half's value, the midpoints between neighbours (ties: to even) and one float
     # ulp either side of them, and random floats across half's normal and subnormal range
-    from pipeline.render.opencl import cl_context, run_on_host_arrays
+    from skinpipe.render.opencl import cl_context, run_on_host_arrays
 
     halves = np.arange(0x7bff + 1, dtype=np.uint16).view(np.float16).astype(np.float32)
     mid = (halves[:-1] + halves[1:]) / np.float32(2)

@@ -1,5 +1,5 @@
 """Compiling ahead of use: padded launches, the prewarm thread, and the render's plan of
-kernels (pipeline/render/opencl.py, lighting.sample_plan)."""
+kernels (skinpipe/render/opencl.py, lighting.sample_plan)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.render import (
+from skinpipe.render import (
     chart_tiles,
     diffusion,
     direct_blur,
@@ -23,10 +23,10 @@ from pipeline.render import (
     recursive_blur,
     texture_maps,
 )
-from pipeline.render.lighting import LightSampler, sample_plan
-from pipeline.render.opencl import Candidate, fixed_local_size
-from pipeline.render.options import DEVICE_ENV
-from pipeline.render.scene import Light
+from skinpipe.render.lighting import LightSampler, sample_plan
+from skinpipe.render.opencl import Candidate, fixed_local_size
+from skinpipe.render.options import DEVICE_ENV
+from skinpipe.render.scene import Light
 
 KERNEL_SOURCES = {
     "chart_tiles": chart_tiles._MARGIN_KERNEL + chart_tiles._SEAM_READ_KERNEL,
@@ -117,13 +117,13 @@ def test_compile_worker_fills_the_caches_the_render_reads(cl_device: Candidate,
         pytest.skip("reads PoCL's kernel cache (other runtimes compile when they build)")
     env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path), DEVICE_ENV: cl_device.runtime}
     env.pop("POCL_CACHE_DIR", None)
-    specs = json.dumps([["pipeline.render.push_pull", "push_pull_kernels", []]])
-    run = subprocess.run([sys.executable, "-m", "pipeline.render.compile_worker", specs],
+    specs = json.dumps([["skinpipe.render.push_pull", "push_pull_kernels", []]])
+    run = subprocess.run([sys.executable, "-m", "skinpipe.render.compile_worker", specs],
                          env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     compiled = _pocl_kernels(tmp_path)
     assert {"pull.so", "push.so", "normalise.so"} <= compiled
-    use = ("import numpy as np\nfrom pipeline.render.push_pull import push_pull\n"
+    use = ("import numpy as np\nfrom skinpipe.render.push_pull import push_pull\n"
            "v = np.zeros((40, 30, 3), np.float32); c = np.zeros((40, 30), np.float32)\n"
            "c[5, 7] = 1; v[5, 7] = 1; print(push_pull(v, c)[0, 0, 0])")
     again = subprocess.run([sys.executable, "-c", use], env=env, capture_output=True,
@@ -135,7 +135,7 @@ def test_compile_worker_fills_the_caches_the_render_reads(cl_device: Candidate,
 def test_a_worker_that_fails_costs_only_time(cl_device: Candidate) -> None:
     """A step handed to a worker that dies is run by the prewarm thread itself (here it
     fails there too and is skipped); the steps after it still run."""
-    missing = opencl.PlannedStep("pipeline.render.no_such_module", "kernels", worker=True)
+    missing = opencl.PlannedStep("skinpipe.render.no_such_module", "kernels", worker=True)
     push_pull.push_pull_kernels.cache_clear()
     before = opencl.LEDGER.copy()
     pre = opencl.start_prewarm([missing, push_pull.push_pull_kernels])

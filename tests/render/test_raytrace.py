@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.render.raytrace import (
+from skinpipe.errors import InputError
+from skinpipe.render.raytrace import (
     CHUNK_RAYS,
     OFFSET_ROWS,
     RayScene,

@@ -12,15 +12,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError
-from pipeline.profile.models import fit_error_eq2c, sum_of_gaussians
-from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render.diffusion import DiffusionLayout, diffuse
-from pipeline.render.lighting import IrradianceResult, irradiance_texture, specular_albedo
-from pipeline.render.options import AOVS, DATA_AOVS
-from pipeline.render.raytrace import RayScene
-from pipeline.render.renderer import (
+from skinpipe.cli import main
+from skinpipe.errors import InputError
+from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
+from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render.diffusion import DiffusionLayout, diffuse
+from skinpipe.render.lighting import IrradianceResult, irradiance_texture, specular_albedo
+from skinpipe.render.options import AOVS, DATA_AOVS
+from skinpipe.render.raytrace import RayScene
+from skinpipe.render.renderer import (
     Renderer,
     RenderOptions,
     diffusion_terms,
@@ -30,11 +30,11 @@ from pipeline.render.renderer import (
     render_files,
     texels_per_pixel,
 )
-from pipeline.render.scene import Camera, Light
-from pipeline.render.texture_maps import rasterize, texel_rows, texels_in_blocks
-from pipeline.render.unwrap import triangulate, unwrap
-from pipeline.usd.io import open_stage_guarded
-from pipeline.usd.mesh import MeshData
+from skinpipe.render.scene import Camera, Light
+from skinpipe.render.texture_maps import rasterize, texel_rows, texels_in_blocks
+from skinpipe.render.unwrap import triangulate, unwrap
+from skinpipe.usd.io import open_stage_guarded
+from skinpipe.usd.mesh import MeshData
 
 from ..render_scenes import (
     deon_fit,
@@ -140,7 +140,7 @@ def test_occluder_shadow_lands_where_geometry_says() -> None:
 def test_embree_agrees_with_brute_force_on_the_cleaned_scan() -> None:
     """Embree drops bad triangles silently (light leaks); on the cleaned scan every
     shadow ray must agree with a brute-force ray/triangle test."""
-    from pipeline.usd.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
+    from skinpipe.usd.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
 
     mesh = prepare_scan(load_mesh(pymeshlab_face_scan()), 20000)
     tris = triangulate(mesh)
@@ -220,8 +220,8 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     folder, is diffusion_terms' own, bit for bit; other inputs are another file; a kept
     file that does not read back, or whose weights do not fit the fits, is made again;
     a cache folder that cannot be written keeps nothing."""
-    from pipeline.render import kept as kept_module
-    from pipeline.render import renderer as renderer_module
+    from skinpipe.render import kept as kept_module
+    from skinpipe.render import renderer as renderer_module
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     fits = [deon_fit("a"), deon_fit("b", 2.0)]
@@ -390,7 +390,7 @@ def test_an_albedo_split_of_a_half_makes_no_albedo_map_and_renders_the_same(
     take as numpy does)."""
     from dataclasses import replace
 
-    import pipeline.render.renderer as renderer_module
+    import skinpipe.render.renderer as renderer_module
 
     rng = np.random.default_rng(4)
     image = (rng.random((19, 27, 3)) * 0.9 + 0.1).astype(np.float32)
@@ -554,7 +554,7 @@ def test_the_layout_beside_the_irradiance_reports_errors_and_ends_with_the_frame
     import threading
     import time
 
-    import pipeline.render.renderer as renderer_module
+    import skinpipe.render.renderer as renderer_module
 
     def slow_layout(*args: object, **kwargs: object) -> object:
         time.sleep(0.5)  # still working when the irradiance fails
@@ -841,7 +841,7 @@ def test_display_image_is_ocios_display_view_applied_at_once() -> None:
     at once, clipped to [0, 1]; NaN and +inf are made 0 and 1e4 first."""
     import PyOpenColorIO as OCIO
 
-    from pipeline.render.renderer import display_image, ocio_config
+    from skinpipe.render.renderer import display_image, ocio_config
 
     rng = np.random.default_rng(1)
     beauty = np.concatenate([rng.random((37, 53, 3), np.float32) * 4,
@@ -866,7 +866,7 @@ def test_written_exr_and_png_read_back_as_ocios_display_of_the_beauty(tmp_path: 
     import OpenImageIO as oiio
     import PyOpenColorIO as OCIO
 
-    from pipeline.render.renderer import ocio_config, write_outputs
+    from skinpipe.render.renderer import ocio_config, write_outputs
 
     rng = np.random.default_rng(4)
     frames = {f"f{i}": {"beauty": np.concatenate([rng.random((23, 31, 3), np.float32) * 3,
@@ -901,7 +901,7 @@ def test_written_exr_and_png_read_back_as_ocios_display_of_the_beauty(tmp_path: 
 
 
 def test_surface_flux_in_bands_is_the_whole_textures_sum() -> None:
-    from pipeline.render.renderer import surface_flux
+    from skinpipe.render.renderer import surface_flux
 
     pts, tris, uv = grid_patch(6, 30.0)
     maps = rasterize(pts, tris, uv * 0.8 + 0.1, tris, 50, 0.001)
@@ -929,7 +929,7 @@ def test_a_last_frame_writing_the_irradiance_texture_keeps_its_map(lit_patch: Pa
 
 @pytest.mark.parametrize("power", [0.5, 0.3, 0.0])
 def test_albedo_weights_in_bands_are_the_whole_textures(power: float) -> None:
-    from pipeline.render.renderer import times_albedo_power
+    from skinpipe.render.renderer import times_albedo_power
 
     rng = np.random.default_rng(5)
     albedo = rng.random((37, 11, 3)).astype(np.float32)

@@ -20,10 +20,10 @@ import pytest
 from pxr import Gf, Sdf, UsdGeom
 from scipy.special import ndtr
 
-from pipeline.cli import main
-from pipeline.usd.author import RegionAssignment, author_asset
-from pipeline.usd.mesh import MeshData
-from pipeline.usd.schema import CAMERA_VISIBILITY_PRIMVAR
+from skinpipe.cli import main
+from skinpipe.usd.author import RegionAssignment, author_asset
+from skinpipe.usd.mesh import MeshData
+from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
 from ..render_scenes import distant_down, exact_fit, scene_over
 

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, UsdGeom
 
-from pipeline.render.lighting import irradiance_texture
-from pipeline.render.raytrace import RayScene, offset_ray_origin
-from pipeline.render.renderer import Renderer, RenderOptions, render_files
-from pipeline.render.scene import Light
-from pipeline.usd.io import open_stage_guarded
-from pipeline.usd.schema import CAMERA_VISIBILITY_PRIMVAR
+from skinpipe.render.lighting import irradiance_texture
+from skinpipe.render.raytrace import RayScene, offset_ray_origin
+from skinpipe.render.renderer import Renderer, RenderOptions, render_files
+from skinpipe.render.scene import Light
+from skinpipe.usd.io import open_stage_guarded
+from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
 from ..render_scenes import deon_fit, distant_down, patch_asset, scene_over, top_camera
 
@@ -174,8 +174,8 @@ def test_the_demo_face_has_no_fireflies(demo_run: tuple[Path, str, str]) -> None
     import OpenImageIO as oiio
     from scipy.ndimage import minimum_filter
 
-    from pipeline.render.texture_maps import vertex_normals
-    from pipeline.render.unwrap import triangulate
+    from skinpipe.render.texture_maps import vertex_normals
+    from skinpipe.render.unwrap import triangulate
 
     out = demo_run[0]  # the demo's own settings: 768 px, texture 1024
     buf = oiio.ImageBuf(str(out / "render" / "Face.exr"))

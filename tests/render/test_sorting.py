@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.render.sorting import stable_order, unique_keys
+from skinpipe.render.sorting import stable_order, unique_keys
 
 
 @pytest.mark.parametrize(("n", "high"), [(1, 5), (1000, 7), (200_000, 10**12), (5000, 2**62)])

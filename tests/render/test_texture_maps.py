@@ -6,16 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError, SkinpipeError
-from pipeline.render.texture_maps import (
+from skinpipe.errors import InputError, SkinpipeError
+from skinpipe.render.texture_maps import (
     TextureMaps,
     at_texels,
     rasterize,
     rasterize_reference,
     texels_in_blocks,
 )
-from pipeline.render.unwrap import triangulate, unwrap
-from pipeline.usd.mesh import MeshData
+from skinpipe.render.unwrap import triangulate, unwrap
+from skinpipe.usd.mesh import MeshData
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -191,7 +191,7 @@ def test_unwrap_in_pieces_charts_no_triangle_across_them() -> None:
 
 
 def test_unwrap_past_its_time_or_crashing_is_an_error(monkeypatch, tmp_path) -> None:
-    import pipeline.render.unwrap as unwrap_module
+    import skinpipe.render.unwrap as unwrap_module
 
     pts, tris, _ = _grid(10, 100.0)
     mesh = MeshData(pts, np.full(tris.shape[0], 3, np.int32), tris.reshape(-1), 0.001)
@@ -260,7 +260,7 @@ def test_device_rasteriser_equals_the_numpy_reference_on_awkward_triangles() -> 
 
 def test_device_rasteriser_equals_the_numpy_reference_on_the_face_scan() -> None:
     # the real scan (holes, noise), decimated as the demo prepares it
-    from pipeline.usd.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
+    from skinpipe.usd.mesh import load_mesh, prepare_scan, pymeshlab_face_scan
 
     mesh = prepare_scan(load_mesh(pymeshlab_face_scan()), 20000)
     layout = unwrap(mesh, resolution=512, timeout_s=120)

@@ -1,4 +1,4 @@
-"""The seam layout's tiles kept on disk (pipeline.render.tile_store): read back they give
+"""The seam layout's tiles kept on disk (skinpipe.render.tile_store): read back they give
 the diffusion the tiles made in the process gave, bit for bit; a damaged file or a folder
 that cannot be written costs a remake, a full folder its least recently used layouts,
 never a render."""
@@ -17,13 +17,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from pipeline.profile.reference_data import DEON_2007_SKIN
-from pipeline.render import tile_store
-from pipeline.render.diffusion import LEVEL_ARRAYS, DiffusionLayout, LevelGrid, diffuse_prepared
-from pipeline.render.renderer import Renderer, RenderOptions
-from pipeline.render.tile_store import TileStore
-from pipeline.usd.io import open_stage_guarded
+from skinpipe.cli import main
+from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render import tile_store
+from skinpipe.render.diffusion import LEVEL_ARRAYS, DiffusionLayout, LevelGrid, diffuse_prepared
+from skinpipe.render.renderer import Renderer, RenderOptions
+from skinpipe.render.tile_store import TileStore
+from skinpipe.usd.io import open_stage_guarded
 
 from .test_chart_tiles import _layout
 from .test_renderer import SMALL
@@ -83,7 +83,7 @@ def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Pat
     store = TileStore(tmp_path, "patch")
     level, margin = next(iter(layout._grids))
     # LevelGrid dropped the texel sizes: the store takes tiles straight from tile_level
-    from pipeline.render.chart_tiles import tile_level
+    from skinpipe.render.chart_tiles import tile_level
 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
@@ -221,14 +221,14 @@ def test_a_bad_size_limit_is_named(lit_patch: Path, tmp_path: Path,
     """A bad limit stops the command before it renders (exit 2, the variable named, no
     output), not on the layout's thread after the shadow rays; with the store off it
     does not matter."""
-    from pipeline.errors import EXIT_BAD_INPUT, InputError
+    from skinpipe.errors import EXIT_BAD_INPUT, InputError
 
     monkeypatch.setenv(tile_store.LIMIT_ENV, "lots")
     with pytest.raises(InputError, match=r"SKINPIPE_LAYOUT_CACHE_GB.*lots"):
         tile_store.limit_bytes()
     args = ["render", str(lit_patch), "--resolution", "32x32", "--texture-size", "64",
             "--light-samples", "1"]
-    from pipeline.render import renderer
+    from skinpipe.render import renderer
 
     def no_render(*_args: object, **_kwargs: object) -> None:
         raise AssertionError("rendered before the limit was checked")
@@ -266,7 +266,7 @@ def test_prepare_makes_the_blurs_device_buffers_beside_the_irradiance(patch_layo
 def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: Path) -> None:
     """Farm nodes rendering the same asset at once write the same key: each renames a
     whole file into place, the last one stays, nothing temporary is left behind."""
-    from pipeline.render.chart_tiles import tile_level
+    from skinpipe.render.chart_tiles import tile_level
 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
@@ -359,7 +359,7 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
     read by the device as they are: LevelGrid refuses indices past their steps (a
     kernel would read beyond its table) or of another shape, and the store removes a
     file whose arrays are refused (the tiles are made again)."""
-    from pipeline.render.chart_tiles import tile_level
+    from skinpipe.render.chart_tiles import tile_level
 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
@@ -475,7 +475,7 @@ def test_stored_tiles_read_a_band_at_a_time_give_the_same_diffusion(
     across the seams, the recursive and the direct per-texel blurs) run a band of rows at
     a time, each band's pages let go after it: the same diffused light bit for bit as the
     tiles made in the process."""
-    from pipeline.render import diffusion
+    from skinpipe.render import diffusion
 
     reference, _ = _diffused(patch_layout, None)
     _diffused(patch_layout, TileStore(tmp_path, "patch"))  # made and saved
@@ -504,7 +504,7 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = T
     (``stored`` False: no tile store, each render makes its tiles)."""
     from dataclasses import replace
 
-    from pipeline.render import renderer as renderer_module
+    from skinpipe.render import renderer as renderer_module
 
     options = replace(SMALL, layout_cache=str(tmp_path / "layouts") if stored else None)
     first = Renderer(open_stage_guarded(lit_patch), options)

@@ -9,20 +9,20 @@ import numpy as np
 import pytest
 from pxr import Gf, Kind, Sdf, Usd, UsdGeom
 
-from pipeline.cli import main
-from pipeline.errors import InputError
-from pipeline.profile.fit import fit_sum_of_gaussians
-from pipeline.profile.io import read_fit_json, write_fit_json
-from pipeline.usd.author import (
+from skinpipe.cli import main
+from skinpipe.errors import InputError
+from skinpipe.profile.fit import fit_sum_of_gaussians
+from skinpipe.profile.io import read_fit_json, write_fit_json
+from skinpipe.usd.author import (
     RegionAssignment,
     assign_regions_from_landmarks,
     author_asset,
     read_landmarks,
     read_profiles,
 )
-from pipeline.usd.mesh import MeshData, load_mesh, pymeshlab_face_scan
-from pipeline.usd.schema import schema_is_registered
-from pipeline.usd.validate import NOT_APPLICABLE, validate_file
+from skinpipe.usd.mesh import MeshData, load_mesh, pymeshlab_face_scan
+from skinpipe.usd.schema import schema_is_registered
+from skinpipe.usd.validate import NOT_APPLICABLE, validate_file
 
 from ..reference_profiles import deon_profile, dipole_normalised
 
@@ -165,10 +165,10 @@ def test_env_prints_plugin_path(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_usdview_plugin_info_names_a_real_container() -> None:
-    import pipeline.usdview_plugin as plugin
+    import skinpipe.usdview_plugin as plugin
 
     info = json.loads((Path(plugin.__file__).parent / "plugInfo.json").read_text())
     types = info["Plugins"][0]["Info"]["Types"]
     (name,) = types
-    assert name == "pipeline.usdview_plugin.SkinPluginContainer"
+    assert name == "skinpipe.usdview_plugin.SkinPluginContainer"
     assert hasattr(plugin, "SkinPluginContainer") and hasattr(plugin, "plot_selected_profiles")

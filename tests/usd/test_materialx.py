@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdShade
 
-from pipeline.profile.io import read_fit_json
-from pipeline.usd.author import MTLX_NAME, RegionAssignment, author_asset, subsurface_radius_mm
-from pipeline.usd.materialx import (
+from skinpipe.profile.io import read_fit_json
+from skinpipe.usd.author import MTLX_NAME, RegionAssignment, author_asset, subsurface_radius_mm
+from skinpipe.usd.materialx import (
     document_problems,
     mtlx_document,
     network_problems,

@@ -8,9 +8,9 @@ import pytest
 import scipy.ndimage as ndi
 from scipy.spatial import cKDTree
 
-from pipeline.render.raytrace import RayScene
-from pipeline.render.unwrap import triangulate
-from pipeline.usd.mesh import MeshData, load_mesh, prepare_scan, pymeshlab_face_scan, seal_scan
+from skinpipe.render.raytrace import RayScene
+from skinpipe.render.unwrap import triangulate
+from skinpipe.usd.mesh import MeshData, load_mesh, prepare_scan, pymeshlab_face_scan, seal_scan
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +81,8 @@ def test_scan_preparation_in_a_child_equals_preparing_here(face_scan) -> None:
     past its time is an error and leaves nothing behind."""
     from pathlib import Path
 
-    from pipeline.errors import InputError
-    from pipeline.usd.mesh import ScanPreparation
+    from skinpipe.errors import InputError
+    from skinpipe.usd.mesh import ScanPreparation
 
     raw, skin, seal = face_scan
     with ScanPreparation(raw, 20000) as preparation:

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
-from pipeline.profile.io import read_fit_json
-from pipeline.usd.author import RegionAssignment, author_asset
-from pipeline.usd.shot import ShotOptions, author_shot, camera_tenths_per_mm
-from pipeline.usd.validate import validate_file
+from skinpipe.profile.io import read_fit_json
+from skinpipe.usd.author import RegionAssignment, author_asset
+from skinpipe.usd.shot import ShotOptions, author_shot, camera_tenths_per_mm
+from skinpipe.usd.validate import validate_file
 
 from .test_author import _patch, fit_files  # noqa: F401  (fixture)
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
-from pipeline.usd.validate import NOT_APPLICABLE, RULES, validate_file
+from skinpipe.cli import main
+from skinpipe.usd.validate import NOT_APPLICABLE, RULES, validate_file
 
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "usd"
 BAD = sorted((FIXTURES / "bad").glob("*.usda"))
@@ -76,7 +76,7 @@ def test_json_and_junit_reports(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 def test_missing_schema_plugin_fails_loudly(tmp_path: Path) -> None:
     env = {**os.environ, "SKINPIPE_SCHEMA_DIR": str(tmp_path / "nowhere")}
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "validate", str(BAD[0])],
+    proc = subprocess.run([sys.executable, "-m", "skinpipe", "validate", str(BAD[0])],
                           capture_output=True, text=True, env=env, check=False)
     assert proc.returncode == 1
     assert "skinpipe:SchemaPluginRegistered" in proc.stdout
@@ -102,6 +102,6 @@ def test_schema_docs_are_whole_sentences_in_the_registry() -> None:
 
 def test_plain_usd_users_are_told_about_the_plugin_path() -> None:
     env = {k: v for k, v in os.environ.items() if k != "PXR_PLUGINPATH_NAME"}
-    r = subprocess.run([sys.executable, "-m", "pipeline", "validate", str(CLEAN[0])],
+    r = subprocess.run([sys.executable, "-m", "skinpipe", "validate", str(CLEAN[0])],
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0 and "PXR_PLUGINPATH_NAME" in r.stderr

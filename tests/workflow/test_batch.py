@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
-from pipeline.errors import InputError
-from pipeline.fileio import relocate_paths
-from pipeline.workflow.batch import read_batch
+from skinpipe.cli import main
+from skinpipe.errors import InputError
+from skinpipe.fileio import relocate_paths
+from skinpipe.workflow.batch import read_batch
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample_assets"
 
@@ -242,7 +242,7 @@ def test_batch_never_replaces_a_folder_it_did_not_make(cluster, tmp_path: Path) 
     """On a real Dask cluster: a user's folder where a task would write (no done.json)
     fails that task with the folder named, keeps the folder's files, and skips what
     depends on it; batch.json of someone else is refused before anything runs."""
-    from pipeline.cli import main
+    from skinpipe.cli import main
 
     _copy_captures(tmp_path, "a")
     batch = _write_batch(tmp_path, ["a"])

@@ -1,4 +1,4 @@
-"""The demo chain (pipeline/workflow/chain.py): its figures read back by OpenImageIO, and
+"""The demo chain (skinpipe/workflow/chain.py): its figures read back by OpenImageIO, and
 the device it asks for before its first OpenCL work."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from pipeline.render.renderer import display_image, write_outputs
-from pipeline.workflow.chain import side_by_side
+from skinpipe.render.renderer import display_image, write_outputs
+from skinpipe.workflow.chain import side_by_side
 
 
 def test_side_by_side_lays_each_display_png_over_grey_once(tmp_path: Path) -> None:
@@ -48,8 +48,8 @@ def test_the_chain_asks_for_its_device_before_its_first_opencl_work(
     """The OpenCL loader lists its runtimes once, at the process's first query, and the
     painter's prewarm is the chain's first: `demo --device intel` had found no Intel
     device where a render with `auto` would have left Intel's runtime out."""
-    from pipeline.render.options import RenderOptions
-    from pipeline.workflow import chain
+    from skinpipe.render.options import RenderOptions
+    from skinpipe.workflow import chain
 
     calls: list[str] = []
 

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.workflow.report import (
+from skinpipe.errors import InputError
+from skinpipe.workflow.report import (
     lighting_tradeoff,
     pareto_front,
     render_tradeoff,
@@ -126,11 +126,11 @@ def test_report_page_needs_a_measured_stage(tmp_path: Path) -> None:
 
 
 def test_report_cli_fit_writes_the_page(tmp_path: Path, capsys) -> None:
-    from pipeline.cli import main
-    from pipeline.profile.fit import MeasuredProfile
-    from pipeline.profile.io import write_profile_csv
-    from pipeline.profile.models import sum_of_gaussians
-    from pipeline.profile.reference_data import DEON_2007_SKIN
+    from skinpipe.cli import main
+    from skinpipe.profile.fit import MeasuredProfile
+    from skinpipe.profile.io import write_profile_csv
+    from skinpipe.profile.models import sum_of_gaussians
+    from skinpipe.profile.reference_data import DEON_2007_SKIN
 
     r = np.linspace(0.0, 4.0, 120)
     csv = tmp_path / "deon.csv"
@@ -157,7 +157,7 @@ def test_render_cli_adaptive_equals_full_sampling_in_the_image(
     at period 2, interleaved 4.7%; 1.15% at period 4)."""
     import OpenImageIO as oiio
 
-    from pipeline.cli import main
+    from skinpipe.cli import main
 
     docs, images = {}, {}
     for mode in ("adaptive", "full"):
@@ -181,7 +181,7 @@ def test_render_cli_adaptive_equals_full_sampling_in_the_image(
 def test_report_render_refuses_bad_axes_before_measuring(
         option: list[str], sphere_lit_patch: Path, tmp_path: Path,
         capsys: pytest.CaptureFixture[str]) -> None:
-    from pipeline.cli import main
+    from skinpipe.cli import main
 
     out = tmp_path / "report"
     assert main(["report", "render", str(sphere_lit_patch), *option, "-o", str(out)]) == 2

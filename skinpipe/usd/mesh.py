@@ -252,7 +252,7 @@ class ScanPreparation:
         np.savez(folder / "scan.npz", points=mesh.points,
                  faces=mesh.face_indices.reshape(-1, 3), meters_per_unit=mesh.meters_per_unit)
         self._proc = subprocess.Popen(
-            python_command("-m", "pipeline.usd._prepare_child", str(folder / "scan.npz"),
+            python_command("-m", "skinpipe.usd._prepare_child", str(folder / "scan.npz"),
                            str(self._out), str(int(target_faces))),
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 

@@ -1,6 +1,6 @@
-"""Run as ``python -P -m pipeline.usd._prepare_child MESH.npz OUT.npz TARGET_FACES`` by
-:class:`pipeline.usd.mesh.ScanPreparation`: :func:`~pipeline.usd.mesh.prepare_scan` and
-:func:`~pipeline.usd.mesh.seal_scan` of the mesh in MESH.npz (``points``, ``faces``,
+"""Run as ``python -P -m skinpipe.usd._prepare_child MESH.npz OUT.npz TARGET_FACES`` by
+:class:`skinpipe.usd.mesh.ScanPreparation`: :func:`~skinpipe.usd.mesh.prepare_scan` and
+:func:`~skinpipe.usd.mesh.seal_scan` of the mesh in MESH.npz (``points``, ``faces``,
 ``meters_per_unit``), written to OUT.npz (``points``, ``faces`` and, where the scan was
 open, ``seal_points``, ``seal_faces``). A refusal is one stderr line
 ``skinpipe-prepare-error: ...`` and exit 3; a pymeshlab crash kills only this process."""
@@ -9,8 +9,8 @@ import sys
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.usd.mesh import MeshData, prepare_scan, seal_scan
+from skinpipe.errors import InputError
+from skinpipe.usd.mesh import MeshData, prepare_scan, seal_scan
 
 
 def main(mesh: str, out: str, target_faces: int) -> int:

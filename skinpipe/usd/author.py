@@ -263,7 +263,7 @@ def author_asset(
 ) -> AssetPaths:
     """Write asset.usda, geo.usdc and look.usda for ``fits`` on ``mesh`` into ``out_dir``.
 
-    ``seal`` (from :func:`pipeline.usd.mesh.seal_scan`) becomes ``Geom/Seal``: geometry the
+    ``seal`` (from :func:`skinpipe.usd.mesh.seal_scan`) becomes ``Geom/Seal``: geometry the
     scanner never saw, there to stop light, without skin profiles or texture space."""
     require_schema()
     start = time.perf_counter()

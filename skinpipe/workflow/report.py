@@ -135,10 +135,10 @@ def write_fit_report(rows: Sequence[TradeoffRow], out_dir: Path, default_k: int 
 
 def ingest_tradeoff(seeds: int = 30, option_seeds: int = 5, workers: int | None = None,
                     progress: Any = None) -> list[dict[str, Any]]:
-    """Every case of :func:`~pipeline.capture.study.standard_cases` on the sample
+    """Every case of :func:`~skinpipe.capture.study.standard_cases` on the sample
     subject's six regions: the must-hold cases over ``seeds`` seeds, the options and
     effects over ``option_seeds``; one row per case with its summary
-    (:func:`~pipeline.capture.study.summarise`), its settings and its per-region rows.
+    (:func:`~skinpipe.capture.study.summarise`), its settings and its per-region rows.
     The seeds run on ``workers`` processes (default: every core)."""
     import os
 

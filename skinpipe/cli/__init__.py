@@ -3,7 +3,7 @@
 Results go to stdout, diagnostics and progress to stderr. Exit codes: 0 success,
 1 a check failed, 2 bad input or usage.
 
-One module per verb (``pipeline/cli/<verb>.py``: ``add_parser`` and its handler), as
+One module per verb (``skinpipe/cli/<verb>.py``: ``add_parser`` and its handler), as
 pip's ``cli/`` and ``commands/``; the library never imports this package."""
 
 from __future__ import annotations

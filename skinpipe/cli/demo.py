@@ -21,7 +21,7 @@ def sample_captures_dir() -> Path:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
-        help="run the whole pipeline on the bundled sample assets",
+        help="run the whole skinpipe on the bundled sample assets",
         description=(
             "Ingest the bundled six-region sample captures (sample_assets/captures), fit each "
             "region's profile with a sum of Gaussians, compare both with the simulator's "

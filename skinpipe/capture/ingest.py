@@ -209,7 +209,7 @@ def normalise_profile(profile: MeasuredProfile, to_acescg: NDArray[np.float64] |
                       ) -> tuple[MeasuredProfile, NDArray[np.float64], TailExtrapolation]:
     """Scale each channel so that 2 pi int p r dr = 1 over the whole plane: the measured
     disk (ring areas) plus the tail beyond it, extrapolated from the measured tail
-    (:func:`~pipeline.profile.models.extrapolated_tail`; ``extrapolate=False``: over the
+    (:func:`~skinpipe.profile.models.extrapolated_tail`; ``extrapolate=False``: over the
     disk alone). ``to_acescg``: the matrix from the profile's (camera) space to ACEScg;
     each camera channel's tail is extrapolated there (one band of the spectrum, where a
     diffusion model holds; ACEScg channels mix several bands' tails), and the profile,

@@ -3,7 +3,7 @@
 PoCL compiles one program or kernel at a time per process (its compiler is behind one
 lock), so a cold first render's compilations form one chain however many threads ask
 for them. A render that starts a :class:`~.opencl.Prewarm` hands the later part of its
-plan to this process (``python -m pipeline.render.compile_worker SPECS``), which builds
+plan to this process (``python -m skinpipe.render.compile_worker SPECS``), which builds
 and compiles them on the same device into the same caches (pyopencl's binaries and
 PoCL's kernels, both written by rename) while the render's own thread compiles the
 first part; the render then loads them from the caches. Nothing it does is needed for

@@ -1,7 +1,7 @@
 """Registration of skinpipe's codeless USD schema, and typed access to its prims.
 
 USD reads schema plugins once, when the schema registry is first queried; a plugin
-registered later stays unknown without a warning. ``import pipeline`` therefore calls
+registered later stays unknown without a warning. ``import skinpipe`` therefore calls
 :func:`register_schema_plugin` before anything else touches USD.
 """
 

@@ -628,7 +628,7 @@ def _start_worker(steps: Sequence[PlannedStep]) -> subprocess.Popen[bytes] | Non
     env = {**os.environ, DEVICE_ENV: device_spec()}
     specs = json.dumps([[s.module, s.function, list(s.args)] for s in steps])
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline.render.compile_worker",
+        proc = subprocess.Popen([sys.executable, "-m", "skinpipe.render.compile_worker",
                                  specs], env=env, stdin=subprocess.DEVNULL,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:

@@ -1,5 +1,5 @@
 """Run as a script (``python -P _meshlab_child.py MESH OUT.npz``) by
-:func:`pipeline.usd.mesh_files.load_in_child`: pymeshlab reads MESH and the arrays go to
+:func:`skinpipe.usd.mesh_files.load_in_child`: pymeshlab reads MESH and the arrays go to
 OUT.npz. A reader crash kills only this process. It imports nothing of skinpipe."""
 
 import sys

@@ -1,6 +1,6 @@
 """Inspect fitted profiles in a USD asset: text summary and measured-vs-fitted plots.
 
-The usdview plugin (pipeline/usdview_plugin) calls :func:`plot_profile` for the selected
+The usdview plugin (skinpipe/usdview_plugin) calls :func:`plot_profile` for the selected
 prim, so the command line and usdview draw the same figure.
 """
 

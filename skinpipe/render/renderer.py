@@ -720,7 +720,7 @@ class Renderer:
         first render of the demo otherwise spent 10 s of its 16 s in compilations)."""
         opts = self.options
         domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
-        render = "pipeline.render."
+        render = "skinpipe.render."
         # each skin mesh's interleaving period where its UVs are known before the render
         # (an unwrap's are not: theirs, if not 2, are built at their first launch)
         periods = {self._interleaving(scene, m, m.uv, uv_triangles(m), triangulate(m.mesh))[0]

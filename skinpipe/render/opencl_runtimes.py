@@ -234,4 +234,4 @@ def _listdir(folder: str) -> list[str]:
 
 
 SETUP = register_runtimes()
-"""Done once, when skinpipe is imported (``pipeline/__init__.py`` imports this first)."""
+"""Done once, when skinpipe is imported (``skinpipe/__init__.py`` imports this first)."""

@@ -32,7 +32,7 @@ DEFAULT_LIMIT_MB = 256.0
 """A mesh's UV charts, the largest kept result, take about 4 bytes a triangle (211 KB
 for the demo face's 60 k triangles); the other kinds a few KB each."""
 _STALE_TMP_S = 3600.0
-"""A temporary file (``.name.*``, :func:`~pipeline.fileio.atomic_path`) this old was left
+"""A temporary file (``.name.*``, :func:`~skinpipe.fileio.atomic_path`) this old was left
 by a killed process."""
 
 

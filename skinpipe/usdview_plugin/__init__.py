@@ -1,7 +1,7 @@
 """usdview plugin: menu "Skin -> Plot profile" for the selected SkinDiffusionProfile.
 
 Enable it with the line ``skinpipe env`` prints (PXR_PLUGINPATH_NAME must list this
-folder). It is a thin layer: the plot is pipeline.usd.inspection.plot_profile, the same
+folder). It is a thin layer: the plot is skinpipe.usd.inspection.plot_profile, the same
 code as ``skinpipe inspect --plot``. usdview itself is not installable from PyPI, so
 this module only imports its Qt and plugin API when usdview loads it.
 """
@@ -21,7 +21,7 @@ except ImportError:  # pragma: no cover - usdview is not installed here
 
 def plot_selected_profiles(usdview_api: Any) -> list[str]:
     """Plot every selected profile (or a selected mesh's profiles) and show the images."""
-    from pipeline.usd.inspection import plot_profile, profiles_on_stage
+    from skinpipe.usd.inspection import plot_profile, profiles_on_stage
 
     shown = []
     for prim in usdview_api.selectedPrims:

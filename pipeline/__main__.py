@@ -1,7 +1,0 @@
-"""``python -m pipeline`` is the ``skinpipe`` command."""
-
-import sys
-
-from .cli import main
-
-sys.exit(main())
