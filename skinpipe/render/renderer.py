@@ -1525,6 +1525,14 @@ def display_image(beauty: NDArray[Any], working: str, config_source: str
     return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
 
 
+def display_colorspace(config_source: str, display: str, view: str) -> str:
+    """The colour space a display/view pair's output is encoded in. OCIO 2.2+ configs
+    share views across displays and answer ``<USE_DISPLAY_NAME>``: the colour space
+    named as the display itself (OCIO's rule for shared views)."""
+    space = ocio_config(config_source).getDisplayViewColorSpaceName(display, view)
+    return display if space == OCIO.OCIO_VIEW_USE_DISPLAY_NAME else space
+
+
 def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32]],
                   working: str, config_source: str, half: bool = False) -> dict[str, Any]:
     """OUT/<name>.exr (one layer per AOV, colour space in the header; half float with
@@ -1545,8 +1553,7 @@ def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32
         disp, info = display_image(images["beauty"], working, config_source)
         alpha = images["beauty"][..., 3:4]
         # tagged with the display's colour space, so the PNG carries its sRGB chunk
-        space = ocio_config(config_source).getDisplayViewColorSpaceName(info["display"],
-                                                                         info["view"])
+        space = display_colorspace(config_source, info["display"], info["view"])
         # straight alpha, as PNG stores it: OpenImageIO is told so, or it divides again
         png = write_ldr(out_dir / f"{name}.png", np.concatenate([disp, alpha], axis=2), 8,
                         {"oiio:ColorSpace": space, "oiio:UnassociatedAlpha": 1,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ from skinpipe.render.unwrap import triangulate, unwrap
 from skinpipe.usd.io import open_stage_guarded
 from skinpipe.usd.mesh import MeshData
 
+from ..png_chunks import png_chunks
 from ..render_scenes import (
     deon_fit,
     distant_down,
@@ -647,8 +649,16 @@ def test_output_has_aov_layers_and_colour_space(lit_patch: Path, tmp_path: Path)
     acescg = colour.models.RGB_COLOURSPACE_ACESCG
     want = [*np.asarray(acescg.primaries).ravel(), *acescg.whitepoint]
     np.testing.assert_allclose(spec.getattribute("chromaticities"), want, atol=1e-4)
-    # the display PNG says it is sRGB (its sRGB chunk), as OpenImageIO reads it back
-    assert b"sRGB" in (out / "scene.png").read_bytes()[:200]
+    # the display PNG says it is sRGB: an sRGB chunk before the pixels (ISO/IEC 15948
+    # 11.3.3.5; rendering intent 0-3), with the gAMA and cHRM a reader without colour
+    # management falls back to (1/2.2 as 45455; Rec.709 primaries, D65)
+    chunks = png_chunks(out / "scene.png")
+    kinds = [k for k, _ in chunks]
+    assert "sRGB" in kinds and kinds.index("sRGB") < kinds.index("IDAT"), kinds
+    assert dict(chunks)["sRGB"] in (b"\x00", b"\x01", b"\x02", b"\x03")
+    assert struct.unpack(">I", dict(chunks)["gAMA"]) == (45455,)
+    np.testing.assert_allclose(np.array(struct.unpack(">8I", dict(chunks)["cHRM"])) / 1e5,
+                               [0.3127, 0.329, 0.64, 0.33, 0.3, 0.6, 0.15, 0.06], atol=1e-4)
     png = oiio.ImageInput.open(str(out / "scene.png"))
     assert png.spec().getattribute("oiio:ColorSpace").startswith("srgb")
     png.close()
@@ -938,3 +948,16 @@ def test_albedo_weights_in_bands_are_the_whole_textures(power: float) -> None:
     got = rgb.copy()
     times_albedo_power(got, albedo, power, rows=5)
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_shared_view_names_its_display_colour_space() -> None:
+    """OCIO 2.2+ configs share views across displays and answer ``<USE_DISPLAY_NAME>``
+    for the colour space of such a view: the display's own colour space is meant."""
+    from skinpipe.render.renderer import display_colorspace, ocio_config
+
+    config = ocio_config("ocio://default")
+    display = config.getDefaultDisplay()
+    view = config.getDefaultView(display)
+    assert config.getDisplayViewColorSpaceName(display, view) == "<USE_DISPLAY_NAME>"
+    space = display_colorspace("ocio://default", display, view)
+    assert space == display and config.getColorSpace(space) is not None
