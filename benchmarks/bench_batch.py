@@ -41,8 +41,8 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="skinpipe-bench-batch-"))
     try:
         batch = work / "batch.json"
-        batch.write_text(json.dumps({"defaults": {"captures": str(ROOT / "sample_assets" /
-                                                                  "captures"), "k": 6},
+        captures = ROOT / "skinpipe" / "samples" / "captures"
+        batch.write_text(json.dumps({"defaults": {"captures": str(captures), "k": 6},
                                      "subjects": [{"name": f"s{i:02d}"}
                                                   for i in range(args.subjects)]}))
         subjects = read_batch(batch)

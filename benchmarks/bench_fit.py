@@ -3,7 +3,7 @@
 Peers measured in the same run on the same profiles: the paper's GA + SQP (scipy
 SLSQP standing in for MATLAB fmincon) and a 50-start IPOPT multi-start, whose best
 objective is the reference optimum. Then, on the six sample regions (ingested from
-sample_assets/captures), skinpipe's fit against a baseline written here from scipy
+skinpipe/samples/captures), skinpipe's fit against a baseline written here from scipy
 alone (:func:`multistart_baseline`: a 20-start SLSQP on the log-variances, weights by
 NNLS), both judged by :func:`objective_eq2c` (issue 23). Writes JSON (comparable over
 time) and tables.
@@ -33,7 +33,7 @@ from skinpipe.profile.models import (
 )
 from skinpipe.profile.reference_data import DEON_2007_SKIN, JENSEN_2001
 
-CAPTURES = Path(__file__).resolve().parent.parent / "sample_assets" / "captures"
+CAPTURES = Path(__file__).resolve().parent.parent / "skinpipe" / "samples" / "captures"
 
 
 def profiles() -> list[MeasuredProfile]:

@@ -1,4 +1,4 @@
-"""Regenerate schemas/generatedSchema.usda and schemas/plugInfo.json from schema.usda.
+"""Regenerate skinpipe/schemas/generatedSchema.usda and plugInfo.json from schema.usda.
 
     python tools/gen_schema.py
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from pxr import Sdf
 
-SCHEMAS = Path(__file__).resolve().parents[1] / "schemas"
+SCHEMAS = Path(__file__).resolve().parents[1] / "skinpipe" / "schemas"
 
 
 def main() -> None:

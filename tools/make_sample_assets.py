@@ -1,4 +1,4 @@
-"""Regenerate sample_assets/captures: the bundled six-region capture set.
+"""Regenerate skinpipe/samples/captures: the bundled six-region capture set.
 
     python tools/make_sample_assets.py
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from skinpipe.capture.simulate import PRESETS, sample_subject_truths, simulate_capture_set
 
-ROOT = Path(__file__).resolve().parents[1] / "sample_assets" / "captures"
+ROOT = Path(__file__).resolve().parents[1] / "skinpipe" / "samples" / "captures"
 
 
 def main() -> None:

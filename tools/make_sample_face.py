@@ -1,4 +1,4 @@
-"""Write sample_assets/face/landmarks.json: the six regions' landmarks on the face scan.
+"""Write skinpipe/samples/face/landmarks.json: the six regions' landmarks on the face scan.
 
     python tools/make_sample_face.py [--plot regions.png]
 
@@ -26,7 +26,7 @@ PICKS_XY_MM = {
     "cheekbone": [(-42, -18), (24, -18)],
     "cheek": [(-40, -46), (24, -46)],
 }
-OUT = Path(__file__).resolve().parents[1] / "sample_assets" / "face" / "landmarks.json"
+OUT = Path(__file__).resolve().parents[1] / "skinpipe" / "samples" / "face" / "landmarks.json"
 
 
 def lift(points: np.ndarray, xy: tuple[float, float]) -> list[float]:

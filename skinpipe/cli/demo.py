@@ -15,7 +15,7 @@ from .common import (
 
 def sample_captures_dir() -> Path:
     """The bundled sample capture set (in the source tree beside the package)."""
-    return Path(__file__).resolve().parents[2] / "sample_assets" / "captures"
+    return Path(__file__).resolve().parents[1] / "samples" / "captures"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -23,10 +23,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "demo",
         help="run the whole skinpipe on the bundled sample assets",
         description=(
-            "Ingest the bundled six-region sample captures (sample_assets/captures), fit each "
+            "Ingest the bundled six-region sample captures (skinpipe/samples/captures), fit each "
             "region's profile with a sum of Gaussians, compare both with the simulator's "
             "known truth, author a USD asset on pymeshlab's real face scan with the six "
-            "regions placed by sample_assets/face/landmarks.json, paint it a skin albedo "
+            "regions placed by skinpipe/samples/face/landmarks.json, paint it a skin albedo "
             "(regional tones, freckles, moles), validate it, and render it with its six "
             "profiles; then the paper's figure 7 (texture-mapped only vs with scattering) "
             "and per-region vs one profile, side by side. Writes OUT/profiles, OUT/fits, "

@@ -39,7 +39,7 @@ SHADOW_ONLY_PRIMVARS: dict[str, tuple[str, object]] = {
 def schema_dir() -> Path:
     """Folder of plugInfo.json + generatedSchema.usda (``SKINPIPE_SCHEMA_DIR`` overrides)."""
     override = os.environ.get("SKINPIPE_SCHEMA_DIR")
-    return Path(override) if override else Path(__file__).resolve().parents[2] / "schemas"
+    return Path(override) if override else Path(__file__).resolve().parents[1] / "schemas"
 
 
 def usdview_plugin_dir() -> Path:

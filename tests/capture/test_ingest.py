@@ -273,7 +273,8 @@ def test_manifest_reader_rejects_bad_exposure(small_capture: Path, tmp_path: Pat
 def test_sample_assets_truth_matches_the_simulator() -> None:
     from dataclasses import replace
 
-    truth = read_truth(Path(__file__).parents[2] / "sample_assets" / "captures" / "truth.json")
+    samples = Path(__file__).parents[2] / "skinpipe" / "samples"
+    truth = read_truth(samples / "captures" / "truth.json")
     assert sorted(truth) == sorted(TRUTHS)
     r = np.linspace(0, 4, 50)
     for name, t in truth.items():
@@ -294,7 +295,7 @@ def test_ingest_states_an_honest_uncertainty(tmp_path: Path) -> None:
     from skinpipe.capture.simulate import read_truth
     from skinpipe.profile.io import read_profile_csv
 
-    captures = Path(__file__).parents[2] / "sample_assets" / "captures"
+    captures = Path(__file__).parents[2] / "skinpipe" / "samples" / "captures"
     truth = read_truth(captures / "truth.json")
     report = ingest_capture_set(captures, tmp_path)
     for name, entry in report["regions"].items():

@@ -144,7 +144,7 @@ def test_demo_on_sample_assets(demo_run: tuple[Path, str, str]) -> None:
 
 
 def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:
-    captures = Path(__file__).parents[2] / "sample_assets" / "captures"
+    captures = Path(__file__).parents[2] / "skinpipe" / "samples" / "captures"
     assert main(["ingest", str(captures), "--regions", "cheek", "-o", str(tmp_path)]) == 0
     assert main(["fit", str(tmp_path / "cheek.csv"), "-k", "4", "--free-scale",
                  "-o", str(tmp_path / "cheek.json")]) == 0

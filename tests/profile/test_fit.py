@@ -282,7 +282,7 @@ def test_bad_k() -> None:
         fit_sum_of_gaussians(deon_profile(), k=9)
 
 
-SAMPLE_CAPTURES = Path(__file__).parents[2] / "sample_assets" / "captures"
+SAMPLE_CAPTURES = Path(__file__).parents[2] / "skinpipe" / "samples" / "captures"
 FOREHEAD_MULTISTART_OBJECTIVE = 3.7242e-6
 """The sample forehead's best objective (mean over R, G, B of sum r dr (p - f)^2 / sum r
 dr p^2, k = 6) found by a 20-start scipy SLSQP on the log-variances with NNLS weights

@@ -26,7 +26,7 @@ from skinpipe.usd.validate import NOT_APPLICABLE, validate_file
 
 from ..reference_profiles import deon_profile, dipole_normalised
 
-SAMPLE_LANDMARKS = Path(__file__).parents[2] / "sample_assets" / "face" / "landmarks.json"
+SAMPLE_LANDMARKS = Path(__file__).parents[2] / "skinpipe" / "samples" / "face" / "landmarks.json"
 
 
 def _patch() -> MeshData:

@@ -18,7 +18,7 @@ from skinpipe.errors import InputError
 from skinpipe.fileio import relocate_paths
 from skinpipe.workflow.batch import read_batch
 
-SAMPLE = Path(__file__).resolve().parents[2] / "sample_assets"
+SAMPLE = Path(__file__).resolve().parents[2] / "skinpipe" / "samples"
 
 
 def _write_batch(root: Path, names: list[str], **defaults: object) -> Path:
