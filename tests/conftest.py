@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import io
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -16,18 +13,12 @@ from skinpipe.profile.fit import MeasuredProfile
 from skinpipe.render import opencl
 from skinpipe.render.blur_switch import SWITCH_ENV
 from skinpipe.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
-from skinpipe.render.options import LAYOUT_CACHE_ENV
 
 from .reference_profiles import deon_profile
 
 # Which blur runs is measured per device (skinpipe.render.blur_switch); tests that count blur
 # passes pin it to the values measured on PoCL. tests/render/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
-# The CLI keeps seam layouts between renders (skinpipe.render.tile_store): the test run's
-# go to a folder of its own, not the user's cache, and go with it.
-_LAYOUTS = tempfile.mkdtemp(prefix="skinpipe-test-layouts-")
-atexit.register(shutil.rmtree, _LAYOUTS, ignore_errors=True)
-os.environ[LAYOUT_CACHE_ENV] = _LAYOUTS
 
 
 def _working_devices() -> list[opencl.Candidate]:

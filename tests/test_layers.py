@@ -8,7 +8,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "skinpipe"
 RANK = {"cli": 5, "workflow": 4, "capture": 3, "usd": 3, "render": 3, "profile": 2,
-        "errors": 1, "fileio": 1, "imageio": 1}
+        "errors": 1, "fileio": 1, "imageio": 1, "package_data": 1}
 ALSO_ALLOWED = {("render", "usd")}
 """Sideways imports allowed: the render reads USD stages (scene delegate, guarded opens,
 mesh checks)."""

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import InputError
+from ..package_data import package_folder
 from .common import (
     HelpFormatter,
     add_force_option,
@@ -14,8 +15,8 @@ from .common import (
 
 
 def sample_captures_dir() -> Path:
-    """The bundled sample capture set (in the source tree beside the package)."""
-    return Path(__file__).resolve().parents[1] / "samples" / "captures"
+    """The bundled sample capture set (package data)."""
+    return package_folder("samples") / "captures"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -49,8 +50,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     captures = sample_captures_dir()
     if not (captures / "capture.json").is_file():
-        raise InputError("the sample assets are missing (run from a clone of the repository)",
-                         captures)
+        raise InputError("the sample captures are missing from this installation "
+                         "(reinstall skinpipe with pip)", captures)
     return run_staged(args, "demo", captures, pymeshlab_face_scan(),
                       captures.parent / "face" / "landmarks.json", True, True,
                       truth=read_truth(captures / "truth.json"))

@@ -13,6 +13,7 @@ from pathlib import Path
 from pxr import Plug, Usd
 
 from ..errors import SkinpipeError
+from ..package_data import package_folder
 
 PROFILE_TYPE = "SkinDiffusionProfile"
 PROFILE_TFTYPE = "SkinpipeSkinDiffusionProfile"
@@ -39,12 +40,12 @@ SHADOW_ONLY_PRIMVARS: dict[str, tuple[str, object]] = {
 def schema_dir() -> Path:
     """Folder of plugInfo.json + generatedSchema.usda (``SKINPIPE_SCHEMA_DIR`` overrides)."""
     override = os.environ.get("SKINPIPE_SCHEMA_DIR")
-    return Path(override) if override else Path(__file__).resolve().parents[1] / "schemas"
+    return Path(override) if override else package_folder("schemas")
 
 
 def usdview_plugin_dir() -> Path:
     """Folder of the usdview plugin's plugInfo.json."""
-    return Path(__file__).resolve().parents[1] / "usdview_plugin"
+    return package_folder("usdview_plugin")
 
 
 def register_schema_plugin() -> bool:
