@@ -236,6 +236,12 @@ def _define_mesh(stage: Any, path: str, mesh: MeshData, origin: NDArray[Any]) ->
     return umesh
 
 
+def _extents_hint(meshes: Sequence[MeshData], origin: NDArray[Any]) -> Any:
+    """[min, max] over the meshes' points as :func:`_define_mesh` writes them."""
+    pts = np.concatenate([np.asarray(m.points - origin, dtype=np.float32) for m in meshes])
+    return Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)]))
+
+
 def _author_seal(stage: Any, path: str, seal: MeshData, origin: NDArray[Any]) -> None:
     umesh = _define_mesh(stage, path, seal, origin)
     umesh.CreateDisplayColorAttr([Gf.Vec3f(0.2, 0.2, 0.2)])
@@ -338,6 +344,10 @@ def author_asset(
     Usd.ColorSpaceAPI.Apply(top).CreateColorSpaceNameAttr(WORKING_COLORSPACE)
     # the scan's placement: a transform of the root, which a set dresser overrides
     UsdGeom.Xformable(top).AddTranslateOp().Set(Gf.Vec3d(*origin.tolist()))
+    # the box of everything under the root, in its own space: an unloaded payload still
+    # has a size (Pixar's model guidelines ask extentsHint of a component)
+    UsdGeom.ModelAPI(top).SetExtentsHint(_extents_hint(
+        [mesh] if seal is None else [mesh, seal], origin))
     del asset  # composition arcs go on the bare layer: no stage composes them here
     asset_layer.subLayerPaths = ["./look.usda"]
     asset_layer.GetPrimAtPath(root).payloadList.Prepend(Sdf.Payload("./geo.usdc"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -94,6 +95,28 @@ def test_asset_structure(fit_files: Path, tmp_path: Path) -> None:
     report = validate_file(paths.asset)
     assert not report.failed(strict=False)
     assert all(p.severity == NOT_APPLICABLE for p in report.problems)
+
+
+def test_an_unloaded_asset_has_the_loaded_ones_box(fit_files: Path, tmp_path: Path) -> None:
+    """Pixar's model guidelines: a component carries extentsHint, so that a set with the
+    payload unloaded still knows its size. USD's own bounding-box cache, reading the
+    hint with the payload unloaded, gives the box it computes from the loaded mesh."""
+    fits = [read_fit_json(p) for p in sorted(fit_files.glob("*.json"))]
+    regions = RegionAssignment(("forehead", "cheek"), np.array([0] * 6 + [1] * 6, np.int32))
+    paths = author_asset(fits, _patch(), regions, tmp_path / "a", name="Jane")
+    purposes = [UsdGeom.Tokens.default_]
+
+    def world_box(load: Any, hint: bool) -> Any:
+        stage = Usd.Stage.Open(str(paths.asset), load)
+        cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), purposes, useExtentsHint=hint)
+        return cache.ComputeWorldBound(stage.GetDefaultPrim()).ComputeAlignedRange()
+
+    unloaded = world_box(Usd.Stage.LoadNone, True)
+    loaded = world_box(Usd.Stage.LoadAll, False)
+    assert not unloaded.IsEmpty()
+    np.testing.assert_allclose(unloaded.GetMin(), loaded.GetMin(), atol=1e-3)
+    np.testing.assert_allclose(unloaded.GetMax(), loaded.GetMax(), atol=1e-3)
+    np.testing.assert_allclose(loaded.GetMin(), _patch().points.min(0), atol=1e-3)
 
 
 def test_landmark_regions_cover_the_face_scan() -> None:
