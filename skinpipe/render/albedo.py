@@ -177,9 +177,10 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
     file_input = tex.CreateInput("file", Sdf.ValueTypeNames.Asset)
     file_input.Set(Sdf.AssetPath(f"./{rel.as_posix()}"))
     file_input.GetAttr().SetColorSpace(WORKING_COLORSPACE)
-    # "auto": the file says what it is (colorSpace metadata, USD's name for ACEScg, and the
-    # EXR's chromaticities), rather than "raw" (taken as the renderer's working space)
-    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("auto")
+    # "raw": no transfer function. UsdPreviewSurface's "auto" means the same for a float
+    # EXR, but importers that guess (Blender 5.0) read "auto" as sRGB; the primaries are
+    # said by the file attribute's colorSpace (ACEScg) and the EXR's chromaticities
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
     tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
         reader.CreateOutput("result", Sdf.ValueTypeNames.Float2))
     rgb = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)

@@ -36,6 +36,18 @@ def test_demo_albedo_reads_back_as_a_texture(demo_run: tuple[Path, str, str]) ->
         image.close()
 
 
+def test_demo_albedo_is_bound_as_linear_data(demo_run: tuple[Path, str, str]) -> None:
+    """The UsdUVTexture says "raw" (no transfer function: an importer that reads "auto"
+    as sRGB, as Blender 5.0 does, would darken it), and its file names ACEScg."""
+    from pxr import Usd, UsdShade
+
+    stage = Usd.Stage.Open(str(demo_run[0] / "asset" / "asset.usda"))
+    (texture,) = [UsdShade.Shader(p) for p in stage.Traverse()
+                  if UsdShade.Shader(p) and UsdShade.Shader(p).GetShaderId() == "UsdUVTexture"]
+    assert texture.GetInput("sourceColorSpace").Get() == "raw"
+    assert texture.GetInput("file").GetAttr().GetColorSpace() == "lin_ap1_scene"
+
+
 def test_demo_albedo_agrees_across_seams_and_has_freckles(
         demo_run: tuple[Path, str, str]) -> None:
     """Texel pairs far apart in UV (other charts) but within 0.3 texel on the surface read
