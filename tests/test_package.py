@@ -67,3 +67,36 @@ def test_the_wheel_installs_and_runs_the_demo_from_anywhere(tmp_path: Path) -> N
     folders = line.split("=", 1)[1].split("$")[0].split(os.pathsep)
     assert all(Path(f).is_dir() and Path(f).is_relative_to(env_dir) for f in folders), line
     assert (Path(folders[0]) / "plugInfo.json").is_file()
+
+
+def _declared_minimum(name: str) -> str:
+    """The version after ``>=`` in pyproject.toml's dependency on ``name``."""
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    (spec,) = [d for d in deps if d.split(">=")[0].strip().lower() == name]
+    return spec.split(">=")[1].split(";")[0].split(",")[0].strip()
+
+
+@pytest.mark.slow  # an install of usd-core, the demo: about a minute
+def test_the_oldest_declared_usd_core_authors_validates_and_renders(tmp_path: Path) -> None:
+    """The demo (author, validate, render) and ``skinpipe validate`` on the usd-core that
+    pyproject.toml declares as the oldest it works with."""
+    version = _declared_minimum("usd-core")
+    target = tmp_path / "usd"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
+                    str(target), f"usd-core=={version}"], check=True, capture_output=True,
+                   text=True, timeout=900)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(target), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, *args], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=1200)
+
+    got = run("-c", "from pxr import Usd; print('.'.join(map(str, Usd.GetVersion()[1:])))")
+    assert got.stdout.strip() == version, got.stdout + got.stderr
+    demo = run("-m", "skinpipe", "demo", "-o", "out")
+    assert demo.returncode == 0, demo.stderr[-3000:]
+    valid = run("-m", "skinpipe", "validate", "out/asset/asset.usda")
+    assert valid.returncode == 0 and "Success!" in valid.stdout, valid.stdout + valid.stderr

@@ -20,7 +20,7 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 from pxr import Sdf, Sdr, Tf, Usd, UsdGeom, UsdShade, UsdValidation
 
-from ..errors import InputError
+from ..errors import InputError, SkinpipeError
 from .io import composed_layer_files, usd_error_message
 from .materialx import OPENPBR, is_materialx_id, network_problems
 from .schema import (
@@ -383,6 +383,11 @@ def register_rules() -> list[Any]:
     """Register every rule with UsdValidation (once); return our validators."""
     global _REGISTERED
     registry = UsdValidation.ValidationRegistry()
+    if not hasattr(registry, "RegisterStageValidator"):  # usd-core 26.3 and older
+        raise SkinpipeError(
+            f"usd-core {'.'.join(map(str, Usd.GetVersion()[1:]))} cannot register "
+            "validation rules from Python; skinpipe needs usd-core 26.5 or newer "
+            "(pip install -U usd-core)")
     if not _REGISTERED:
         for r in RULES:
             if registry.HasValidator(r.name):
