@@ -50,6 +50,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                        "(no work when their outputs are current)")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_ROOT",
                    help="output root, one directory per subject")
+    p.add_argument("--dashboard", nargs="?", const="127.0.0.1:8787", default=None,
+                   metavar="HOST:PORT",
+                   help="serve the local cluster's Dask dashboard there (127.0.0.1:8787 "
+                        "when given alone; port 0 picks a free one) and print its address; "
+                        "needs bokeh: pip install 'skinpipe[dashboard]'. A cluster of your "
+                        "own serves its dashboard from its scheduler")
     p.add_argument("--device", default=None, metavar="SPEC",
                    help=f"OpenCL device of the local workers ({DEVICE_HELP}); workers of "
                         f"your own cluster read ${DEVICE_ENV} from their environment")
@@ -68,8 +74,22 @@ def _bar(done: int, total: int, res: dict[str, Any]) -> None:
         _eprint(f"  error: {res.get('error', '').splitlines()[0]}")
 
 
+def local_cluster(workers: int, dashboard: str | None) -> Any:
+    """A LocalCluster of ``workers`` processes (one thread each), with its dashboard at
+    ``dashboard`` (HOST:PORT) or none; InputError when the dashboard's bokeh is missing."""
+    import importlib.util
+
+    from distributed import LocalCluster
+
+    if dashboard and importlib.util.find_spec("bokeh") is None:
+        raise InputError("the Dask dashboard needs bokeh, which is not installed: "
+                         "pip install 'skinpipe[dashboard]' (or leave out --dashboard)")
+    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=dashboard or None)
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     from ..fileio import atomic_write_json, check_output_file, record_outputs
     from ..workflow.batch import (
@@ -82,6 +102,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     )
 
     subjects = read_batch(args.batch)
+    # the client's folder, whatever folder the workers run in (they get absolute paths)
+    args.output = Path(os.path.abspath(args.output))
     check_output_file(args.output / "batch.json", [args.batch], args.force)
     if args.scheduler is None and not 1 <= args.local_workers <= 256:
         raise InputError(f"--local-workers must be 1-256, got {args.local_workers}")
@@ -89,12 +111,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if args.device:  # worker processes inherit it (each chooses its device in its process)
         os.environ[DEVICE_ENV] = args.device
     if args.scheduler:
+        if args.dashboard:
+            raise InputError("--dashboard serves a local cluster's dashboard; a scheduler "
+                             "of your own serves its own (dask scheduler --dashboard-address)")
         client = Client(args.scheduler, timeout="30s")
     else:
-        cluster = LocalCluster(n_workers=args.local_workers, threads_per_worker=1,
-                               processes=True, dashboard_address=None)
+        cluster = local_cluster(args.local_workers, args.dashboard)
         client = Client(cluster)
         client.register_plugin(ignore_interrupts())
+        if args.dashboard:
+            _eprint(f"batch: Dask dashboard at {client.dashboard_link}")
     interrupted = False
     try:
         _eprint(f"batch: {len(subjects)} subject(s), stages {','.join(args.stages)}, "

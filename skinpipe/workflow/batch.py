@@ -86,7 +86,8 @@ def read_batch(path: str | Path) -> list[Subject]:
     defaults = doc.get("defaults", {})
     if not isinstance(defaults, dict):
         raise InputError("\"defaults\" must be an object", path)
-    base = path.parent
+    # absolute: the paths travel to workers that may run in another folder or machine
+    base = Path(os.path.abspath(path.parent))
     subjects: list[Subject] = []
     for i, entry in enumerate(doc["subjects"]):
         if not isinstance(entry, dict):

@@ -262,3 +262,66 @@ def test_batch_never_replaces_a_folder_it_did_not_make(cluster, tmp_path: Path) 
     assert main(["batch", str(batch), "--scheduler", cluster.scheduler_address,
                  "-o", str(other)]) == 2
     assert (other / "batch.json").read_text() == "{}"
+
+
+def test_a_relative_output_root_means_the_clients_folder_on_a_real_cluster(
+        tmp_path: Path) -> None:
+    """A scheduler and a worker started as a farm starts them (``dask scheduler``,
+    ``dask worker``), the worker in a folder of its own: ``-o rel`` given to the client
+    puts every output, and batch.json with absolute paths, in the client's folder."""
+    import subprocess
+    import sys
+
+    client_dir, worker_dir = tmp_path / "client", tmp_path / "worker"
+    client_dir.mkdir()
+    worker_dir.mkdir()
+    _copy_captures(client_dir, "a")
+    _write_batch(client_dir, ["a"])
+    address_file = tmp_path / "scheduler.json"
+    daemons = [subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+         "--port", "0", "--scheduler-file", str(address_file), "--no-dashboard"],
+        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        for _ in range(600):  # the scheduler writes its address when it listens
+            if address_file.is_file() and address_file.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(address_file.read_text())["address"]
+        daemons.append(subprocess.Popen(
+            [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nworkers", "1",
+             "--nthreads", "1", "--no-dashboard"], cwd=worker_dir,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        run = subprocess.run([sys.executable, "-m", "skinpipe", "batch", "batch.json",
+                              "--scheduler", address, "--stages", "ingest", "-o", "rel"],
+                             cwd=client_dir, capture_output=True, text=True, timeout=600)
+    finally:
+        for daemon in reversed(daemons):
+            daemon.terminate()
+            daemon.wait(timeout=60)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert not any(worker_dir.iterdir())  # nothing in the worker's folder
+    doc = json.loads((client_dir / "rel" / "batch.json").read_text())
+    outputs = doc["subjects"]["a"]["ingest"]["outputs"]
+    assert outputs and all(Path(p).is_absolute() and Path(p).is_file() for p in outputs)
+    assert all(Path(p).is_relative_to(client_dir / "rel") for p in outputs)
+
+
+def test_the_local_clusters_dashboard_serves_or_names_what_it_needs(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """--dashboard: a real dashboard answering HTTP where bokeh is installed (the dev
+    extra has it); without bokeh an error naming the extra, before any worker starts."""
+    import importlib.util
+    import urllib.request
+
+    from skinpipe.cli.batch import local_cluster
+
+    with local_cluster(1, "127.0.0.1:0") as cluster:
+        link = cluster.dashboard_link
+        with urllib.request.urlopen(link, timeout=60) as page:
+            assert page.status == 200
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "bokeh" else real(name, *a))
+    with pytest.raises(InputError, match=r"skinpipe\[dashboard\]"):
+        local_cluster(1, "127.0.0.1:0")
