@@ -361,9 +361,9 @@ def no_device_message(spec: str, found: Sequence[tuple[Candidate, Any]],
         head = f"no OpenCL device passed skinpipe's probe (device '{spec}'): " + "; ".join(
             f"{c.label}: {r}" for c, r in tried)
     notes = "; ".join(SETUP.notes)
-    return (f"{head}. Install a CPU runtime (pip install pyopencl[pocl] intel-opencl-rt "
-            f"intel-cmplr-lib-rt tbb) or a GPU driver's OpenCL ICD, or choose another with "
-            f"--device / ${DEVICE_ENV}" + (f" ({notes})" if notes else ""))
+    return (f"{head}. Install a CPU runtime (pip install 'skinpipe[intel-cpu]': Intel's, "
+            f"for CPUs PoCL cannot build for) or a GPU driver's OpenCL ICD, or choose another "
+            f"with --device / ${DEVICE_ENV}" + (f" ({notes})" if notes else ""))
 
 
 _preference: str | None = None

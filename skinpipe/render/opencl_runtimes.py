@@ -123,8 +123,8 @@ def register_runtimes() -> RuntimeSetup:
     os.environ.setdefault("POCL_CACHE_DIR", str(cache_root() / "pocl"))
     intel = setup.intel = _dist_file(INTEL_DIST, INTEL_LIBRARY)
     if intel is None:
-        setup.notes.append(f"Intel CPU runtime: not installed (pip install {INTEL_DIST} "
-                           f"intel-cmplr-lib-rt {TBB_DIST})")
+        setup.notes.append("Intel CPU runtime: not installed (pip install "
+                           "'skinpipe[intel-cpu]')")
     else:
         tbb = _dist_file(TBB_DIST, TBB_LIBRARY)
         if "pymeshlab" in sys.modules:

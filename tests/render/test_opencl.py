@@ -87,7 +87,7 @@ def test_no_working_device_names_each_one_and_what_to_install() -> None:
     msg = str(err.value)
     for cand in (POCL, INTEL, GPU):
         assert f"{cand.label}: {ZEN5}" in msg
-    assert "intel-opencl-rt" in msg and "--device" in msg
+    assert "pip install 'skinpipe[intel-cpu]'" in msg and "--device" in msg
     with pytest.raises(InputError, match="no OpenCL device found"):
         choose_device("auto", [], lambda device, nt: None)
     with pytest.raises(InputError, match="matches 'amd-gpu'"):
