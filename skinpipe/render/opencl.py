@@ -160,9 +160,14 @@ class Candidate:
         """Short id of the runtime and kind, e.g. ``pocl-cpu``, ``intel-cpu``."""
         p = self.platform.lower()
         vendor = ("pocl" if "portable computing" in p or "pocl" in p else
-                  next((v for v in ("intel", "nvidia", "amd", "rusticl", "clover", "apple")
-                        if v in p), "".join(c for c in p.split()[0] if c.isalnum()) or "cl"))
+                  next((v for v in RUNTIME_VENDORS if v in p),
+                       "".join(c for c in p.split()[0] if c.isalnum()) or "cl"))
         return f"{vendor}-{self.kind}"
+
+
+RUNTIME_VENDORS = ("pocl", "intel", "nvidia", "amd", "rusticl", "clover", "apple")
+"""Runtime vendors a device spec names as runtimes (``intel``: Intel's runtime, never a
+device whose name says Intel)."""
 
 
 @dataclass
@@ -242,7 +247,7 @@ def order_candidates(found: Sequence[tuple[Candidate, Any]], spec: str
         # a runtime's id or vendor ("intel-cpu", "intel") names that runtime only: on an
         # Intel CPU PoCL's device is "pthread-Intel(R) Xeon ..." too
         pool = [f for f in found if s in (f[0].runtime, f[0].runtime.split("-")[0])]
-        if not pool:
+        if not pool and s.split("-")[0] not in RUNTIME_VENDORS:
             pool = [f for f in found if s in f[0].label.lower() or s in f[0].runtime]
     return sorted(pool, key=rank)
 

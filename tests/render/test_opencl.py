@@ -59,6 +59,9 @@ def test_a_runtime_name_picks_that_runtime_on_its_vendors_cpu() -> None:
         assert [c.runtime for c, _ in order_candidates(found, spec)] == ["intel-cpu"], spec
     assert [c.runtime for c, _ in order_candidates(found, "xeon")] == ["pocl-cpu",
                                                                        "intel-cpu"]
+    # Intel's runtime not registered (left out after PoCL passed here): `intel` finds
+    # nothing rather than PoCL's "pthread-Intel(R) Xeon" device
+    assert order_candidates([(pocl, "pocl")], "intel") == []
 
 
 def test_a_runtime_that_cannot_build_falls_back_to_the_next() -> None:
