@@ -5,14 +5,9 @@ every runtime; builds and kernel launches are counted for ``render.json``."""
 
 from __future__ import annotations
 
-import atexit
-import importlib
-import json
 import math
 import mmap
 import os
-import subprocess
-import sys
 import threading
 import time
 import warnings
@@ -604,77 +599,23 @@ def _on_pocl() -> bool:
     return device_choice().candidate.runtime.startswith("pocl")
 
 
-@dataclass(frozen=True)
-class PlannedStep:
-    """A step of a :class:`Prewarm` that another process can run as well: ``function``
-    of ``module`` called with ``args`` (JSON values). With ``worker`` it is handed to
-    the compile worker (:mod:`.compile_worker`), and the prewarm thread runs it only
-    after the worker is done (then from the caches)."""
-
-    module: str
-    function: str
-    args: tuple[Any, ...] = ()
-    worker: bool = False
-
-    def __call__(self) -> Any:
-        return getattr(importlib.import_module(self.module), self.function)(*self.args)
-
-
-WORKER_TIMEOUT_S = 300.0
-"""Longest wait for the compile worker; past it, the render compiles what is left."""
-
-
-def _start_worker(steps: Sequence[PlannedStep]) -> subprocess.Popen[bytes] | None:
-    """The compile worker for ``steps`` on this process's device (the same device
-    request: the choice is the same on the same machine), or None where it would not
-    pay (one core) or cannot start."""
-    if not steps or (os.cpu_count() or 1) < 2:
-        return None
-    env = {**os.environ, DEVICE_ENV: device_spec()}
-    specs = json.dumps([[s.module, s.function, list(s.args)] for s in steps])
-    try:
-        proc = subprocess.Popen([sys.executable, "-m", "skinpipe.render.compile_worker",
-                                 specs], env=env, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    except OSError:
-        return None
-    atexit.register(lambda: proc.poll() is None and proc.kill())
-    return proc
-
-
 class Prewarm:
     """Programs built, and on PoCL kernels compiled, on a background thread ahead of
     their first use, while the render's host work (texture maps, Embree's rays, numpy)
-    goes on: a cold first render otherwise waits for each compilation in turn (on
-    PoCL, one at a time whatever the threads: its compiler is behind one lock, so the
-    steps marked for it go to a second process, :mod:`.compile_worker`).
+    goes on: a cold first render otherwise waits for each compilation in turn.
 
     ``steps`` run in order; each returns the kernels it made (built through the
     modules' own cached builders, so the render finds them there) or None. A step that
     fails is left for the render to meet again where its error is reported."""
 
     def __init__(self, steps: Sequence[Callable[[], Any]]) -> None:
-        # the device is chosen before the thread and the worker start: probing it here
-        # and in the worker at once (each its first compilation) slowed the texture
-        # maps of a cold render by 0.9 s
-        cl_context()
+        cl_context()  # the device is chosen before the thread starts
         self.seconds = 0.0
         self.kernels = 0
         self._done = threading.Event()
-        self._worker = _start_worker([s for s in steps
-                                      if isinstance(s, PlannedStep) and s.worker])
-        self.used_worker = self._worker is not None
         self._thread = threading.Thread(target=self._run, args=(list(steps),),
                                         name="skinpipe-prewarm", daemon=True)
         self._thread.start()
-
-    def _wait_for_worker(self) -> None:
-        if self._worker is not None:
-            try:
-                self._worker.wait(WORKER_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self._worker.kill()
-            self._worker = None
 
     def _run(self, steps: list[Callable[[], Any]]) -> None:
         start = time.perf_counter()
@@ -683,8 +624,6 @@ class Prewarm:
             queue = cl.CommandQueue(ctx)
             jit = jit_at_first_launch()
             for step in steps:
-                if isinstance(step, PlannedStep) and step.worker:
-                    self._wait_for_worker()  # its programs and kernels are in the caches
                 try:
                     made = step()
                     if isinstance(made, dict):
@@ -701,7 +640,6 @@ class Prewarm:
         except Exception:  # the render reports a device that fails itself
             pass
         finally:
-            self._wait_for_worker()
             self.seconds = time.perf_counter() - start
             with _BUILD_LOCK:
                 LEDGER.prewarmed += self.kernels

@@ -42,14 +42,17 @@ from ..profile.models import fit_error_eq2c, sum_of_gaussians
 from ..profile.types import FitResult
 from ..usd.io import export_layer_atomic, open_stage_guarded
 from .bands import BAND_ITEMS, BAND_THREADS, beside, host_threads, in_bands
-from .blur_switch import TUNE_STREAM, direct_limits
+from .blur_switch import TUNE_STREAM, direct_limits, tuning_kernels
+from .chart_tiles import margin_kernels, seam_read_kernel
 from .diffusion import (
     DiffusionLayout,
     chart_layout,
     diffuse_gather,
     diffuse_prepared,
+    pyramid_kernels,
     release_freed_heap,
 )
+from .direct_blur import texel_kernels
 from .huge_pages import apply_to_numpy, huge_pages_choice
 from .kept import kept, source_of
 from .lighting import (
@@ -69,16 +72,15 @@ from .lighting import (
 from .opencl import (
     LEDGER,
     KernelLedger,
-    PlannedStep,
-    cache_is_cold,
     device_choice,
     set_device,
     start_prewarm,
     streams,
 )
 from .options import AOVS, DATA_AOVS, RenderOptions
-from .push_pull import dilate_charts, prepare_dilation, push_pull
+from .push_pull import dilate_charts, prepare_dilation, push_pull, push_pull_kernels
 from .raytrace import RayScene, offset_ray_origin
+from .recursive_blur import pass_kernels
 from .resample import (
     EXACT_POWERS,
     put_rows,
@@ -88,7 +90,14 @@ from .resample import (
     times_resampled_power,
 )
 from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import TextureMaps, rasterize, texel_rows, texels_in_blocks, vertex_normals
+from .texture_maps import (
+    TextureMaps,
+    rasterize,
+    texel_rows,
+    texels_in_blocks,
+    texture_kernels,
+    vertex_normals,
+)
 from .tile_store import TileStore
 from .unwrap import triangulate, unwrap
 
@@ -716,44 +725,32 @@ class Renderer:
 
     def _kernel_plan(self, scene: SceneData) -> list[Callable[[], Any]]:
         """The device kernels this render will need, in the order it needs them, for a
-        :class:`~.opencl.Prewarm` to build and compile while the host works (a cold
-        first render of the demo otherwise spent 10 s of its 16 s in compilations)."""
+        :class:`~.opencl.Prewarm` to build and compile while the host works."""
         opts = self.options
         domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
-        render = "skinpipe.render."
         # each skin mesh's interleaving period where its UVs are known before the render
         # (an unwrap's are not: theirs, if not 2, are built at their first launch)
         periods = {self._interleaving(scene, m, m.uv, uv_triangles(m), triangulate(m.mesh))[0]
                    if usable_uvs(m) is None else 2 for m in scene.skin}
         steps: list[Callable[[], Any]] = [
-            PlannedStep(render + "texture_maps", "texture_kernels"),
-            *(lambda p=p: irradiance_kernels(scene.lights, opts.light_samples,
-                                             opts.shadow_sampling != "full", domes,
-                                             filtered=opts.shadow_sampling == "interleaved",
-                                             sequence=opts.light_sequence,
-                                             refined=opts.shadow_sampling == "adaptive",
-                                             period=p) for p in sorted(periods)),
-            PlannedStep(render + "push_pull", "push_pull_kernels")]
+            texture_kernels,
+            *(partial(irradiance_kernels, scene.lights, opts.light_samples,
+                      opts.shadow_sampling != "full", domes,
+                      filtered=opts.shadow_sampling == "interleaved",
+                      sequence=opts.light_sequence,
+                      refined=opts.shadow_sampling == "adaptive", period=p)
+              for p in sorted(periods)),
+            push_pull_kernels]
         if opts.scattering and opts.blur == "recursive":
-            # the seam layout's (beside the irradiance)
-            steps.insert(1 + len(periods),
-                         PlannedStep(render + "chart_tiles", "margin_kernels"))
+            steps.insert(1 + len(periods), margin_kernels)  # the seam layout's
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
                               for m in scene.skin})
-            steps += [PlannedStep(render + "diffusion", "pyramid_kernels", (r,))
-                      for r in regions] + [PlannedStep(render + "chart_tiles",
-                                                       "seam_read_kernel")]
+            steps += [partial(pyramid_kernels, r) for r in regions] + [seam_read_kernel]
             stream = streams(opts.texture_size ** 2 * 16)
-            # a cold cache (no program built yet: asking the switch's cache would probe
-            # the device here): the blurs' kernels, needed last, on the compile worker
-            # (about half the work; warm, it would only cost its start)
-            cold = cache_is_cold()
             # the finest level, the coarser ones (smaller: plain stores), the switch's
-            steps += [PlannedStep(render + "recursive_blur", "pass_kernels", (s,))
-                      for s in dict.fromkeys((stream, False, TUNE_STREAM))]
-            steps += [PlannedStep(render + "blur_switch", "tuning_kernels", worker=cold),
-                      PlannedStep(render + "direct_blur", "texel_kernels", (stream,),
-                                  worker=cold)]
+            steps += [partial(pass_kernels, s) for s in dict.fromkeys((stream, False,
+                                                                       TUNE_STREAM))]
+            steps += [tuning_kernels, partial(texel_kernels, stream)]
         return steps
 
     def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
