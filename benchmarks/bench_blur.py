@@ -7,10 +7,10 @@ benchmarks/bench_devices.py runs this on every device).
 
 Same input, same run; ours and cv2 are timed in turn, seven rounds, each its best:
 
-- ours: what skinpipe runs for one sigma (`skinpipe.render.blur_switch.prefers_direct`): the
-  one-pass direct kernel (skinpipe/render/direct_blur.py) up to the radius measured for this
-  device (skinpipe/render/blur_switch.py; 17 on PoCL here, 8 on Intel's runtime), else the
-  recursive Gaussian (skinpipe/render/recursive_blur.py); both are timed at every sigma
+- ours: what skinpipe runs for one sigma (`blur_switch.prefers_direct` in
+  skinpipe/render/diffusion/): the one-pass direct kernel (direct_blur.py) up to the radius
+  measured for this device (blur_switch.py; 17 on PoCL here, 8 on Intel's runtime), else
+  the recursive Gaussian (recursive_blur.py); both are timed at every sigma
   where they apply (direct up to radius 32), and the recursive one with a per-texel
   sigma map too (quantised, indexed and uploaded on every call);
 - the per-texel gather kernel (`--blur gather`; cost grows with sigma);
@@ -86,11 +86,11 @@ def main() -> None:
     import cv2
     from scipy.ndimage import gaussian_filter
 
-    from skinpipe.render.blur_switch import DirectLimits, direct_limits, prefers_direct
-    from skinpipe.render.diffusion import OpenCLBlur
-    from skinpipe.render.direct_blur import DirectBlur, fir_radius
-    from skinpipe.render.opencl import device_choice
-    from skinpipe.render.recursive_blur import RecursiveBlur
+    from skinpipe.render.device.choice import device_choice
+    from skinpipe.render.diffusion.blur_switch import DirectLimits, direct_limits, prefers_direct
+    from skinpipe.render.diffusion.direct_blur import DirectBlur, fir_radius
+    from skinpipe.render.diffusion.gather import OpenCLBlur
+    from skinpipe.render.diffusion.recursive_blur import RecursiveBlur
 
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

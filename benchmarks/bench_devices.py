@@ -37,11 +37,11 @@ def _run(cmd: list[str], env: dict[str, str]) -> None:
 
 def working_devices() -> list[str]:
     """Runtime ids of the devices that pass the probe (one per runtime)."""
-    from skinpipe.render import opencl
+    from skinpipe.render.device import choice
 
     out: list[str] = []
-    for cand, device in opencl.candidates(all_runtimes=True):
-        if cand.runtime not in out and opencl.probe(device) is None:
+    for cand, device in choice.candidates(all_runtimes=True):
+        if cand.runtime not in out and choice.probe(device) is None:
             out.append(cand.runtime)
     return out
 

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import minimize, nnls
 
 from skinpipe.capture.ingest import IngestOptions, ingest_region, read_capture_set
-from skinpipe.profile.fit import FitOptions, MeasuredProfile, fit_multistart, fit_sum_of_gaussians
+from skinpipe.profile.fit import FitOptions, fit_multistart, fit_sum_of_gaussians
 from skinpipe.profile.models import (
     dipole_profile,
     dipole_total_reflectance,
@@ -32,6 +32,7 @@ from skinpipe.profile.models import (
     sum_of_gaussians,
 )
 from skinpipe.profile.reference_data import DEON_2007_SKIN, JENSEN_2001
+from skinpipe.profile.types import MeasuredProfile
 
 CAPTURES = Path(__file__).resolve().parent.parent / "skinpipe" / "samples" / "captures"
 

@@ -40,9 +40,12 @@ from typing import Any
 
 import numpy as np
 
-from skinpipe.render.lighting import cosine_direction
-from skinpipe.render.raytrace import CHUNK_RAYS, RayScene, morton_order, offset_ray_origin
-from skinpipe.render.renderer import Renderer, RenderOptions, TaskLog, triangulate
+from skinpipe.render.frame import TaskLog
+from skinpipe.render.light.raytrace import CHUNK_RAYS, RayScene, morton_order, offset_ray_origin
+from skinpipe.render.light.samples import cosine_direction
+from skinpipe.render.options import RenderOptions
+from skinpipe.render.renderer import Renderer
+from skinpipe.render.surface.unwrap import triangulate
 from skinpipe.usd.io import open_stage_guarded
 
 ROUNDS = 4

@@ -34,7 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from skinpipe.render.renderer import Renderer, RenderOptions, triangulate
+from skinpipe.render.options import RenderOptions
+from skinpipe.render.renderer import Renderer
+from skinpipe.render.surface.unwrap import triangulate
 from skinpipe.usd.io import open_stage_guarded
 
 LLVM_PROBE = """

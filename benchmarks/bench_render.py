@@ -46,7 +46,7 @@ def best_of(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
 
 def naive_diffusion(pre: np.ndarray, maps: Any, fits: Any) -> np.ndarray:
     """Each region's own terms, each a gather blur of the irradiance, region-weighted."""
-    from skinpipe.render.diffusion import diffuse_gather
+    from skinpipe.render.diffusion.gather import diffuse_gather
 
     out = np.zeros_like(pre)
     for r, fit in enumerate(fits):
@@ -63,10 +63,15 @@ def naive_diffusion(pre: np.ndarray, maps: Any, fits: Any) -> np.ndarray:
 
 def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[str, Any]:
     """Texture maps and irradiance at ``size``, then every diffusion timed on them."""
-    from skinpipe.render.diffusion import DiffusionLayout, diffuse, diffuse_gather, diffuse_prepared
-    from skinpipe.render.raytrace import RayScene
-    from skinpipe.render.renderer import Renderer, RenderOptions, TaskLog, diffusion_terms
-    from skinpipe.render.unwrap import triangulate
+    from skinpipe.render.diffusion.diffuse import diffuse, diffuse_prepared
+    from skinpipe.render.diffusion.gather import diffuse_gather
+    from skinpipe.render.diffusion.layout import DiffusionLayout
+    from skinpipe.render.diffusion.terms import diffusion_terms
+    from skinpipe.render.frame import TaskLog
+    from skinpipe.render.light.raytrace import RayScene
+    from skinpipe.render.options import RenderOptions
+    from skinpipe.render.renderer import Renderer
+    from skinpipe.render.surface.unwrap import triangulate
 
     # no image (8 x 8 pixels): interleaving period 2 at every size, the texture-space
     # work per texel the same

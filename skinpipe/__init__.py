@@ -1,14 +1,7 @@
-"""skinpipe: measured skin diffusion profiles to sum-of-Gaussians fits, USD and renders."""
+"""skinpipe: measured skin diffusion profiles to sum-of-Gaussians fits, USD and renders.
 
-from __future__ import annotations
-
-# Before anything loads pymeshlab (its older TBB) or queries OpenCL platforms: the
-# runtimes skinpipe installs are registered with the ICD loader (opencl_runtimes).
-from .render import opencl_runtimes  # noqa: F401  (import for its effect)
-from .usd.schema import register_schema_plugin
+Importing the package does nothing else: the USD schema plugin is registered by
+``skinpipe.usd`` (before anything of it can query USD's schema registry), and the
+OpenCL runtimes by ``skinpipe.render.device`` (before the first platform query)."""
 
 __version__ = "0.1.0"
-
-# Before anything queries USD's schema registry: a plugin registered after that query
-# stays unknown, silently.
-register_schema_plugin()

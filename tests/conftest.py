@@ -9,23 +9,23 @@ from pathlib import Path
 
 import pytest
 
-from skinpipe.profile.fit import MeasuredProfile
-from skinpipe.render import opencl
-from skinpipe.render.blur_switch import SWITCH_ENV
-from skinpipe.render.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
+from skinpipe.profile.types import MeasuredProfile
+from skinpipe.render.device import choice
+from skinpipe.render.diffusion.blur_switch import SWITCH_ENV
+from skinpipe.render.diffusion.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
 
 from .reference_profiles import deon_profile
 
-# Which blur runs is measured per device (skinpipe.render.blur_switch); tests that count blur
+# Which blur runs is measured per device (render.diffusion.blur_switch); tests that count blur
 # passes pin it to the values measured on PoCL. tests/render/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
 
 
-def _working_devices() -> list[opencl.Candidate]:
+def _working_devices() -> list[choice.Candidate]:
     """Every OpenCL device here that passes skinpipe's probe (one runtime each once)."""
-    out: list[opencl.Candidate] = []
-    for cand, device in opencl.candidates(all_runtimes=True):
-        if opencl.probe(device) is None and cand.runtime not in [c.runtime for c in out]:
+    out: list[choice.Candidate] = []
+    for cand, device in choice.candidates(all_runtimes=True):
+        if choice.probe(device) is None and cand.runtime not in [c.runtime for c in out]:
             out.append(cand)
     return out
 
@@ -34,14 +34,14 @@ OPENCL_DEVICES = _working_devices()
 
 
 @pytest.fixture(scope="session", params=OPENCL_DEVICES, ids=lambda c: c.runtime)
-def cl_device(request: pytest.FixtureRequest) -> opencl.Candidate:
+def cl_device(request: pytest.FixtureRequest) -> choice.Candidate:
     """Runs a test on each OpenCL device that passes the probe (pocl-cpu, intel-cpu, a
     GPU): a runtime-specific failure shows by name. Session scope, so pytest groups the
     tests by device and each device's programs are built once."""
-    cand: opencl.Candidate = request.param
-    opencl.set_device(cand.runtime)
+    cand: choice.Candidate = request.param
+    choice.set_device(cand.runtime)
     yield cand
-    opencl.set_device(None)
+    choice.set_device(None)
 
 
 @pytest.fixture

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from skinpipe.profile.fit import MeasuredProfile
 from skinpipe.profile.models import dipole_profile, dipole_total_reflectance, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN, JENSEN_2001
+from skinpipe.profile.types import MeasuredProfile
 
 # About 0.02 mm per pixel out to 4 mm, as in the seed paper's captures.
 RADIUS_MM = np.linspace(0.0, 4.0, 200)

@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from skinpipe.profile.fit import FitResult
 from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.profile.types import FitResult
 from skinpipe.usd.author import RegionAssignment, author_asset
 from skinpipe.usd.mesh import MeshData
 

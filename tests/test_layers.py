@@ -4,11 +4,14 @@ imports the CLI, and no two modules import each other, directly or round a circl
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "skinpipe"
 RANK = {"cli": 5, "workflow": 4, "capture": 3, "usd": 3, "render": 3, "profile": 2,
-        "errors": 1, "fileio": 1, "imageio": 1, "package_data": 1}
+        "errors": 1, "fileio": 1, "imageio": 1, "package_data": 1,
+        "native": 1}
 ALSO_ALLOWED = {("render", "usd")}
 """Sideways imports allowed: the render reads USD stages (scene delegate, guarded opens,
 mesh checks)."""
@@ -92,3 +95,60 @@ def test_no_import_circles() -> None:
         if m not in state:
             visit(m, [m])
     assert not circles
+
+
+RENDER_RANK = {
+    "renderer": 5, "outputs": 5, "frame": 5, "shading": 5,  # a frame's tasks and files
+    "diffusion": 4, "light": 3, "surface": 2,  # the algorithms
+    "device": 1,  # OpenCL devices, programs, memory
+    "scene": 0, "options": 0, "cache": 0, "bands": 0, "sorting": 0,  # plain data, caches
+}
+"""Inside ``render/``: the algorithm above, the device and the caches below. A module
+imports from its own rank or lower ranks only, never upwards; ``render/__init__`` is
+empty."""
+
+
+def _render_part(mod: str) -> str | None:
+    parts = mod.split(".")
+    return parts[2] if len(parts) > 2 and parts[1] == "render" else None
+
+
+def test_every_render_module_has_a_rank() -> None:
+    parts = {_render_part(m) for m in GRAPH} - {None}
+    assert parts == set(RENDER_RANK), parts ^ set(RENDER_RANK)
+
+
+def test_render_imports_downwards_only() -> None:
+    bad = [(mod, t) for mod, targets in GRAPH.items() for t in targets
+           if _render_part(mod) and _render_part(t)
+           and RENDER_RANK[_render_part(t)] > RENDER_RANK[_render_part(mod)]]
+    assert not bad
+
+
+def test_the_package_root_and_render_have_no_import_side_effects() -> None:
+    """``import skinpipe`` and ``import skinpipe.render`` import nothing of skinpipe's own,
+    so that the profile model loads without pxr, pyopencl or pymeshlab."""
+    assert GRAPH["skinpipe"] <= {"skinpipe.__main__"} and not GRAPH["skinpipe.render"]
+
+
+def test_the_profile_model_loads_without_pxr_or_opencl() -> None:
+    code = ("import sys, skinpipe.profile.models, skinpipe.profile.fit; "
+            "print(sorted(m for m in ('pxr', 'pyopencl', 'pymeshlab', 'embreex') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120).stdout.strip()
+    assert out == "[]", out
+
+
+def test_pymeshlab_is_imported_after_the_newer_tbb_only() -> None:
+    """In-process, pymeshlab loads through skinpipe.native (its older TBB would hide
+    Intel's OpenCL runtime); a child process that imports nothing else may import it."""
+    bad = []
+    for path in PACKAGE.rglob("*.py"):
+        if path.name in ("native.py", "_meshlab_child.py"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            bad += [(path.name, n) for n in names if n.split(".")[0] == "pymeshlab"]
+    assert not bad

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_test_run_keeps_its_caches_to_itself() -> None:
     """tests/__init__.py points every cache at a folder of the run's own: a test reads
     nothing an earlier version left in the user's cache, and writes nothing there."""
-    from skinpipe.render.opencl_runtimes import cache_root
+    from skinpipe.render.cache import cache_root
 
     root = cache_root().resolve()
     assert root.parent.name.startswith("skinpipe-test-cache-"), root

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, Vt
 
-from skinpipe.profile.fit import FitResult, MeasuredProfile
 from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.profile.types import FitResult, MeasuredProfile
 from skinpipe.usd.author import RegionAssignment, author_asset
 from skinpipe.usd.mesh import MeshData
 

@@ -28,7 +28,13 @@ from scipy import special
 
 from ..errors import InputError
 from ..fileio import atomic_write_json
-from ..imageio import ACESCG, check_colorspace, colorspace_matrix, convert_colorspace, write_ldr
+from ..imageio import (
+    ACESCG,
+    check_colorspace,
+    colorspace_matrix,
+    convert_colorspace,
+    write_ldr,
+)
 from ..profile.models import (
     dipole_profile,
     dipole_total_reflectance,

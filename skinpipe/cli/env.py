@@ -23,8 +23,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_env(args: argparse.Namespace) -> int:
-    from ..render.opencl import choose_device, device_spec, set_device
-    from ..render.opencl_runtimes import SETUP
+    from ..render.device.choice import choose_device, device_spec, set_device
+    from ..render.device.runtimes import SETUP
     from ..usd.schema import pxr_plugin_path_line
 
     print(pxr_plugin_path_line())

@@ -72,7 +72,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from ..fileio import check_output_file, check_path_name, record_outputs, staged_output_directory
+    from ..fileio import (
+        check_output_file,
+        check_path_name,
+        record_outputs,
+        staged_output_directory,
+    )
     from ..profile.fit import FitOptions
     from ..profile.io import read_profile_csv
 

@@ -31,7 +31,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_paint_albedo(args: argparse.Namespace) -> int:
     from ..fileio import check_output_file, record_outputs
-    from ..render.albedo import ALBEDO_NAME, bake_sample_albedo
+    from ..workflow.albedo import ALBEDO_NAME, bake_sample_albedo
 
     if not 16 <= args.size <= 16384:
         raise InputError(f"--size must be 16-16384 texels, got {args.size}")

@@ -61,7 +61,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def cmd_render(args: argparse.Namespace) -> int:
     from ..fileio import check_path_name, staged_output_directory
     from ..render.options import TASK_SHARES
-    from ..render.renderer import render_files
+    from ..render.outputs import render_files
     from ..usd.io import usd_inputs
 
     name = check_path_name(args.name or args.scene.stem, "image name (--name)")

@@ -1,14 +1,7 @@
-"""Render stage: texture-space diffusion of a face from a USD asset (paper, sections 3-4).
-
-Tasks, each cached on the content of its inputs (so a turntable computes the
-texture-space work once and re-runs only the camera's shading):
-
-    uvs -> texture maps -> irradiance -> albedo map -> diffusion -> shade -> output
-
-Units: texture-space radii and variances in mm (the stretch map turns scene units into
-mm with the stage's metersPerUnit); colours linear in the stage's working space
-(ACEScg, OCIO ``lin_ap1_scene``) until the display PNG.
-"""
+"""The renderer: a frame's tasks in order (unwrap, texture maps, irradiance, the seam
+layout beside it, albedo, diffusion, camera hits, shading), each cached by the content of
+its inputs so that a change re-runs only what depends on it (a camera move: only the
+shading)."""
 
 from __future__ import annotations
 
@@ -17,80 +10,77 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass, field, replace
+from concurrent.futures import Future, wait
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
-import PyOpenColorIO as OCIO
 from numpy.typing import NDArray
-from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
-from ..errors import InputError, SkinpipeError
-from ..fileio import atomic_write_json
+from ..errors import InputError
 from ..imageio import (
-    check_colorspace,
-    convert_colorspace,
-    ocio_config,
     read_image,
-    write_exr,
-    write_ldr,
 )
-from ..profile.models import fit_error_eq2c, sum_of_gaussians
-from ..profile.types import FitResult
-from ..usd.io import export_layer_atomic, open_stage_guarded
-from .bands import BAND_ITEMS, BAND_THREADS, beside, host_threads, in_bands
-from .blur_switch import TUNE_STREAM, direct_limits, tuning_kernels
-from .chart_tiles import margin_kernels, seam_read_kernel
-from .diffusion import (
+from .bands import beside, in_bands
+from .device.choice import set_device
+from .device.huge_pages import apply_to_numpy, huge_pages_choice
+from .device.memory import streams
+from .device.programs import start_prewarm
+from .diffusion.blur_switch import TUNE_STREAM, tuning_kernels
+from .diffusion.chart_tiles import seam_read_kernel
+from .diffusion.diffuse import diffuse_prepared
+from .diffusion.direct_blur import texel_kernels
+from .diffusion.gather import diffuse_gather
+from .diffusion.layout import (
     DiffusionLayout,
     chart_layout,
-    diffuse_gather,
-    diffuse_prepared,
     pyramid_kernels,
     release_freed_heap,
 )
-from .direct_blur import texel_kernels
-from .huge_pages import apply_to_numpy, huge_pages_choice
-from .kept import kept, source_of
-from .lighting import (
-    IrradianceResult,
-    filter_interleaved,
-    interleave_period,
+from .diffusion.margins import margin_kernels
+from .diffusion.push_pull import (
+    dilate_charts,
+    prepare_dilation,
+    push_pull,
+    push_pull_kernels,
+)
+from .diffusion.recursive_blur import pass_kernels
+from .diffusion.terms import DiffusionTerms, kept_diffusion_terms
+from .diffusion.tile_store import TileStore
+from .frame import CameraHits, SkinTextures, TaskLog, _BothArrived, hit_uvs
+from .light.interleave import (
+    interleave_classes,
+    interleaved_visibility,
+    texels_per_pixel,
+)
+from .light.irradiance import (
     irradiance_kernels,
     irradiance_texture,
-    light_direction,
     refine_penumbrae,
-    sobol_points,
-    specular_albedo,
-    torrance_sparrow,
-    visibility_plane,
-    visibility_planes,
 )
-from .opencl import (
-    LEDGER,
-    KernelLedger,
-    device_choice,
-    set_device,
-    start_prewarm,
-    streams,
-)
+from .light.raytrace import RayScene, offset_ray_origin
+from .light.samples import interleave_period, light_direction, sobol_points
+from .light.specular import specular_albedo, torrance_sparrow
 from .options import AOVS, DATA_AOVS, RenderOptions
-from .push_pull import dilate_charts, prepare_dilation, push_pull, push_pull_kernels
-from .raytrace import RayScene, offset_ray_origin
-from .recursive_blur import pass_kernels
-from .resample import (
-    EXACT_POWERS,
-    put_rows,
-    resample_bilinear,
-    resampled_texels,
-    take_rows,
-    times_resampled_power,
+from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
+from .shading import (
+    albedo_image,
+    albedo_texels,
+    albedo_texture,
+    bilinear,
+    bilinear_of,
+    mesh_hits,
+    normal_map,
+    ray_owners,
+    surface_flux,
+    times_albedo_weight,
 )
-from .scene import Camera, SceneData, SceneDelegate, SceneMesh, content_hash
-from .texture_maps import (
+from .surface.resample import (
+    EXACT_POWERS,
+)
+from .surface.texture_maps import (
     TextureMaps,
     rasterize,
     texel_rows,
@@ -98,562 +88,12 @@ from .texture_maps import (
     texture_kernels,
     vertex_normals,
 )
-from .tile_store import TileStore
-from .unwrap import triangulate, unwrap
+from .surface.unwrap import triangulate
+from .surface.uvs import unwrap_and_write_back, usable_uvs, uv_triangles
 
 EDGE_SAMPLES = ((0.125, -0.375), (0.375, 0.125), (-0.125, 0.375), (-0.375, -0.125))
 """Sub-pixel offsets (pixels) of a silhouette pixel's camera rays: the 4-rook rotated
 grid, one sample in every row and column of a 4 x 4 subdivision."""
-HALF_MAX = 65504.0
-"""The largest finite half float."""
-MERGE_RELATIVE = 1e-3
-"""Variances closer than this (relative) share one blur."""
-
-
-# ------------------------------------------------------------------------ profiles
-
-
-@dataclass(frozen=True)
-class DiffusionTerms:
-    """Variances (K,) mm^2 shared by all regions and each region's weights (R, K, 3),
-    with the eq. 2c error of re-expressing each region's fit on them."""
-
-    variances_mm2: NDArray[np.float64]
-    weights: NDArray[np.float64]
-    error: dict[str, float]
-    notes: list[str]
-
-
-def _normalised(fit: FitResult) -> NDArray[np.float64]:
-    s = fit.weights.sum(axis=0, keepdims=True)
-    return fit.weights / np.where(s > 0, s, 1.0)
-
-
-def diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0,
-                    single: str | None = None, floor_mm2: float = 0.0) -> DiffusionTerms:
-    """The blur schedule for a set of region fits.
-
-    ``grid`` = 0 keeps every fit's own variances (equal ones merged). ``grid`` = N
-    re-expresses each region and channel on the smallest variance plus N - 1 log-spaced
-    ones from ``floor_mm2`` (narrower blurs are sub-texel and cost nothing) to the
-    largest, by
-    non-negative least squares on the r-weighted profile (the fit's eq. 2c objective),
-    then renormalises the weights to sum to 1. ``single`` = 'mean' or a region name
-    gives every region the same profile (the paper's comparison with one profile).
-    """
-    from scipy.optimize import nnls  # lazy: 0.50 s to import
-
-    fits = list(fits)
-    notes: list[str] = []
-    if single is not None:
-        names = [f.name for f in fits]
-        if single != "mean" and single not in names:
-            raise InputError(f"single profile {single!r}: not one of {names} or 'mean'")
-    all_v = np.concatenate([f.variances_mm2 for f in fits])
-    if grid > 0:
-        lo, hi = float(all_v.min()), float(all_v.max())
-        start = min(max(lo, floor_mm2), hi)
-        variances = np.unique(np.concatenate([[lo], np.geomspace(start, hi, grid - 1)])) \
-            if grid > 1 and hi > lo * 1.0001 else np.array([lo])
-    else:
-        variances = np.sort(all_v)
-        keep = np.concatenate([[True], np.diff(variances) > MERGE_RELATIVE * variances[1:]])
-        merged = int((~keep).sum())
-        if merged:
-            notes.append(f"{merged} equal variance(s) merged into one blur")
-        variances = variances[keep]
-    weights = np.zeros((len(fits), variances.size, 3))
-    error: dict[str, float] = {}
-    for r, fit in enumerate(fits):
-        w = _normalised(fit)
-        if grid > 0:
-            radius = np.linspace(0.0, 4.0 * math.sqrt(variances.max()), 400)[1:]
-            basis = np.stack([sum_of_gaussians([v], [[1, 1, 1]], radius)[:, 0]
-                              for v in variances], axis=1)
-            target = sum_of_gaussians(fit.variances_mm2, w, radius)
-            sw = np.sqrt(radius)[:, None]
-            for c in range(3):
-                a, _ = nnls(basis * sw, target[:, c] * sw[:, 0])
-                weights[r, :, c] = a / max(a.sum(), 1e-30)
-            approx = sum_of_gaussians(variances, weights[r], radius)
-            error[fit.name] = float(fit_error_eq2c(radius, approx, target).max())
-        else:
-            for v, row in zip(fit.variances_mm2, w, strict=True):
-                k = int(np.argmin(np.abs(variances - v)))
-                weights[r, k] += row
-            error[fit.name] = 0.0
-    if single is not None:
-        shared = weights.mean(axis=0) if single == "mean" else \
-            weights[[f.name for f in fits].index(single)]
-        weights[:] = shared
-        notes.append(f"one profile ({single}) for every region")
-    return DiffusionTerms(variances, weights, error, notes)
-
-
-def kept_diffusion_terms(fits: list[FitResult] | tuple[FitResult, ...], grid: int = 0,
-                         single: str | None = None, floor_mm2: float = 0.0
-                         ) -> DiffusionTerms:
-    """:func:`diffusion_terms`, kept in skinpipe's cache folder (:mod:`.kept`) by scipy's
-    version, the source of the functions that make them and every input (the fits'
-    names, variances and weights, ``grid``, ``single``, ``floor_mm2``): the same terms
-    bit for bit. Importing scipy.optimize for its NNLS took 0.44 s of a render's main
-    thread before its rays (0.5 s of CPU, the other core mostly idle); a render of the
-    same fits at the same texel size reads them back instead."""
-    import scipy
-
-    fits = list(fits)
-    # the code that makes them is in the key too, with scipy's version: terms made by an
-    # edited function are not read back
-    code = source_of(diffusion_terms, _normalised, sum_of_gaussians, fit_error_eq2c)
-    key = content_hash(scipy.__version__, code, MERGE_RELATIVE, grid, single,
-                       float(floor_mm2), len(fits),
-                       *(part for f in fits for part in
-                         (f.name, np.asarray(f.variances_mm2, np.float64),
-                          np.asarray(f.weights, np.float64))))
-
-    def read(doc: dict[str, Any]) -> DiffusionTerms:
-        variances = np.asarray(doc["variances_mm2"], np.float64)
-        weights = np.asarray(doc["weights"], np.float64)
-        error = {str(k): float(v) for k, v in doc["error"].items()}
-        if variances.ndim != 1 or weights.shape != (len(fits), variances.size, 3) \
-                or set(error) != {f.name for f in fits} \
-                or not np.all(np.isfinite(weights)) or not np.all(variances > 0):
-            raise ValueError("kept terms do not fit the fits")
-        return DiffusionTerms(variances, weights, error, [str(n) for n in doc["notes"]])
-
-    def make() -> tuple[DiffusionTerms, dict[str, Any]]:
-        terms = diffusion_terms(fits, grid, single, floor_mm2)
-        return terms, {"variances_mm2": terms.variances_mm2.tolist(),
-                       "weights": terms.weights.tolist(), "error": terms.error,
-                       "notes": terms.notes}
-
-    return kept("diffusion-terms", "terms", key, read, make)
-
-
-# ------------------------------------------------------------------------ helpers
-
-
-def interleave_classes(shape: tuple[int, int], period: int = 2) -> NDArray[np.uint8]:
-    """Each texel's interleaving class for the ``period`` p, p (y mod p) + (x mod p),
-    flat in row order: one byte a texel, from rows' and columns' remainders (the texels'
-    flat indices' divisions and remainders in int64 took 0.21-0.23 s at texture 4096,
-    this 0.02 s)."""
-    h, w = shape
-    rows = (np.arange(h) % period * period).astype(np.uint8)
-    columns = (np.arange(w) % period).astype(np.uint8)
-    return (rows[:, None] + columns[None, :]).ravel()
-
-
-def texels_per_pixel(points: NDArray[Any], tris: NDArray[Any], uv: NDArray[Any],
-                     uv_tris: NDArray[Any], texture_size: int, camera: Camera,
-                     width: int) -> float:
-    """How many texels of a ``texture_size`` texture lie across one pixel of a ``width``
-    pixels wide image at the skin: the pixel's side over the texel's, both in scene
-    units. The texel's mean side is sqrt(A / (A_uv S^2)) (the mesh's area over its UV
-    area); the pixel's is its footprint at the triangles' median depth along the
-    camera's axis (perspective: depth x aperture / focal length / width; orthographic:
-    aperture / width). 0 where either cannot be told (no area, behind the camera)."""
-    corners = np.asarray(points, np.float64)[tris]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
-                                         corners[:, 2] - corners[:, 0]), axis=1).sum()
-    t = np.asarray(uv, np.float64)[uv_tris]
-    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
-    if not (area > 0 and uv_area > 0 and width > 0):
-        return 0.0
-    texel = math.sqrt(area / uv_area) / texture_size
-    if camera.projection == "orthographic":
-        pixel = camera.horizontal_aperture / width
-    else:
-        depth = float(np.median((corners.mean(axis=1) - camera.position)
-                                @ -camera.rotation[:, 2]))
-        pixel = depth * camera.horizontal_aperture / camera.focal_length / width
-    return pixel / texel if pixel > 0 and math.isfinite(pixel / texel) else 0.0
-
-
-def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
-                           texel: NDArray[np.intp] | None = None, period: int = 2,
-                           normal: NDArray[np.float32] | None = None
-                           ) -> dict[str, NDArray[np.float32]]:
-    """Each light's per-texel visibility from interleaved shadow rays of ``period``,
-    reconstructed in texture space (``filter_interleaved``) and returned per covered
-    texel (``texel``: the points' flat indices, in their order; by default row order).
-    ``normal``: the maps' normal map where they let it go (:func:`normal_map`)."""
-    covered = maps.triangle >= 0
-    if texel is None:
-        texel = np.flatnonzero(covered)
-    paths = [p for p in res.visibility if p in res.interleaved]
-    if not paths:  # no light was interleaved: nothing to reconstruct
-        return dict(res.visibility)
-    vis = visibility_planes(len(paths), covered.shape)
-    for i, p in enumerate(paths):
-        visibility_plane(res.visibility[p], res.carries_light(p), texel, vis[i])
-    filtered = filter_interleaved(vis, None, maps.surface[1] if normal is None else normal,
-                                  at=texel, period=period)
-    return {**res.visibility, **dict(zip(paths, filtered, strict=True))}
-
-
-def normal_map(normals: NDArray[np.float32], texel: NDArray[np.intp],
-               shape: tuple[int, int]) -> NDArray[np.float32]:
-    """The (H, W, 3) normal map of ``shape`` from its covered texels' rows (``normals``
-    at flat indices ``texel``), zero elsewhere as :func:`~.texture_maps.rasterize` leaves
-    it: the same map, made again from the rows the irradiance keeps."""
-    out = np.zeros((*shape, 3), np.float32)
-    put_rows(out.reshape(-1, 3), texel, normals)
-    return out
-
-
-LOOKUP_BAND_POINTS = 1 << 17
-"""Points a band of :func:`bilinear` looks up on one core (1.5 MB of RGB float32 out)."""
-
-
-def bilinear(texture: NDArray[Any], uv: NDArray[Any]) -> NDArray[np.float32]:
-    """Bilinear lookup of a (S, S, C) texture map (row j holds v = (j + 0.5) / S) at uv."""
-    size_v, size_u = texture.shape[:2]
-    flat = np.asarray(texture, np.float32).reshape(size_v * size_u, -1)
-    # in bands of points on the host's cores: each point's four reads miss the cache
-    # of a large map (the demo face's radiance at texture 4096, 0.6 M hits: 0.2 s on
-    # one core)
-    def band(s: slice) -> NDArray[np.float32]:
-        return bilinear_of(lambda i: take_rows(flat, i), (size_v, size_u), uv[s])
-
-    if len(uv) <= LOOKUP_BAND_POINTS:
-        return band(slice(None))
-    return np.concatenate(in_bands(band, len(uv), LOOKUP_BAND_POINTS))
-
-
-def bilinear_of(texels: Callable[[NDArray[np.int64]], NDArray[np.float32]],
-                shape: tuple[int, int], uv: NDArray[Any]) -> NDArray[np.float32]:
-    """:func:`bilinear` of a texture of ``shape`` (rows, columns) that ``texels`` gives
-    at flat texel indices (N,) as (N, C), rather than a map held whole."""
-    size_v, size_u = shape
-    x = np.clip(np.asarray(uv[:, 0], np.float32) * size_u - 0.5, 0, size_u - 1)
-    y = np.clip(np.asarray(uv[:, 1], np.float32) * size_v - 0.5, 0, size_v - 1)
-    x0 = np.minimum(x.astype(np.int64), size_u - 2 if size_u > 1 else 0)
-    y0 = np.minimum(y.astype(np.int64), size_v - 2 if size_v > 1 else 0)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    dx, dy = int(size_u > 1), (size_u if size_v > 1 else 0)
-    i = y0 * size_u + x0
-    top = texels(i) * (1 - fx) + texels(i + dx) * fx
-    bottom = texels(i + dy) * (1 - fx) + texels(i + dy + dx) * fx
-    return top * (1 - fy) + bottom * fy
-
-
-def uv_triangles(mesh: SceneMesh) -> NDArray[np.int32] | None:
-    """UV indices per triangle corner (the same fan triangulation as the mesh)."""
-    if mesh.uv is None:
-        return None
-    if mesh.uv_indices is None:
-        return triangulate(mesh.mesh)
-    # triangulate the face-vertex positions exactly as the vertex indices are
-    fv = replace(mesh.mesh, face_indices=np.arange(mesh.mesh.face_indices.size, dtype=np.int32))
-    return mesh.uv_indices[triangulate(fv)]
-
-
-def usable_uvs(mesh: SceneMesh) -> str | None:
-    """None if the mesh's ``st`` can carry texture-space diffusion, else why not."""
-    if mesh.uv is None:
-        return "no st primvar"
-    uv = mesh.uv
-    if not np.all(np.isfinite(uv)):
-        return "non-finite st values"
-    if uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
-        return "st outside [0, 1]"
-    if mesh.uv_indices is not None and (mesh.uv_indices.size != mesh.mesh.face_indices.size or
-                                        mesh.uv_indices.min() < 0 or
-                                        mesh.uv_indices.max() >= uv.shape[0]):
-        return "st indices do not match the faces"
-    if mesh.uv_indices is None and uv.shape[0] != mesh.mesh.points.shape[0]:
-        return "per-vertex st has the wrong length"
-    tq = uv[uv_triangles(mesh)]  # type: ignore[index]
-    e1, e2 = tq[:, 1] - tq[:, 0], tq[:, 2] - tq[:, 0]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-    if np.count_nonzero(area > 0) < 0.95 * area.size:
-        return "more than 5% of the faces have zero UV area"
-    if area.sum() > 1.05:
-        return "UV triangles overlap (total UV area > 1)"
-    return None
-
-
-def write_uvs_back(stage: Any, mesh: SceneMesh, uv: NDArray[Any], uv_indices: NDArray[Any]
-                   ) -> str | None:
-    """Author faceVarying indexed ``st`` in the layer that holds the mesh's points and save
-    it atomically; returns the layer path, or None when it cannot be done safely."""
-    if mesh.points_layer is None:
-        return None
-    layer = Sdf.Layer.FindOrOpen(mesh.points_layer)
-    if layer is None or not layer.realPath or layer.anonymous:
-        return None
-    layer_stage = Usd.Stage.Open(layer)
-    prim = layer_stage.GetPrimAtPath(mesh.points_prim or mesh.path)
-    if not prim:
-        return None
-    pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(
-        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
-    pv.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
-    pv.SetIndices(Vt.IntArray.FromNumpy(np.asarray(uv_indices, np.int32)))
-    export_layer_atomic(layer, layer.realPath)
-    return str(layer.realPath)
-
-
-def region_pieces(mesh: SceneMesh) -> NDArray[np.int32] | None:
-    """Each triangle's region (the largest of its corners' summed region weights), for
-    xatlas to chart a skin mesh's regions side by side (:func:`~.unwrap.unwrap`); None
-    for a mesh with fewer than two regions."""
-    if mesh.region_weights is None or len(mesh.region_names) < 2:
-        return None
-    corners = mesh.region_weights[triangulate(mesh.mesh)]
-    return np.argmax(corners.sum(axis=1), axis=1).astype(np.int32)
-
-
-def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
-                          progress: Callable[[str], None] | None = None
-                          ) -> tuple[NDArray[np.float64], NDArray[np.int32], dict[str, Any]]:
-    """xatlas UVs for a mesh whose ``st`` is unusable (``reason``), rounded to float32 as
-    USD stores them, and written back into the mesh's layer when ``write`` (triangle
-    meshes only: a polygon split across charts has no faceVarying form)."""
-    if progress:
-        progress(f"unwrap {mesh.path} with xatlas ({reason})")
-    layout = unwrap(mesh.mesh, pieces=region_pieces(mesh))
-    uv = layout.uv.astype(np.float32).astype(np.float64)
-    measures: dict[str, Any] = {"charts": layout.charts, "utilization": layout.utilization,
-                                "seconds": layout.seconds, "reason": reason}
-    if write and np.all(mesh.mesh.face_counts == 3):
-        measures["written_to"] = write_uvs_back(stage, mesh, uv, layout.uv_indices)
-    return uv, layout.uv_indices.reshape(-1, 3), measures
-
-
-class SkinUVs(NamedTuple):
-    stage: Any
-    scene: SceneData
-    mesh: SceneMesh
-    uv: NDArray[np.float64]
-    uv_triangles: NDArray[np.int32]
-    note: str  # "kept" or "unwrapped (why)"
-
-
-def ensure_skin_uvs(asset: Path, progress: Callable[[str], None] | None = None) -> SkinUVs:
-    """The first skin mesh of ``asset`` with usable UVs: xatlas and written back into the
-    asset's layer when it has none."""
-    stage = open_stage_guarded(asset)
-    delegate = SceneDelegate(stage)
-    try:
-        scene = delegate.sync()
-    finally:
-        delegate.close()
-    if not scene.skin:
-        raise InputError("no skin mesh (SkinProfileRegionsAPI)", asset)
-    mesh = scene.skin[0]
-    why = usable_uvs(mesh)
-    if why is None:
-        uv, uv_tris = mesh.uv, uv_triangles(mesh)
-        assert uv is not None and uv_tris is not None
-        return SkinUVs(stage, scene, mesh, uv, uv_tris, "kept")
-    uv, uv_tris, measures = unwrap_and_write_back(stage, mesh, why, True, progress)
-    if measures.get("written_to") is None:
-        raise InputError(f"cannot write UVs into the layer holding {mesh.path}", asset)
-    return SkinUVs(stage, scene, mesh, uv, uv_tris, f"unwrapped ({why})")
-
-
-def albedo_image(mesh: SceneMesh, working: str) -> tuple[NDArray[np.float32], str]:
-    """The albedo's own image, linear in the working space, in texture row order (the
-    bottom row first; (1, 1, 3) for a constant), and what it came from. Its texture-space
-    map is the image resampled (:func:`albedo_texture`)."""
-    albedo = mesh.albedo
-    if albedo.texture is None:
-        return np.asarray(albedo.constant, np.float32).reshape(1, 1, 3), \
-            "constant diffuseColor"
-    img = read_image(albedo.texture)
-    cs = albedo.colorspace or (working if img.is_float else "srgb_tx")
-    px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
-    # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
-    return np.ascontiguousarray(px[::-1, :, :3], dtype=np.float32), f"{albedo.texture} ({cs})"
-
-
-def albedo_texture(image: NDArray[np.float32], size: int) -> NDArray[np.float32]:
-    """The albedo map (S, S, 3) of :func:`albedo_image`'s ``image``: resampled to the
-    texel centres, bilinear, and no less than 0."""
-    out = resample_bilinear(image, size)
-    return np.clip(out, 0.0, None, out=out)
-
-
-def albedo_texels(image: NDArray[np.float32], size: int
-                  ) -> Callable[[NDArray[np.int64]], NDArray[np.float32]]:
-    """The texels of ``albedo_texture(image, size)`` at flat indices, the same floats,
-    for :func:`bilinear_of`: lookups without the map."""
-    def texels(index: NDArray[np.int64]) -> NDArray[np.float32]:
-        out = resampled_texels(image, size, index)
-        return np.clip(out, 0.0, None, out=out)
-    return texels
-
-
-# ------------------------------------------------------------------------ renderer
-
-
-def ray_owners(camera_rays: RayScene, prim: NDArray[Any]) -> NDArray[Any]:
-    """Per ray the (mesh, triangle) of the scene its hit ``prim`` in ``camera_rays``
-    belongs to, (-1, -1) for a miss."""
-    return np.where(prim[:, None] >= 0, camera_rays.owner[np.maximum(prim, 0)], -1)
-
-
-def mesh_hits(owner: NDArray[Any], hits: tuple[NDArray[Any], ...], mesh: int
-              ) -> tuple[NDArray[np.intp], NDArray[Any], NDArray[np.float64]]:
-    """The rays whose first hit is on scene mesh ``mesh`` (indices), their triangles
-    and barycentrics (N, 3, 1), from :func:`ray_owners` and the hits (prim, u, v, t)."""
-    _, bu, bv, _ = hits
-    sel = np.flatnonzero(owner[:, 0] == mesh)
-    b = np.stack([1 - bu[sel] - bv[sel], bu[sel], bv[sel]], axis=1)[:, :, None]
-    return sel, owner[sel, 1], b
-
-
-def hit_uvs(tex: SkinTextures, tri_idx: NDArray[Any], b: NDArray[Any]) -> NDArray[np.float64]:
-    """Texture coordinates (N, 2) of hits on ``tex``'s mesh: triangles ``tri_idx``,
-    barycentrics ``b`` (N, 3, 1), as :func:`mesh_hits` gives them."""
-    return (tex.uv[tex.uv_tris[tri_idx]] * b).sum(axis=1)
-
-
-def times_albedo_power(rgb: NDArray[np.float32], albedo: NDArray[np.float32], power: float,
-                       rows: int = 256) -> None:
-    """``rgb *= albedo ** power`` in place (the albedo split's weights before and after
-    the blur, d'Eon et al. 2007), a square root for 0.5 (the default) rather than a
-    general power, in bands of ``rows`` rows: the whole texture's weights at once were
-    201 MB of new memory at texture 4096, at the diffusion's peak."""
-    for y in range(0, rgb.shape[0], rows):
-        band = albedo[y:y + rows]
-        rgb[y:y + rows] *= np.sqrt(band) if power == 0.5 else np.power(band, power)
-
-
-def times_albedo_weight(rgb: NDArray[np.float32], albedo: NDArray[np.float32] | None,
-                        image: NDArray[np.float32] | None, power: float) -> None:
-    """``rgb *= albedo ** power`` in place from the albedo map where one was made
-    (:func:`times_albedo_power`), else from the albedo's own image on the device
-    (:func:`~.resample.times_resampled_power`: the same floats for the powers of
-    :data:`~.resample.EXACT_POWERS`, the only ones a render asks of it without a map)."""
-    if albedo is not None:
-        times_albedo_power(rgb, albedo, power)
-    else:
-        assert image is not None
-        times_resampled_power(rgb, image, power)
-
-
-def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -> float:
-    """The flux of a texture of irradiance or radiance exitance ``rgb`` (H, W, 3) over its
-    charts, summed over channels: sum of value x texel area in mm^2 (mm per texel along u
-    times along v) x coverage. In bands of ``rows`` rows: the areas of the whole texture
-    at once were 67 MB of new memory at texture 4096, at the diffusion's peak."""
-    def flux(band: slice) -> float:
-        area = maps.texel_area_mm2(band) * maps.coverage[band]
-        return float((area.ravel() @ rgb[band].reshape(-1, 3)).sum(dtype=np.float64))
-
-    total = 0.0
-    for part in in_bands(flux, rgb.shape[0], rows):  # on the cores; added in band order
-        total += part
-    return total
-
-
-class _BothArrived:
-    """Calls ``then`` once both the irradiance and the layout have arrived (each counts
-    once, from any thread)."""
-
-    def __init__(self, then: Callable[[], None]) -> None:
-        self._then = then
-        self._lock = threading.Lock()
-        self._waiting = {"irradiance", "layout"}
-
-    def arrive(self, party: str) -> None:
-        with self._lock:
-            if party not in self._waiting:
-                return
-            self._waiting.discard(party)
-            last = not self._waiting
-        if last:
-            self._then()
-
-
-@dataclass
-class TaskLog:
-    seconds: dict[str, float] = field(default_factory=dict)
-    cached: list[str] = field(default_factory=list)
-    skipped: list[str] = field(default_factory=list)
-    measures: dict[str, Any] = field(default_factory=dict)
-
-
-class CameraHits(NamedTuple):
-    """What a render's camera sees (:meth:`Renderer._camera_hits`): rays through the
-    pixel centres (origins, unit directions) and their first hits (triangle or -1,
-    barycentric u, v, distance), the silhouette pixels' flat indices and their extra
-    rays and hits."""
-
-    origins: NDArray[np.float64]
-    dirs: NDArray[np.float64]
-    hits: tuple[NDArray[Any], ...]
-    edge: NDArray[np.intp]
-    edge_origins: NDArray[np.float64]
-    edge_dirs: NDArray[np.float64]
-    edge_hits: tuple[NDArray[Any], ...]
-
-
-@dataclass
-class SkinTextures:
-    """Texture-space results of one skin mesh."""
-
-    mesh: SceneMesh
-    uv: NDArray[np.float64]
-    uv_tris: NDArray[np.int32]
-    tris: NDArray[np.int32]
-    maps: TextureMaps
-    albedo: NDArray[np.float32] | None = None
-    """The albedo map (:func:`albedo_texture`), made only for a split whose powers
-    :func:`~.resample.times_resampled_power` does not take as numpy does
-    (:meth:`Renderer._albedo`)."""
-    albedo_image: NDArray[np.float32] | None = None
-    """The albedo's own image (:func:`albedo_image`; after the irradiance, which does not
-    read it): the split's weights and the shading's lookups are made from it, the same
-    floats as from the map, without the map (201 MB at texture 4096)."""
-    irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
-    visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
-    radiance: NDArray[np.float32] | None = None
-    period: int = 2
-    """The interleaving period of its shadow rays (:meth:`Renderer._interleaving`)."""
-    texels_per_pixel: float = 0.0
-    """Texels across an image pixel at the skin (:func:`texels_per_pixel`; 0: unknown)."""
-    keys: dict[str, str] = field(default_factory=dict)
-    """Cache keys of the texture maps, albedo and irradiance: what later tasks key on,
-    instead of hashing the maps themselves."""
-    at_hits: dict[str, dict[str, NDArray[np.float32]]] | None = None
-    """The irradiance (N, 3), the albedo (N, 3) and each light's visibility (N,) looked up
-    at the camera's hits on this mesh, 'center' and 'edge' rays
-    (:meth:`Renderer._look_up_at_hits`; what the AOVs asked for need):
-    taken before the diffusion in a render's last frame, so that the maps could go
-    (None: the shading looks them up in the maps)."""
-    hit_uv: dict[str, NDArray[np.float64]] = field(default_factory=dict)
-    """The texture coordinates of those hits, by part, where they were taken: the
-    shading reads them rather than making them again."""
-
-    def albedo_map(self) -> NDArray[np.float32]:
-        """The albedo map: the one made, else one made now from the image."""
-        if self.albedo is not None:
-            return self.albedo
-        assert self.albedo_image is not None
-        return albedo_texture(self.albedo_image, self.maps.triangle.shape[0])
-
-    @property
-    def irradiance(self) -> NDArray[np.float32] | None:
-        """The irradiance (H, W, 3), 0 off the charts, as a new array: the filled one where
-        a triangle covers the texel, which the push-pull and the gutter leave as it was
-        (a copy kept beside the filled one held 201 MB at texture 4096)."""
-        filled = self.irradiance_filled
-        if filled is None:
-            return None
-        triangle = self.maps.triangle
-        out = np.empty(filled.shape, np.float32)
-
-        def band(rows: slice) -> None:  # in bands on the cores: 0.30 -> 0.14 s at 4096
-            np.copyto(out[rows], np.where((triangle[rows] >= 0)[..., None], filled[rows],
-                                          np.float32(0.0)))
-
-        in_bands(band, out.shape[0], BAND_ITEMS // max(out.shape[1], 1))
-        return out
 
 
 class Renderer:
@@ -1445,193 +885,5 @@ class Renderer:
         out["irradiance"][sel] = e
 
 
-def texture_space_images(tex: SkinTextures, which: tuple[str, ...]
-                         ) -> dict[str, NDArray[np.float32]]:
-    """The texture-space maps ``which`` (:data:`~.options.TEXTURE_OUTPUTS`) of one skin
-    mesh, rows flipped so that row 0 is v = 1 (as a texture image), plus coverage."""
-    maps = tex.maps
-    covered = maps.triangle >= 0
-    out: dict[str, NDArray[np.float32]] = {}
-    if "irradiance" in which and tex.irradiance is not None:
-        out["irradiance"] = tex.irradiance
-    if "radiosity" in which and tex.radiance is not None:
-        out["radiosity"] = (tex.radiance * np.float32(math.pi)) * covered[..., None]
-    if "stretch" in which:
-        out["stretch"] = np.stack([maps.mm_per_texel_u, maps.mm_per_texel_v], axis=-1)
-    if "region" in which:
-        region = np.full(covered.shape, -1.0, np.float32)
-        if maps.region_weights is not None:
-            region[covered] = np.argmax(maps.region_weights[covered], axis=-1)
-        out["region"] = region[..., None]
-    out["coverage"] = maps.coverage[..., None]
-    return {k: np.ascontiguousarray(v[::-1], np.float32) for k, v in out.items()}
-
-
-_TEXTURE_CHANNELS = {"irradiance": ("R", "G", "B"), "radiosity": ("R", "G", "B"),
-                     "stretch": ("u_mm", "v_mm"), "region": ("id",), "coverage": ("A",)}
-
-
-def write_texture_outputs(out_dir: Path, name: str, renderer: Renderer, working: str
-                          ) -> list[str]:
-    """``<name>_uv.exr`` (``<name>_uv_<mesh>.exr`` for each of several skin meshes) with
-    the options' texture-space maps; their paths."""
-    which = renderer.options.texture_outputs
-    paths = []
-    for tex in renderer.textures if which else []:
-        images = texture_space_images(tex, which)
-        suffix = "" if len(renderer.textures) == 1 else \
-            "_" + Tf.MakeValidIdentifier(tex.mesh.path.strip("/").replace("/", "_"))
-        names = [f"{k}.{c}" for k in images for c in _TEXTURE_CHANNELS[k]]
-        exr = write_exr(out_dir / f"{name}_uv{suffix}.exr",
-                        np.concatenate(list(images.values()), axis=2), working,
-                        channel_names=tuple(names))
-        paths.append(str(exr))
-    return paths
-
-
 def scene_geometry_key(scene: SceneData) -> str:
     return content_hash(*[m.geometry_key() for m in scene.meshes])
-
-
-# ------------------------------------------------------------------------ outputs
-
-
-def display_image(beauty: NDArray[Any], working: str, config_source: str
-                  ) -> tuple[NDArray[np.float32], dict[str, str]]:
-    """Display-referred pixels through the config's default display and view, of the
-    colour itself (a premultiplied beauty with alpha is divided by its alpha first: the
-    view transform is not linear, and applied to colour times coverage it brightened the
-    demo face's 2526 silhouette pixels by 0.12 of the display's range on average, 0.46
-    at most, once the PNG's straight alpha was taken off)."""
-    config = ocio_config(config_source)
-    src = check_colorspace(working, config_source)
-    display = config.getDefaultDisplay()
-    view = config.getDefaultView(display)
-    transform = OCIO.DisplayViewTransform(src=src, display=display, view=view)
-    proc = config.getProcessor(transform).getDefaultCPUProcessor()
-    rgb = np.nan_to_num(beauty[..., :3].astype(np.float32), copy=False, nan=0.0, posinf=1e4)
-    if beauty.shape[-1] == 4:
-        alpha = beauty[..., 3:4]
-        np.divide(rgb, alpha, out=rgb, where=alpha > 0)
-    # in row bands on the cores: OCIO lets go of the GIL, and the default view's ACES 2.0
-    # output transform took 0.45 s for a 768 x 768 image on one core (0.23 s on two); a
-    # pixel's value does not depend on the band
-    pixels = rgb.reshape(-1, 3)
-    in_bands(lambda rows: proc.applyRGB(pixels[rows]), pixels.shape[0],
-             -(-pixels.shape[0] // min(host_threads(), BAND_THREADS)))
-    return np.clip(rgb, 0, 1), {"display": display, "view": view, "config": config_source}
-
-
-def display_colorspace(config_source: str, display: str, view: str) -> str:
-    """The colour space a display/view pair's output is encoded in. OCIO 2.2+ configs
-    share views across displays and answer ``<USE_DISPLAY_NAME>``: the colour space
-    named as the display itself (OCIO's rule for shared views)."""
-    space = ocio_config(config_source).getDisplayViewColorSpaceName(display, view)
-    return display if space == OCIO.OCIO_VIEW_USE_DISPLAY_NAME else space
-
-
-def write_outputs(out_dir: Path, name: str, images: dict[str, NDArray[np.float32]],
-                  working: str, config_source: str, half: bool = False) -> dict[str, Any]:
-    """OUT/<name>.exr (one layer per AOV, colour space in the header; half float with
-    ``half``, where no value exceeds half's range) and OUT/<name>.png."""
-    channels, names = [], []
-    for aov, img in images.items():
-        chans = {4: ("R", "G", "B", "A"), 3: ("R", "G", "B"), 1: ("id",)}[img.shape[2]]
-        channels.append(img)
-        names += [c if aov == "beauty" else f"{aov}.{c}" for c in chans]
-    stack = np.concatenate(channels, axis=2)
-    if not np.all(np.isfinite(stack)):
-        raise SkinpipeError(f"{name}: the render produced non-finite pixels")
-    if half and np.abs(stack).max() > HALF_MAX:
-        raise SkinpipeError(f"{name}: a pixel exceeds half float's range ({HALF_MAX}); "
-                            "write float EXRs (leave out --half-float)")
-
-    def preview() -> dict[str, Any]:
-        disp, info = display_image(images["beauty"], working, config_source)
-        alpha = images["beauty"][..., 3:4]
-        # tagged with the display's colour space, so the PNG carries its sRGB chunk
-        space = display_colorspace(config_source, info["display"], info["view"])
-        # straight alpha, as PNG stores it: OpenImageIO is told so, or it divides again
-        png = write_ldr(out_dir / f"{name}.png", np.concatenate([disp, alpha], axis=2), 8,
-                        {"oiio:ColorSpace": space, "oiio:UnassociatedAlpha": 1,
-                         "skinpipe:displayView": f"{info['display']} / {info['view']}"})
-        return {"png": str(png), **info}
-
-    # the PNG's display transform and writing on a thread beside the EXR's (OpenImageIO
-    # and OCIO let Python's lock go): the demo scene's 1024 x 1024 frame 0.43-0.69 ->
-    # 0.36-0.38 s
-    with ThreadPoolExecutor(1, thread_name_prefix="skinpipe-png") as side:
-        png = side.submit(preview) if "beauty" in images else None
-        exr = write_exr(out_dir / f"{name}.exr", stack, working, channel_names=tuple(names),
-                        half=half)
-        result: dict[str, Any] = {"exr": str(exr), "colorspace": working}
-        if png is not None:
-            result.update(png.result())
-    return result
-
-
-def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
-                 frames: tuple[int, int] | None = None, ocio: str = "ocio://default",
-                 name: str | None = None, progress: Callable[[str], None] | None = None,
-                 renderer: Renderer | None = None) -> dict[str, Any]:
-    """Render ``scene_path`` into ``out_dir`` (one EXR + PNG per frame) and write
-    ``render.json``: per frame, each task's seconds, what was cached or skipped, and the
-    error measures. A ``renderer`` passed in is used (and left open) so that its caches
-    serve later renders of the same stage."""
-    start = time.perf_counter()
-    scene_path = Path(scene_path)
-    check_colorspace("lin_ap1_scene", ocio)
-    name = name or scene_path.stem
-    own = renderer is None
-    if renderer is None:
-        renderer = Renderer(open_stage_guarded(scene_path), options, progress)
-    renderer.options = options
-    if options.device:
-        set_device(options.device)
-    ledger = LEDGER.copy()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    doc: dict[str, Any] = {"scene": str(scene_path), "options": _options_json(options),
-                           "ocio": ocio, "frames": []}
-    try:
-        times = [None] if frames is None else list(range(frames[0], frames[1] + 1))
-        for t in times:
-            t0 = time.perf_counter()
-            if progress and t is not None:
-                progress(f"frame {t}")
-            renderer.last_frame = own and t == times[-1]
-            images, log = renderer.render(t)
-            frame_name = name if t is None else f"{name}.{t:04d}"
-            uv_outputs = write_texture_outputs(out_dir, frame_name, renderer,
-                                               renderer.delegate.working_colorspace)
-            if own and t == times[-1]:
-                renderer.clear_cache()  # no frame follows: its textures go before the writes
-            working = renderer.delegate.working_colorspace
-            outputs = write_outputs(out_dir, frame_name, images, working, ocio,
-                                    options.half_float)
-            if uv_outputs:
-                outputs["texture_space"] = uv_outputs
-            doc["frames"].append({"frame": t, "seconds": time.perf_counter() - t0,
-                                  "tasks": log.seconds, "cached": log.cached,
-                                  "skipped": log.skipped, "measures": log.measures,
-                                  "outputs": outputs})
-    finally:
-        if own:
-            renderer.close()
-    doc["total_seconds"] = time.perf_counter() - start
-    doc["opencl"] = opencl_summary(ledger)
-    atomic_write_json(out_dir / "render.json", doc)
-    return doc
-
-
-def opencl_summary(before: KernelLedger) -> dict[str, Any]:
-    """The device, why the others were not used, the programs built and their seconds,
-    the kernels launched since ``before``, and the direct/recursive blur switch used."""
-    doc = {**device_choice().summary(), **LEDGER.since(before)}
-    used = direct_limits()
-    if used is not None:  # only if a blur asked for it
-        doc["blur_switch"] = asdict(used)
-    return doc
-
-
-def _options_json(options: RenderOptions) -> dict[str, Any]:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(options).items()}

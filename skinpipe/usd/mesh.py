@@ -6,7 +6,6 @@ bad indices, so every mesh is validated here before any later stage sees it.
 
 from __future__ import annotations
 
-import os
 import subprocess
 import tempfile
 from dataclasses import dataclass, replace
@@ -19,6 +18,7 @@ from pxr import Usd, UsdGeom
 
 from ..children import child_failure, python_command
 from ..errors import InputError
+from ..native import import_pymeshlab, pymeshlab_folder
 from .io import USD_SUFFIXES, open_stage_guarded
 from .mesh_files import load_in_child, scan_mesh_file
 
@@ -148,7 +148,7 @@ def prepare_scan(mesh: MeshData, target_faces: int = 60000, max_hole_edges: int 
     every piece but the largest, close the holes inside the scan (up to
     ``max_hole_edges`` boundary edges), decimate to ``target_faces`` (quadric edge
     collapse). The scan's outer rim stays open: :func:`seal_scan` closes it."""
-    import pymeshlab  # here: 0.07 s of every command's start, a render's included
+    pymeshlab = import_pymeshlab()
 
     if np.any(mesh.face_counts != 3):
         raise InputError("prepare_scan needs a triangle mesh", mesh.source)
@@ -207,7 +207,7 @@ def seal_scan(mesh: MeshData) -> MeshData | None:
 
     The skin keeps its texture space; the seal is a separate occluder so that no shadow
     or camera ray passes through the scan. ``None`` when the mesh is already closed."""
-    import pymeshlab  # here: 0.07 s of every command's start, a render's included
+    pymeshlab = import_pymeshlab()
 
     faces = mesh.face_indices.reshape(-1, 3)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
@@ -296,10 +296,7 @@ class ScanPreparation:
 
 def pymeshlab_face_scan() -> Path:
     """The real face range scan shipped in pymeshlab's wheel (mm units, holes, noise)."""
-    import pymeshlab  # here: 0.07 s of every command's start, a render's included
-
-    path = Path(os.path.dirname(pymeshlab.__file__)) / "tests" / "sample_meshes" / \
-        "rangemaps" / "face000.ply"
+    path = pymeshlab_folder() / "tests" / "sample_meshes" / "rangemaps" / "face000.ply"
     if not path.is_file():
         raise InputError("pymeshlab's sample face scan is not installed", path)
     return path

@@ -22,17 +22,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import pymeshlab
-
 from .. import __version__
 from ..capture.ingest import ingest_capture_set, read_capture_set
 from ..errors import InputError
 from ..fileio import atomic_directory, atomic_write_json, relocate_records, stale_siblings
+from ..native import import_pymeshlab, pymeshlab_folder
 from ..profile.io import read_profile_csv, write_fit_json
-from ..render.albedo import bake_sample_albedo
-from ..render.renderer import RenderOptions, ensure_skin_uvs, render_files
+from ..render.options import RenderOptions
+from ..render.outputs import render_files
+from ..render.surface.uvs import ensure_skin_uvs
 from ..usd.shot import author_shot
 from ..usd.validate import validate_file
+from .albedo import bake_sample_albedo
 from .chain import author_from_files, fit_ingested_profile
 
 STAGES = ("ingest", "fit", "author", "render")
@@ -62,7 +63,7 @@ def _resolve(value: Any, base: Path, what: str, source: Path) -> Path:
     if not isinstance(value, str) or not value:
         raise InputError(f"{what} must be a path string, got {value!r}", source)
     if value.startswith(PYMESHLAB_PREFIX):
-        path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / \
+        path = pymeshlab_folder() / "tests" / "sample_meshes" / \
             value[len(PYMESHLAB_PREFIX):]
     else:
         path = Path(value) if os.path.isabs(value) else base / value
@@ -408,7 +409,7 @@ def _import_native_libraries() -> Any:
         name = "skinpipe-native-imports"
 
         def setup(self, worker: Any) -> None:
-            import pymeshlab  # noqa: F401
+            import_pymeshlab()
 
     return NativeImports()
 

@@ -26,17 +26,14 @@ from ..imageio import oiio_error, write_ldr
 from ..profile.fit import FitOptions, check_terms, fit_sum_of_gaussians
 from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
 from ..profile.types import FitResult, MeasuredProfile
-from ..render.albedo import bake_sample_albedo
-from ..render.opencl import set_device, start_prewarm
-from ..render.push_pull import push_pull_kernels
-from ..render.renderer import (
-    Renderer,
-    RenderOptions,
-    ensure_skin_uvs,
-    render_files,
-    write_outputs,
-)
-from ..render.texture_maps import texture_kernels
+from ..render.device.choice import set_device
+from ..render.device.programs import start_prewarm
+from ..render.diffusion.push_pull import push_pull_kernels
+from ..render.options import RenderOptions
+from ..render.outputs import render_files, write_outputs
+from ..render.renderer import Renderer
+from ..render.surface.texture_maps import texture_kernels
+from ..render.surface.uvs import ensure_skin_uvs
 from ..usd.author import (
     AssetPaths,
     RegionAssignment,
@@ -50,6 +47,7 @@ from ..usd.materialx import library as mtlx_library
 from ..usd.mesh import MeshData, ScanPreparation, load_mesh, prepare_scan, seal_scan
 from ..usd.shot import author_shot
 from ..usd.validate import validate_file
+from .albedo import bake_sample_albedo
 
 Progress = Callable[[str], None]
 

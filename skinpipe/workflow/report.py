@@ -18,10 +18,12 @@ from ..errors import InputError
 from ..fileio import atomic_path, atomic_write_json
 from ..profile.fit import FitOptions, fit_sum_of_gaussians
 from ..profile.types import MeasuredProfile
-from ..render.options import SHADOW_SAMPLING
-from ..render.raytrace import RayScene
-from ..render.renderer import Renderer, RenderOptions, TaskLog, bilinear
-from ..render.unwrap import triangulate
+from ..render.frame import TaskLog
+from ..render.light.raytrace import RayScene
+from ..render.options import SHADOW_SAMPLING, RenderOptions
+from ..render.renderer import Renderer
+from ..render.shading import bilinear
+from ..render.surface.unwrap import triangulate
 from ..usd.io import open_stage_guarded
 
 FIT_METHODS: dict[str, dict[str, Any]] = {

@@ -228,7 +228,7 @@ def test_hostile_input_is_refused_cleanly(ws: Path, case: Case) -> None:
 
 
 def test_render_never_replaces_the_asset_texture(ws: Path) -> None:
-    from skinpipe.render.albedo import bake_sample_albedo
+    from skinpipe.workflow.albedo import bake_sample_albedo
 
     bake_sample_albedo(ws / "asset" / "asset.usda", 64)
     before, dirs = _snapshot(ws), _dirs(ws)
@@ -479,7 +479,7 @@ def test_child_processes_find_packages_on_pythonpath(tmp_path: Path) -> None:
     script = (
         "import sys\n"
         "from pathlib import Path\n"
-        "from skinpipe.render.unwrap import unwrap\n"
+        "from skinpipe.render.surface.unwrap import unwrap\n"
         "from skinpipe.usd.mesh import load_mesh\n"
         "mesh = load_mesh(Path(sys.argv[1]))\n"
         "layout = unwrap(mesh, resolution=64, timeout_s=60)\n"

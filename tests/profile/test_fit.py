@@ -12,13 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from skinpipe.errors import InputError
-from skinpipe.profile.fit import (
-    FitOptions,
-    MeasuredProfile,
-    fit_multistart,
-    fit_profiles,
-    fit_sum_of_gaussians,
-)
+from skinpipe.profile.fit import FitOptions, fit_multistart, fit_profiles, fit_sum_of_gaussians
 from skinpipe.profile.models import (
     burley_profile,
     fit_error_eq2c,
@@ -30,6 +24,7 @@ from skinpipe.profile.reference_data import (
     PARK_OH_2009_FOREHEAD,
     normalized_weights,
 )
+from skinpipe.profile.types import MeasuredProfile
 
 from ..reference_profiles import RADIUS_MM, deon_profile, dipole_normalised
 

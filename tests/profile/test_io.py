@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.profile.fit import MeasuredProfile, fit_sum_of_gaussians
+from skinpipe.profile.fit import fit_sum_of_gaussians
 from skinpipe.profile.io import (
     read_fit_inputs,
     read_fit_json,
@@ -16,6 +16,7 @@ from skinpipe.profile.io import (
     write_fit_json,
     write_profile_csv,
 )
+from skinpipe.profile.types import MeasuredProfile
 
 from ..reference_profiles import deon_profile
 

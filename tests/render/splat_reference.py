@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from skinpipe.render.chart_tiles import TileLevel, chart_boxes
+from skinpipe.render.diffusion.chart_tiles import TileLevel, chart_boxes
 
 
 @dataclass(frozen=True)

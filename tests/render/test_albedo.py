@@ -12,10 +12,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from skinpipe.imageio import ACESCG, CHROMATICITIES
-from skinpipe.render.albedo import ALBEDO_NAME, REGION_TONES
-from skinpipe.render.renderer import ensure_skin_uvs
-from skinpipe.render.texture_maps import rasterize
-from skinpipe.render.unwrap import triangulate
+from skinpipe.render.surface.texture_maps import rasterize
+from skinpipe.render.surface.unwrap import triangulate
+from skinpipe.render.surface.uvs import ensure_skin_uvs
+from skinpipe.workflow.albedo import ALBEDO_NAME, REGION_TONES
 
 
 def test_demo_albedo_reads_back_as_a_texture(demo_run: tuple[Path, str, str]) -> None:

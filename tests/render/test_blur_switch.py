@@ -6,8 +6,9 @@ from __future__ import annotations
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render import blur_switch, opencl
-from skinpipe.render.blur_switch import (
+from skinpipe.render.device import choice, programs
+from skinpipe.render.diffusion import blur_switch
+from skinpipe.render.diffusion.blur_switch import (
     FIR_MAX_RADIUS_TUNED,
     SWITCH_ENV,
     DirectLimits,
@@ -15,7 +16,7 @@ from skinpipe.render.blur_switch import (
     fixed_limits,
     prefers_direct,
 )
-from skinpipe.render.direct_blur import FIR_MAX_RADIUS_PER_TEXEL
+from skinpipe.render.diffusion.direct_blur import FIR_MAX_RADIUS_PER_TEXEL
 
 
 def test_crossover_reference_values() -> None:
@@ -58,12 +59,12 @@ def test_measured_on_each_device_and_cached(monkeypatch: pytest.MonkeyPatch,
         assert blur_switch.direct_limit(per_texel=False)[:2] == (one, "cache")
     finally:
         blur_switch.direct_limit.cache_clear()
-    assert opencl.device_choice() is not None
+    assert choice.device_choice() is not None
 
 
 def test_measuring_one_kind_times_only_its_kernels(cl_device: object) -> None:
-    before = opencl.LEDGER.copy()
+    before = programs.LEDGER.copy()
     limits = blur_switch.measure_direct_limits(256, one_sigma=False)
     assert limits.max_radius is None and limits.max_radius_per_texel is not None
-    launched = opencl.LEDGER.since(before)["kernel_launches"]
+    launched = programs.LEDGER.since(before)["kernel_launches"]
     assert "fir_band" not in launched and any(k.startswith("fir_band_texel") for k in launched)

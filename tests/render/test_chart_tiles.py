@@ -21,16 +21,12 @@ from scipy.special import ndtr
 from skinpipe.cli import main
 from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN
-from skinpipe.render.diffusion import (
-    ChartLayout,
-    DiffusionLayout,
-    _fill_level,
-    chart_layout,
-    diffuse,
-)
-from skinpipe.render.opencl import cl_context, host_buffer
-from skinpipe.render.raytrace import RayScene
-from skinpipe.render.texture_maps import rasterize
+from skinpipe.render.device.choice import cl_context
+from skinpipe.render.device.memory import host_buffer
+from skinpipe.render.diffusion.diffuse import diffuse
+from skinpipe.render.diffusion.layout import ChartLayout, DiffusionLayout, _fill_level, chart_layout
+from skinpipe.render.light.raytrace import RayScene
+from skinpipe.render.surface.texture_maps import rasterize
 from skinpipe.usd.author import RegionAssignment, author_asset
 from skinpipe.usd.mesh import MeshData
 from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
@@ -332,7 +328,7 @@ def test_kept_uv_charts_are_the_connected_components(tmp_path: Path,
     triangle, with a UV vertex no triangle uses), the same after they are kept and read
     back from skinpipe's cache folder; a damaged kept file is made again, and other
     triangles are another file."""
-    from skinpipe.render.chart_tiles import connected_uv_charts, uv_charts
+    from skinpipe.render.diffusion.chart_tiles import connected_uv_charts, uv_charts
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     uv_tris = np.array([[0, 1, 2], [2, 1, 3],  # a quad: one chart
@@ -441,10 +437,10 @@ def test_chart_splats_sum_what_the_scatter_sums(level: int, band_texels: int,
     edges: the counts and the mean sizes within float32 rounding, and 0 in both where
     no finest texel reaches. Each box whole, and in bands of one to a few rows (whose
     cells the bands share)."""
-    import skinpipe.render.chart_tiles as chart_tiles
+    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
 
-    monkeypatch.setattr(chart_tiles, "SPLAT_BAND_TEXELS", band_texels)
-    from skinpipe.render.chart_tiles import _chart_cells, _pack, chart_boxes, chart_splats
+    monkeypatch.setattr(chart_tiles_module, "SPLAT_BAND_TEXELS", band_texels)
+    from skinpipe.render.diffusion.chart_tiles import _chart_cells, _pack, chart_boxes, chart_splats
 
     from .splat_reference import _splat, finest_texels, splat_geometry
 
@@ -510,9 +506,10 @@ def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
     against numpy's, levels 0-3 of the two-chart patch, flat and bent into a trough
     (z = bend x^2: points land on the other chart off their tangent plane, some miss):
     the same reads bit for bit."""
-    import skinpipe.render.chart_tiles as chart_tiles
+    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
+    import skinpipe.render.diffusion.margins as margins_module
 
-    if not chart_tiles._device_has_doubles():
+    if not margins_module._device_has_doubles():
         pytest.skip("the device has no doubles: the margins are numpy's alone")
     pts, tris, uv = seam_patch()
     pts = pts + np.stack([0 * pts[:, 0], 0 * pts[:, 0], bend * pts[:, 0] ** 2], axis=1)
@@ -520,7 +517,8 @@ def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
     charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
     tiles = {}
     for device in (True, False):
-        monkeypatch.setattr(chart_tiles, "_device_has_doubles", lambda device=device: device)
+        for module in (margins_module, chart_tiles_module):
+            monkeypatch.setattr(module, "_device_has_doubles", lambda device=device: device)
         layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                                  None, charts)
         tiles[device] = [layout.grid(k, 6).tiles for k in range(4)]
@@ -537,10 +535,10 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     at level 0, Catmull-Rom above) at random atlas positions including ones past every
     edge (the clamps), 0-3 reads a texel, against scipy's product with
     SeamReads.matrix (numpy's taps): the same texels bit for bit."""
-    import skinpipe.render.chart_tiles as chart_tiles
-    from skinpipe.render.opencl import host_output, read_output
+    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
+    from skinpipe.render.device.memory import host_output, read_output
 
-    kernel = chart_tiles.seam_read_kernel()
+    kernel = chart_tiles_module.seam_read_kernel()
     if kernel is None:
         pytest.skip("the device has no doubles: the host reads across the seams")
     rng = np.random.default_rng(level)
@@ -548,7 +546,7 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     per_texel = rng.integers(0, 4, h * w)
     rows = np.concatenate([[0], np.cumsum(per_texel)]).astype(np.int32)
     xy = (rng.random((int(rows[-1]), 2)) * [w + 6, h + 6] - 3).astype(np.float32)
-    reads = chart_tiles.SeamReads((h, w), level, rows, xy)
+    reads = chart_tiles_module.SeamReads((h, w), level, rows, xy)
     src = rng.random((h * w, 4)).astype(np.float32)
     got = np.empty_like(src)
     out = host_output(got)
@@ -567,9 +565,10 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
     UV layout turned 0.3 rad (its borders cross the texels at every phase): the same
     shares bit for bit (test_texel_coverage_is_the_share_of_the_square_on_its_chart
     holds the device's to the exact overlap)."""
-    import skinpipe.render.chart_tiles as chart_tiles
+    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
+    import skinpipe.render.diffusion.margins as margins_module
 
-    if not chart_tiles._device_has_doubles():
+    if not margins_module._device_has_doubles():
         pytest.skip("the device has no doubles: the coverage is numpy's alone")
     pts, tris, uv = seam_patch()
     pts = pts + np.stack([0 * pts[:, 0], 0 * pts[:, 0], bend * pts[:, 0] ** 2], axis=1)
@@ -577,7 +576,8 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
     uv = (uv - 0.5) @ turn.T * 0.7 + 0.5
     maps = rasterize(pts, tris, uv, tris, 512, 0.001)
     charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
-    monkeypatch.setattr(chart_tiles, "_device_has_doubles", lambda: False)
+    for module in (margins_module, chart_tiles_module):
+        monkeypatch.setattr(module, "_device_has_doubles", lambda: False)
     again = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
     partial = charts.coverage[(charts.coverage > 0) & (charts.coverage < 1)]
     assert partial.size > 500 and np.unique(partial).size > 8
@@ -590,7 +590,7 @@ def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
     across the seams (scipy's product with SeamReads.matrix) into an atlas of its own:
     the same diffused light bit for bit as the device's reads, on the two-chart patch
     with random light and d'Eon's six terms."""
-    import skinpipe.render.diffusion as diffusion
+    import skinpipe.render.diffusion.layout as layout_module
 
     maps, charts = _layout(256)
     e = np.random.default_rng(5).random((256, 256, 3)).astype(np.float32)
@@ -598,7 +598,7 @@ def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
     outs = []
     for device_reads in (True, False):
         if not device_reads:
-            monkeypatch.setattr(diffusion, "seam_read_kernel", lambda: None)
+            monkeypatch.setattr(layout_module, "seam_read_kernel", lambda: None)
         out, stats = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              v, w, charts=charts)
         assert len(set(stats.levels)) >= 2  # several levels, each filled in turn
@@ -610,14 +610,14 @@ def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
     """The reads across the seams on the device (``read_seams``: each row's products in
     turn, float32) against TileLevel.read_across_seams (scipy's sparse product), levels
     0-3 of the two-chart patch with random light: the same texels bit for bit."""
-    import skinpipe.render.chart_tiles as chart_tiles
-    from skinpipe.render.opencl import host_output, read_output
+    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
+    from skinpipe.render.device.memory import host_output, read_output
 
     maps, charts = _layout(256)
     layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              None, charts)
     _, queue = cl_context()
-    kernel = chart_tiles.seam_read_kernel()
+    kernel = chart_tiles_module.seam_read_kernel()
     for k in range(4):
         grid = layout.grid(k, 4)
         reads = grid.seam_buffers()

@@ -11,15 +11,10 @@ import pytest
 from skinpipe.errors import InputError
 from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN
-from skinpipe.render.diffusion import (
-    OpenCLBlur,
-    _added_variance_texels2,
-    blur_reference,
-    diffuse,
-    diffuse_gather,
-    ranked_step,
-    unit_region_weights,
-)
+from skinpipe.render.diffusion.diffuse import diffuse
+from skinpipe.render.diffusion.gather import OpenCLBlur, blur_reference, diffuse_gather
+from skinpipe.render.diffusion.inputs import unit_region_weights
+from skinpipe.render.diffusion.layout import _added_variance_texels2, ranked_step
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -76,12 +71,12 @@ def test_pencil_under_a_one_texture_term_cap_reproduces_the_profile(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # the term buffer's byte cap (large textures) splits the terms into batches; the
     # pencil still gives d'Eon's profile (the analytic sum of Gaussians) and its energy
-    import skinpipe.render.diffusion as d
+    import skinpipe.render.diffusion.diffuse as diffuse_module
 
     v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
     mm = 0.1
     n = int(2 * 11.0 / mm) | 1
-    monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
+    monkeypatch.setattr(diffuse_module, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
     r, got, _ = _pencil(n, mm, mm, v, w)
     sel = (r > 0.3) & (r < 3.5)
     order = np.argsort(r[sel])
@@ -91,7 +86,7 @@ def test_pencil_under_a_one_texture_term_cap_reproduces_the_profile(
 
 
 def test_energy_is_conserved_away_from_borders() -> None:
-    import skinpipe.render.diffusion as d
+    import skinpipe.render.diffusion.layout as layout_module
 
     v = np.array([0.05, 0.5])
     w = np.array([[0.4, 0.5, 0.6], [0.6, 0.5, 0.4]])
@@ -100,7 +95,7 @@ def test_energy_is_conserved_away_from_borders() -> None:
     np.testing.assert_allclose(total, 1.0, rtol=2e-4)
     # each term on the coarsest level where it is still LEVEL_MIN_SIGMA_TEXELS wide: the
     # wide one (sigma 14 texels) on a coarser level than the narrow one (4.5 texels)
-    expect = [int(math.log2(sg / d.LEVEL_MIN_SIGMA_TEXELS)) for sg in (4.47, 14.1)]
+    expect = [int(math.log2(sg / layout_module.LEVEL_MIN_SIGMA_TEXELS)) for sg in (4.47, 14.1)]
     assert stats.levels == expect and expect[1] > expect[0]
 
 
@@ -153,13 +148,13 @@ def test_a_term_on_a_pyramid_level_keeps_its_centre_and_variance(
         level: int, monkeypatch: pytest.MonkeyPatch) -> None:
     # the pyramid's own spread is taken off the blur: through level k an impulse
     # comes back centred where it was, with variance v (averaged over its 2^k phases)
-    import skinpipe.render.diffusion as d
+    import skinpipe.render.diffusion.layout as layout_module
 
     assert _added_variance_texels2(0) == 0.0
     n = 96
     sigma = 0.6 * 2**level  # 0.6 of a level texel: the table matches variance there
     v = sigma**2 + _added_variance_texels2(level)
-    monkeypatch.setattr(d, "LEVEL_MIN_SIGMA_TEXELS", 0.999 * math.sqrt(v) / 2**level)
+    monkeypatch.setattr(layout_module, "LEVEL_MIN_SIGMA_TEXELS", 0.999 * math.sqrt(v) / 2**level)
     spread = []
     for phase in range(2**level):
         e = np.zeros((n, n, 3), np.float32)
@@ -252,7 +247,8 @@ def test_a_prepared_layout_serves_many_diffusions_like_a_fresh_one() -> None:
     # the layout keeps its device maps and work buffers between calls: different term
     # sets (other levels, merged equal variances, a sub-texel term) and irradiances
     # on it give what a fresh `diffuse` gives, and a wrong-sized irradiance is refused
-    from skinpipe.render.diffusion import DiffusionLayout, diffuse_prepared
+    from skinpipe.render.diffusion.diffuse import diffuse_prepared
+    from skinpipe.render.diffusion.layout import DiffusionLayout
 
     rng = np.random.default_rng(5)
     n = 75  # odd: pyramid levels of odd size, rows not a multiple of four
@@ -280,7 +276,8 @@ def test_a_layout_lets_its_work_go_and_makes_it_again_the_same() -> None:
     # a render's last diffusion lets the work buffers and level tiles go before the
     # push-pull (0.6 GB at texture 4096); a later diffusion on the layout (tiles made
     # again from its surface) gives the same floats
-    from skinpipe.render.diffusion import DiffusionLayout, diffuse_prepared
+    from skinpipe.render.diffusion.diffuse import diffuse_prepared
+    from skinpipe.render.diffusion.layout import DiffusionLayout
 
     e, mm_u, mm_v, cov, rw = _stretched_layout(90)
     v, w = np.array([0.002, 0.05, 0.6, 3.0]), np.random.default_rng(2).random((2, 4, 3))
@@ -308,8 +305,8 @@ def _stretched_layout(n: int) -> tuple[np.ndarray, ...]:
 def test_narrow_terms_on_a_stretched_layout_are_each_texels_own_gaussian() -> None:
     # per-texel direct blur (one pass a term): each texel's Gaussian of v / (mm per
     # texel)^2 on its own axis, as a normalised convolution, against float64
-    from skinpipe.render.direct_blur import direct_texel_reference, fir_weight_table
-    from skinpipe.render.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
+    from skinpipe.render.diffusion.direct_blur import direct_texel_reference, fir_weight_table
+    from skinpipe.render.diffusion.recursive_blur import QUANT_STEPS_PER_OCTAVE, quantized_log2
 
     n = 131
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
@@ -358,14 +355,14 @@ def test_a_few_tiny_texels_do_not_set_the_direct_radius() -> None:
 def test_term_batches_add_up_like_one(monkeypatch: pytest.MonkeyPatch) -> None:
     # blurred terms are kept TERM_BUFFER_TEXTURES at a time before they are added up;
     # one at a time (an accumulator pass between batches) gives the same sum
-    import skinpipe.render.diffusion as d
+    import skinpipe.render.diffusion.diffuse as diffuse_module
 
     n = 96
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
     v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
     one, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
-    monkeypatch.setattr(d, "TERM_BUFFER_TEXTURES", 1)
-    assert len(d._term_batches([n * n * 16] * 3 + [0], n * n * 16)) == 3
+    monkeypatch.setattr(diffuse_module, "TERM_BUFFER_TEXTURES", 1)
+    assert len(diffuse_module._term_batches([n * n * 16] * 3 + [0], n * n * 16)) == 3
     batched, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     np.testing.assert_allclose(batched, one, rtol=1e-6, atol=1e-7)
 
@@ -374,22 +371,22 @@ def test_term_buffer_byte_cap_batches_and_adds_up_like_one(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # the blurred terms' buffer is capped in bytes too (large textures): under a cap of
     # one texture the terms go in several batches, and the sum is the same
-    import skinpipe.render.diffusion as d
+    import skinpipe.render.diffusion.diffuse as diffuse_module
 
     n = 96
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
     v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
     one, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     seen: list[int] = []
-    batches = d._term_batches
+    batches = diffuse_module._term_batches
 
     def spy(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
         out = batches(sizes, budget)
         seen.append(len(out))
         return out
 
-    monkeypatch.setattr(d, "_term_batches", spy)
-    monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", n * n * 16)
+    monkeypatch.setattr(diffuse_module, "_term_batches", spy)
+    monkeypatch.setattr(diffuse_module, "TERM_BUFFER_MAX_BYTES", n * n * 16)
     capped, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     assert seen and max(seen) > 1
     np.testing.assert_allclose(capped, one, rtol=1e-6, atol=1e-7)
@@ -399,7 +396,7 @@ def test_term_buffer_byte_cap_batches_and_adds_up_like_one(
 def test_region_presence_is_each_regions_maximum_above_zero(texels: int) -> None:
     """The regions any texel uses, grouped 64 texels a row for speed: numpy's own
     maximum over every texel says the same, whatever the count's remainder."""
-    from skinpipe.render.diffusion import _region_presence
+    from skinpipe.render.diffusion.inputs import _region_presence
 
     rng = np.random.default_rng(texels)
     weights = (rng.random((texels, 1, 5)) * (rng.random((texels, 1, 5)) < 0.02)
@@ -436,7 +433,7 @@ def test_region_weights_are_read_as_a_partition_of_unity(path: str) -> None:
 
 
 def test_region_presence_reads_half_weights_by_their_bits() -> None:
-    from skinpipe.render.diffusion import _region_presence
+    from skinpipe.render.diffusion.inputs import _region_presence
 
     rw = np.zeros((130, 70, 4), np.float16)  # rows past a whole number of 64-texel groups
     rw[..., 0] = 1.0
@@ -452,13 +449,14 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
     # its level's `source` (the level's last term, recursive) instead of the term
     # buffer, and the other terms to tmp's room past their levels' atlases; the sum is
     # the same bit for bit as through a term buffer of its own
-    import skinpipe.render.diffusion as d
+    import skinpipe.render.diffusion.diffuse as diffuse_module
+    import skinpipe.render.diffusion.layout as layout_module
 
     n = 256  # coarse terms beside level 1 in tmp's room (not at 160: margins)
     e, mm_u, mm_v, cov, rw = _stretched_layout(n)
     v, w = DEON_2007_SKIN.variances_mm2, np.stack([DEON_2007_SKIN.weights] * 2)
-    monkeypatch.setattr(d, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
-    plan = d._alone_into
+    monkeypatch.setattr(diffuse_module, "TERM_BUFFER_MAX_BYTES", 1)  # each term its own batch
+    plan = diffuse_module._alone_into
     chosen: list[dict[int, str]] = []
 
     def spy(*args: object) -> dict[int, str]:
@@ -466,19 +464,19 @@ def test_terms_alone_in_their_batch_skip_the_term_buffer_bit_for_bit(
         return chosen[-1]
 
     asked: list[str] = []
-    own_buffer = d.DiffusionLayout.buffer
+    own_buffer = layout_module.DiffusionLayout.buffer
 
-    def buffer(self: d.DiffusionLayout, name: str, nbytes: int) -> object:
+    def buffer(self: layout_module.DiffusionLayout, name: str, nbytes: int) -> object:
         asked.append(name)
         return own_buffer(self, name, nbytes)
 
-    monkeypatch.setattr(d, "_alone_into", spy)
-    monkeypatch.setattr(d.DiffusionLayout, "buffer", buffer)
+    monkeypatch.setattr(diffuse_module, "_alone_into", spy)
+    monkeypatch.setattr(layout_module.DiffusionLayout, "buffer", buffer)
     alone, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     assert {"tmp", "source"} <= set(chosen[0].values())
     # the other terms (coarser levels') in tmp's room past their levels' atlases
     assert "terms" not in asked and len(chosen[0]) < len(v)
-    monkeypatch.setattr(d, "_alone_into", lambda *args: {})
+    monkeypatch.setattr(diffuse_module, "_alone_into", lambda *args: {})
     asked.clear()
     through_terms, _ = diffuse(e, mm_u, mm_v, cov, v, w, rw)
     assert "terms" in asked
@@ -491,9 +489,10 @@ def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
     the maps' half floats within their rounding (three regions, blends of two and of
     three; measured 1.2e-4 relative at most on PoCL and Intel's runtime), without
     holding the map."""
-    from skinpipe.render.diffusion import DiffusionLayout, diffuse_prepared
-    from skinpipe.render.renderer import diffusion_terms
-    from skinpipe.render.texture_maps import rasterize
+    from skinpipe.render.diffusion.diffuse import diffuse_prepared
+    from skinpipe.render.diffusion.layout import DiffusionLayout
+    from skinpipe.render.diffusion.terms import diffusion_terms
+    from skinpipe.render.surface.texture_maps import rasterize
 
     from ..render_scenes import exact_fit, grid_patch
 

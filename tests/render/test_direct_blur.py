@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render.blur_switch import prefers_direct
-from skinpipe.render.direct_blur import (
+from skinpipe.render.diffusion.blur_switch import prefers_direct
+from skinpipe.render.diffusion.direct_blur import (
     FIR_MAX_ERROR,
     DirectBlur,
     band_columns,

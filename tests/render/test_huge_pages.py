@@ -1,4 +1,4 @@
-"""The choice of transparent huge pages for large buffers (skinpipe/render/huge_pages.py)."""
+"""The choice of transparent huge pages for large buffers (skinpipe/render/device/huge_pages.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render import huge_pages
-from skinpipe.render.huge_pages import HUGE_PAGES_ENV, apply_to_numpy, reports_free_pages
+from skinpipe.render.device import huge_pages
+from skinpipe.render.device.huge_pages import HUGE_PAGES_ENV, apply_to_numpy, reports_free_pages
 
 
 def _virtio(root: Path, name: str, device: str, features: str) -> None:

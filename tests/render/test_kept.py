@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render import kept as kept_module
-from skinpipe.render.kept import LIMIT_ENV, evict, kept, kept_path, limit_bytes, read_kept
+from skinpipe.render import cache as kept_module
+from skinpipe.render.cache import LIMIT_ENV, evict, kept, kept_path, limit_bytes, read_kept
 
 
 def _made(value: int, size: int = 1000):

@@ -11,35 +11,35 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render import lighting
-from skinpipe.render.lighting import (
+from skinpipe.render.light import irradiance
+from skinpipe.render.light.irradiance import (
     IrradianceResult,
-    LightSampler,
-    beckmann_ndf,
-    complement_sets,
     filter_interleaved,
-    fresnel_schlick,
-    grid_shape,
-    interleave_period,
-    interleaved_strata,
     irradiance_texture,
-    light_sample_set,
     penumbra_at,
     penumbra_texels,
     ray_origins,
     refine_penumbrae,
-    sample_plan,
-    scrambled_sobol,
-    sobol_points,
-    specular_albedo,
     sum_axis1,
     visibility_plane,
     visibility_planes,
 )
+from skinpipe.render.light.raytrace import OFFSET_ROWS, RayScene, morton_order, offset_ray_origin
+from skinpipe.render.light.samples import (
+    LightSampler,
+    complement_sets,
+    grid_shape,
+    interleave_period,
+    interleaved_strata,
+    light_sample_set,
+    sample_plan,
+    scrambled_sobol,
+    sobol_points,
+)
+from skinpipe.render.light.specular import beckmann_ndf, fresnel_schlick, specular_albedo
 from skinpipe.render.options import INTERLEAVE_PERIODS
-from skinpipe.render.raytrace import OFFSET_ROWS, RayScene, morton_order, offset_ray_origin
 from skinpipe.render.scene import Light
-from skinpipe.render.texture_maps import texels_in_blocks
+from skinpipe.render.surface.texture_maps import texels_in_blocks
 
 from .test_raytrace import hard_origins, offset_by_listing
 
@@ -76,7 +76,7 @@ def test_rho_dt_quadrature_against_scipys_adaptive_integral() -> None:
     cos 0.70 and 1.0 for roughness 0.35, 3e-5 at cos 0.30)."""
     from scipy import integrate
 
-    from skinpipe.render.lighting import rho_dt_quadrature, torrance_sparrow
+    from skinpipe.render.light.specular import rho_dt_quadrature, torrance_sparrow
 
     table = rho_dt_quadrature(0.35, 0.25)
     for i in (44, 63):
@@ -101,7 +101,7 @@ def test_kept_rho_dt_table_is_the_quadrature(tmp_path: Path,
     """The specular albedo's table, made and then read back from skinpipe's cache
     folder, is the quadrature's own, bit for bit; a damaged kept file (not JSON, another
     size, a negative value) is made again; another roughness is another file."""
-    from skinpipe.render.lighting import _rho_dt_table, rho_dt_quadrature
+    from skinpipe.render.light.specular import _rho_dt_table, rho_dt_quadrature
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     want = rho_dt_quadrature(0.3, 0.2)
@@ -770,8 +770,8 @@ def test_shadow_rays_cast_in_blocks_give_the_same_sums(monkeypatch: pytest.Monke
     lights = [key, Light("/Fill", "dome", np.full(3, 0.2), np.eye(4)),
               Light("/Sun", "distant", np.full(3, 0.5), np.eye(4), angle_deg=2.0)]
     whole = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
-    monkeypatch.setattr(lighting, "RAY_BLOCK_POINTS", 1000)
-    assert len(lighting.ray_blocks(LightSampler(
+    monkeypatch.setattr(irradiance, "RAY_BLOCK_POINTS", 1000)
+    assert len(irradiance.ray_blocks(LightSampler(
         key, pos, nrm, 16, np.random.default_rng(0)))) == -(-pos.shape[0] // 1000)
     blocks = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
     assert blocks.rays == whole.rays

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render import opencl
-from skinpipe.render.opencl import Candidate, choose_device, order_candidates
+from skinpipe.render.device import choice, memory, programs
+from skinpipe.render.device.choice import Candidate, choose_device, order_candidates
 
 POCL = Candidate("Portable Computing Language", "pthread-AMD EPYC", "cpu", 1, 0)
 INTEL = Candidate("Intel(R) OpenCL", "AMD EPYC", "cpu", 0, 0)
@@ -98,18 +98,19 @@ def test_no_working_device_names_each_one_and_what_to_install() -> None:
 
 
 def test_every_device_here_passes_the_probe_or_says_why() -> None:
-    found = opencl.candidates(all_runtimes=True)
+    found = choice.candidates(all_runtimes=True)
     assert found, "pyopencl[pocl] brings at least PoCL"
     for cand, device in found:
-        reason = opencl.probe(device)
+        reason = choice.probe(device)
         assert reason is None or reason.count("\n") == 0, (cand.label, reason)
 
 
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
-    # skinpipe first (it loads the newer TBB), pymeshlab after: Intel's platform stays
-    code = ("import skinpipe, pymeshlab; from skinpipe.render import opencl;"
-            "print('|'.join(c.platform for c, _ in opencl.candidates(all_runtimes=True)))")
+    # pymeshlab through skinpipe (the newer TBB first): Intel's platform stays
+    code = ("from skinpipe.native import import_pymeshlab; import_pymeshlab();"
+            "from skinpipe.render.device import choice;"
+            "print('|'.join(c.platform for c, _ in choice.candidates(all_runtimes=True)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert "Intel(R) OpenCL" in out and "Portable Computing Language" in out
@@ -118,9 +119,9 @@ def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
     assert Path(icd).is_absolute() and Path(icd).name == "libintelocl.so"
 
 
-_LOADED = ("from skinpipe.render import opencl; c = opencl.device_choice();"
+_LOADED = ("from skinpipe.render.device import choice, runtimes; c = choice.device_choice();"
            "maps = open('/proc/self/maps').read();"
-           "print(c.candidate.runtime, 'libintelocl' in maps, opencl.SETUP.notes)")
+           "print(c.candidate.runtime, 'libintelocl' in maps, runtimes.SETUP.notes)")
 
 
 @pytest.mark.skipif(not _intel_installed() or not Path("/proc/self/maps").exists(),
@@ -149,16 +150,16 @@ def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> No
     if first.startswith("pocl-cpu"):
         # Intel's asked for only after a first query left it out: an error that says so,
         # and asked for again, the note once
-        late = run("from skinpipe.render import opencl; opencl.device_choice();"
-                   "opencl.set_device('intel')\n"
+        late = run("from skinpipe.render.device import choice, runtimes; choice.device_choice();"
+                   "choice.set_device('intel')\n"
                    "for _ in range(2):\n"
-                   "    try: opencl.device_choice()\n"
+                   "    try: choice.device_choice()\n"
                    "    except Exception as exc: print(type(exc).__name__, exc)\n"
-                   "print(sum('first OpenCL query' in n for n in opencl.SETUP.notes))")
+                   "print(sum('first OpenCL query' in n for n in runtimes.SETUP.notes))")
         assert late.startswith("InputError") and "first OpenCL query" in late, late
         assert late.splitlines()[-1] == "1", late
-    every = run("from skinpipe.render import opencl;"
-                "print(sorted({c.runtime for c, _ in opencl.candidates(all_runtimes=True)}))")
+    every = run("from skinpipe.render.device import choice, runtimes;"
+                "print(sorted({c.runtime for c, _ in choice.candidates(all_runtimes=True)}))")
     assert "intel-cpu" in every and "pocl-cpu" in every, every
 
 
@@ -166,7 +167,7 @@ def test_the_pocl_record_is_kept_dropped_and_never_fails(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A pass keeps the record, a failure drops it, and a cache folder that cannot hold
     it (a file where the folder should be) neither raises nor claims a pass."""
-    from skinpipe.render.opencl_runtimes import note_pocl_probe, pocl_passed_here
+    from skinpipe.render.device.runtimes import note_pocl_probe, pocl_passed_here
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     assert not pocl_passed_here()
@@ -182,7 +183,7 @@ def test_the_pocl_record_is_kept_dropped_and_never_fails(
 
 @pytest.mark.skipif(not _intel_installed(), reason="intel-opencl-rt is not installed")
 def test_pymeshlab_first_is_reported() -> None:
-    code = "import pymeshlab, skinpipe.render.opencl_runtimes as r; print(r.SETUP.notes)"
+    code = "import pymeshlab, skinpipe.render.device.runtimes as r; print(r.SETUP.notes)"
     env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True, env=env).stdout
@@ -199,7 +200,7 @@ def test_env_names_the_chosen_device_and_why_not_the_others() -> None:
     assert r.returncode == 0, r.stderr
     lines = [ln for ln in r.stderr.splitlines() if ln.startswith("#")]
     assert lines[0].startswith("# OpenCL device ('auto'): ")
-    assert len(lines) - 1 >= len(opencl.candidates()) - 1
+    assert len(lines) - 1 >= len(choice.candidates()) - 1
 
 
 def test_unknown_device_is_one_clear_error_without_traceback() -> None:
@@ -213,13 +214,13 @@ def test_unknown_device_is_one_clear_error_without_traceback() -> None:
 def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
     import pyopencl as cl
 
-    assert opencl.device_choice().candidate.runtime == cl_device.runtime
-    before = opencl.LEDGER.copy()
+    assert choice.device_choice().candidate.runtime == cl_device.runtime
+    before = programs.LEDGER.copy()
     # launched without a local size, the grid is padded: the kernel tests its bounds
-    program = opencl.build("__kernel void twice(__global float *a, const int n)"
+    program = programs.build("__kernel void twice(__global float *a, const int n)"
                            "{ if (get_global_id(0) < n) a[get_global_id(0)] *= 2.0f; }")
-    kernel = opencl.Kernel(program, "twice", 1)
-    ctx, queue = opencl.cl_context()
+    kernel = programs.Kernel(program, "twice", 1)
+    ctx, queue = choice.cl_context()
     a = np.arange(8, dtype=np.float32)
     buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
     kernel(queue, (8,), None, buf, np.int32(8))
@@ -227,7 +228,7 @@ def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
     out = np.empty_like(a)
     cl.enqueue_copy(queue, out, buf)
     np.testing.assert_array_equal(out, 4 * a)
-    since = opencl.LEDGER.since(before)
+    since = programs.LEDGER.since(before)
     assert since["programs_built"] == 1 and since["build_seconds"] >= 0
     assert since["kernel_launches"] == {"twice": 2}
 
@@ -235,9 +236,9 @@ def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
 def test_an_empty_output_reads_back_without_a_map(cl_device: Candidate) -> None:
     # OpenCL refuses to map zero bytes (clEnqueueMapBuffer: INVALID_VALUE): an empty
     # output has nothing to read back, and its buffer (one placeholder element) stays
-    _, queue = opencl.cl_context()
+    _, queue = choice.cl_context()
     empty = np.empty((0, 3), np.float32)
-    opencl.read_output(queue, opencl.host_output(empty), empty)
+    memory.read_output(queue, memory.host_output(empty), empty)
     assert empty.shape == (0, 3)
 
 
@@ -256,14 +257,15 @@ __kernel void encode(__global const float *f, const int n, __global ushort *out)
 
 
 def _half_kernel(name: str) -> object:
-    from skinpipe.render.opencl import HALF_BITS, Kernel, build
+    from skinpipe.render.device.programs import HALF_BITS, Kernel, build
 
     return Kernel(build(HALF_BITS + _HALF_TEST_KERNELS), name, 1)
 
 
 @pytest.mark.usefixtures("cl_device")
 def test_half_bits_decode_as_numpy_does_every_finite_half() -> None:
-    from skinpipe.render.opencl import cl_context, run_on_host_arrays
+    from skinpipe.render.device.choice import cl_context
+    from skinpipe.render.device.memory import run_on_host_arrays
 
     bits = np.arange(1 << 16, dtype=np.uint16)
     bits = bits[np.isfinite(bits.view(np.float16))]
@@ -278,7 +280,8 @@ def test_half_bits_decode_as_numpy_does_every_finite_half() -> None:
 def test_half_bits_encode_rounds_as_numpy_does() -> None:
     # every half's value, the midpoints between neighbours (ties: to even) and one float
     # ulp either side of them, and random floats across half's normal and subnormal range
-    from skinpipe.render.opencl import cl_context, run_on_host_arrays
+    from skinpipe.render.device.choice import cl_context
+    from skinpipe.render.device.memory import run_on_host_arrays
 
     halves = np.arange(0x7bff + 1, dtype=np.uint16).view(np.float16).astype(np.float32)
     mid = (halves[:-1] + halves[1:]) / np.float32(2)

@@ -1,5 +1,5 @@
 """Compiling ahead of use: padded launches, the prewarm thread, and the render's plan of
-kernels (skinpipe/render/opencl.py, lighting.sample_plan)."""
+kernels (skinpipe/render/device/programs.py, light sampling plans)."""
 
 from __future__ import annotations
 
@@ -8,25 +8,24 @@ import re
 import numpy as np
 import pytest
 
-from skinpipe.render import (
-    chart_tiles,
-    diffusion,
-    direct_blur,
-    lighting,
-    opencl,
-    push_pull,
-    recursive_blur,
-    texture_maps,
-)
-from skinpipe.render.lighting import LightSampler, sample_plan
-from skinpipe.render.opencl import Candidate, fixed_local_size
+import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
+import skinpipe.render.diffusion.gather as gather_module
+import skinpipe.render.diffusion.layout as layout_module
+import skinpipe.render.diffusion.margins as margins_module
+from skinpipe.render.device import programs
+from skinpipe.render.device.choice import Candidate
+from skinpipe.render.device.programs import fixed_local_size
+from skinpipe.render.diffusion import direct_blur, push_pull, recursive_blur
+from skinpipe.render.light import irradiance, samples
+from skinpipe.render.light.samples import LightSampler, sample_plan
 from skinpipe.render.scene import Light
+from skinpipe.render.surface import texture_maps
 
 KERNEL_SOURCES = {
-    "chart_tiles": chart_tiles._MARGIN_KERNEL + chart_tiles._SEAM_READ_KERNEL,
-    "diffusion": diffusion._KERNEL + diffusion._PYRAMID_KERNEL,
+    "chart_tiles": margins_module._MARGIN_KERNEL + chart_tiles_module._SEAM_READ_KERNEL,
+    "diffusion": gather_module._KERNEL + layout_module._PYRAMID_KERNEL,
     "direct_blur": direct_blur._KERNEL,
-    "lighting": lighting._SAMPLE_KERNEL + lighting._INTERLEAVE_KERNEL,
+    "lighting": samples._SAMPLE_KERNEL + irradiance._INTERLEAVE_KERNEL,
     "push_pull": push_pull._KERNEL,
     "recursive_blur": recursive_blur._KERNEL,
     "texture_maps": texture_maps._KERNEL,
@@ -63,15 +62,15 @@ def test_prewarm_builds_ahead_and_the_render_finds_its_programs(cl_device: Candi
         raise RuntimeError("a step that fails is skipped")
 
     push_pull.push_pull_kernels.cache_clear()
-    before = opencl.LEDGER.copy()
-    pre = opencl.start_prewarm([fails, push_pull.push_pull_kernels])
-    opencl.wait_for_prewarm()
-    since = opencl.LEDGER.since(before)
+    before = programs.LEDGER.copy()
+    pre = programs.start_prewarm([fails, push_pull.push_pull_kernels])
+    programs.wait_for_prewarm()
+    since = programs.LEDGER.since(before)
     assert since["kernels_prewarmed"] == 3 and pre.seconds > 0
     # the render's own call finds the program built (no second build)
     built = since["programs_built"]
     pull, _, _ = push_pull.push_pull_kernels()
-    assert opencl.LEDGER.since(before)["programs_built"] == built
+    assert programs.LEDGER.since(before)["programs_built"] == built
     # and the prewarmed kernel computes (the fill of an empty texel)
     v = np.zeros((6, 5, 3), np.float32)
     c = np.zeros((6, 5), np.float32)
@@ -106,7 +105,7 @@ def test_a_step_that_fails_costs_only_time(cl_device: Candidate) -> None:
         raise ImportError("no such kernels")
 
     push_pull.push_pull_kernels.cache_clear()
-    before = opencl.LEDGER.copy()
-    opencl.start_prewarm([missing, push_pull.push_pull_kernels])
-    opencl.wait_for_prewarm()
-    assert opencl.LEDGER.since(before)["kernels_prewarmed"] == 3
+    before = programs.LEDGER.copy()
+    programs.start_prewarm([missing, push_pull.push_pull_kernels])
+    programs.wait_for_prewarm()
+    assert programs.LEDGER.since(before)["kernels_prewarmed"] == 3

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render.push_pull import push_pull, push_pull_reference
+from skinpipe.render.diffusion.push_pull import push_pull, push_pull_reference
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -80,7 +80,7 @@ def test_mismatched_shapes_are_refused() -> None:
 def test_dilation_copies_the_adjacent_chart_into_a_two_texel_ring() -> None:
     """Two charts two texels apart: each ring texel takes its own chart's edge value
     (axial neighbour first), texels beyond the ring keep the pyramid's fill."""
-    from skinpipe.render.push_pull import dilate_charts
+    from skinpipe.render.diffusion.push_pull import dilate_charts
 
     cov = np.zeros((12, 12), np.float32)
     cov[2:10, 2:5] = 1  # chart A, value 1
@@ -105,7 +105,7 @@ def test_dilation_ring_is_scipys_chessboard_distance(seed: int) -> None:
     pass, cannot skip ahead or fall behind)."""
     from scipy.ndimage import distance_transform_cdt
 
-    from skinpipe.render.push_pull import GUTTER_RING, _nearest_sources
+    from skinpipe.render.diffusion.push_pull import GUTTER_RING, _nearest_sources
 
     rng = np.random.default_rng(seed)
     covered = rng.random((37, 53)) < 0.03 * (seed + 1)
@@ -124,7 +124,11 @@ def test_a_prepared_dilation_is_the_one_dilate_charts_reads() -> None:
     """prepare_dilation (the renderer runs it on a thread beside the filter) makes the
     gutter dilate_charts then reads for the same coverage, not another one; an all- or
     none-covered layout has none."""
-    from skinpipe.render.push_pull import _nearest_sources, dilate_charts, prepare_dilation
+    from skinpipe.render.diffusion.push_pull import (
+        _nearest_sources,
+        dilate_charts,
+        prepare_dilation,
+    )
 
     cov = np.zeros((16, 16), np.float32)
     cov[3:9, 4:12] = 1

@@ -7,12 +7,7 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render.raytrace import (
-    CHUNK_RAYS,
-    OFFSET_ROWS,
-    RayScene,
-    offset_ray_origin,
-)
+from skinpipe.render.light.raytrace import CHUNK_RAYS, OFFSET_ROWS, RayScene, offset_ray_origin
 
 
 def test_rays_end_where_asked_and_rays_of_no_length_are_not_traced() -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skinpipe.render.recursive_blur import (
+from skinpipe.render.diffusion.recursive_blur import (
     QUANT_STEPS_PER_OCTAVE,
     QUANTIZE_CHUNK,
     RecursiveBlur,

@@ -17,23 +17,20 @@ from skinpipe.cli import main
 from skinpipe.errors import InputError
 from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN
-from skinpipe.render.diffusion import DiffusionLayout, diffuse
-from skinpipe.render.lighting import IrradianceResult, irradiance_texture, specular_albedo
-from skinpipe.render.options import AOVS, DATA_AOVS
-from skinpipe.render.raytrace import RayScene
-from skinpipe.render.renderer import (
-    Renderer,
-    RenderOptions,
-    diffusion_terms,
-    interleave_classes,
-    kept_diffusion_terms,
-    normal_map,
-    render_files,
-    texels_per_pixel,
-)
+from skinpipe.render.diffusion.diffuse import diffuse
+from skinpipe.render.diffusion.layout import DiffusionLayout
+from skinpipe.render.diffusion.terms import diffusion_terms, kept_diffusion_terms
+from skinpipe.render.light.interleave import interleave_classes, texels_per_pixel
+from skinpipe.render.light.irradiance import IrradianceResult, irradiance_texture
+from skinpipe.render.light.raytrace import RayScene
+from skinpipe.render.light.specular import specular_albedo
+from skinpipe.render.options import AOVS, DATA_AOVS, RenderOptions
+from skinpipe.render.outputs import render_files
+from skinpipe.render.renderer import Renderer
 from skinpipe.render.scene import Camera, Light
-from skinpipe.render.texture_maps import rasterize, texel_rows, texels_in_blocks
-from skinpipe.render.unwrap import triangulate, unwrap
+from skinpipe.render.shading import normal_map
+from skinpipe.render.surface.texture_maps import rasterize, texel_rows, texels_in_blocks
+from skinpipe.render.surface.unwrap import triangulate, unwrap
 from skinpipe.usd.io import open_stage_guarded
 from skinpipe.usd.mesh import MeshData
 
@@ -222,8 +219,8 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     folder, is diffusion_terms' own, bit for bit; other inputs are another file; a kept
     file that does not read back, or whose weights do not fit the fits, is made again;
     a cache folder that cannot be written keeps nothing."""
-    from skinpipe.render import kept as kept_module
-    from skinpipe.render import renderer as renderer_module
+    from skinpipe.render import cache as kept_module
+    from skinpipe.render.diffusion import terms as terms_module
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     fits = [deon_fit("a"), deon_fit("b", 2.0)]
@@ -250,13 +247,13 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     for case, want in zip(cases, wants, strict=True):  # read back: nothing made
         same(kept_diffusion_terms(fits, **case), want)
     assert made == []
-    original = renderer_module.diffusion_terms
+    original = terms_module.diffusion_terms
 
     def edited(*args: Any, **kwargs: Any) -> Any:  # other source: terms made again
         return original(*args, **kwargs)
 
     with monkeypatch.context() as m:
-        m.setattr(renderer_module, "diffusion_terms", edited)
+        m.setattr(terms_module, "diffusion_terms", edited)
         same(kept_diffusion_terms(fits, **cases[0]), wants[0])
     assert len(made) == 1
     monkeypatch.undo()
@@ -851,7 +848,8 @@ def test_display_image_is_ocios_display_view_applied_at_once() -> None:
     at once, clipped to [0, 1]; NaN and +inf are made 0 and 1e4 first."""
     import PyOpenColorIO as OCIO
 
-    from skinpipe.render.renderer import display_image, ocio_config
+    from skinpipe.imageio import ocio_config
+    from skinpipe.render.outputs import display_image
 
     rng = np.random.default_rng(1)
     beauty = np.concatenate([rng.random((37, 53, 3), np.float32) * 4,
@@ -876,7 +874,8 @@ def test_written_exr_and_png_read_back_as_ocios_display_of_the_beauty(tmp_path: 
     import OpenImageIO as oiio
     import PyOpenColorIO as OCIO
 
-    from skinpipe.render.renderer import ocio_config, write_outputs
+    from skinpipe.imageio import ocio_config
+    from skinpipe.render.outputs import write_outputs
 
     rng = np.random.default_rng(4)
     frames = {f"f{i}": {"beauty": np.concatenate([rng.random((23, 31, 3), np.float32) * 3,
@@ -911,7 +910,7 @@ def test_written_exr_and_png_read_back_as_ocios_display_of_the_beauty(tmp_path: 
 
 
 def test_surface_flux_in_bands_is_the_whole_textures_sum() -> None:
-    from skinpipe.render.renderer import surface_flux
+    from skinpipe.render.shading import surface_flux
 
     pts, tris, uv = grid_patch(6, 30.0)
     maps = rasterize(pts, tris, uv * 0.8 + 0.1, tris, 50, 0.001)
@@ -939,7 +938,7 @@ def test_a_last_frame_writing_the_irradiance_texture_keeps_its_map(lit_patch: Pa
 
 @pytest.mark.parametrize("power", [0.5, 0.3, 0.0])
 def test_albedo_weights_in_bands_are_the_whole_textures(power: float) -> None:
-    from skinpipe.render.renderer import times_albedo_power
+    from skinpipe.render.shading import times_albedo_power
 
     rng = np.random.default_rng(5)
     albedo = rng.random((37, 11, 3)).astype(np.float32)
@@ -953,7 +952,8 @@ def test_albedo_weights_in_bands_are_the_whole_textures(power: float) -> None:
 def test_a_shared_view_names_its_display_colour_space() -> None:
     """OCIO 2.2+ configs share views across displays and answer ``<USE_DISPLAY_NAME>``
     for the colour space of such a view: the display's own colour space is meant."""
-    from skinpipe.render.renderer import display_colorspace, ocio_config
+    from skinpipe.imageio import ocio_config
+    from skinpipe.render.outputs import display_colorspace
 
     config = ocio_config("ocio://default")
     display = config.getDefaultDisplay()

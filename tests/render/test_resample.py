@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skinpipe.render.renderer import albedo_texels, albedo_texture, bilinear, bilinear_of
-from skinpipe.render.resample import (
+from skinpipe.render.shading import albedo_texels, albedo_texture, bilinear, bilinear_of
+from skinpipe.render.surface.resample import (
     resample_bilinear,
     resampled_texels,
     take_rows,

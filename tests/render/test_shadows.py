@@ -11,9 +11,11 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, UsdGeom
 
-from skinpipe.render.lighting import irradiance_texture
-from skinpipe.render.raytrace import RayScene, offset_ray_origin
-from skinpipe.render.renderer import Renderer, RenderOptions, render_files
+from skinpipe.render.light.irradiance import irradiance_texture
+from skinpipe.render.light.raytrace import RayScene, offset_ray_origin
+from skinpipe.render.options import RenderOptions
+from skinpipe.render.outputs import render_files
+from skinpipe.render.renderer import Renderer
 from skinpipe.render.scene import Light
 from skinpipe.usd.io import open_stage_guarded
 from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
@@ -174,8 +176,8 @@ def test_the_demo_face_has_no_fireflies(demo_run: tuple[Path, str, str]) -> None
     import OpenImageIO as oiio
     from scipy.ndimage import minimum_filter
 
-    from skinpipe.render.texture_maps import vertex_normals
-    from skinpipe.render.unwrap import triangulate
+    from skinpipe.render.surface.texture_maps import vertex_normals
+    from skinpipe.render.surface.unwrap import triangulate
 
     out = demo_run[0]  # the demo's own settings: 768 px, texture 1024
     buf = oiio.ImageBuf(str(out / "render" / "Face.exr"))

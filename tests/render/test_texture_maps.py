@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError, SkinpipeError
-from skinpipe.render.texture_maps import (
+from skinpipe.render.surface.texture_maps import (
     TextureMaps,
     at_texels,
     rasterize,
     rasterize_reference,
     texels_in_blocks,
 )
-from skinpipe.render.unwrap import triangulate, unwrap
+from skinpipe.render.surface.unwrap import triangulate, unwrap
 from skinpipe.usd.mesh import MeshData
 
 # every test here runs on each OpenCL device that passes the probe (conftest)
@@ -191,7 +191,7 @@ def test_unwrap_in_pieces_charts_no_triangle_across_them() -> None:
 
 
 def test_unwrap_past_its_time_or_crashing_is_an_error(monkeypatch, tmp_path) -> None:
-    import skinpipe.render.unwrap as unwrap_module
+    import skinpipe.render.surface.unwrap as unwrap_module
 
     pts, tris, _ = _grid(10, 100.0)
     mesh = MeshData(pts, np.full(tris.shape[0], 3, np.int32), tris.reshape(-1), 0.001)

@@ -1,4 +1,4 @@
-"""The seam layout's tiles kept on disk (skinpipe.render.tile_store): read back they give
+"""The seam layout's tiles kept on disk (skinpipe.render.diffusion.tile_store): read back they give
 the diffusion the tiles made in the process gave, bit for bit; a damaged file or a folder
 that cannot be written costs a remake, a full folder its least recently used layouts,
 never a render."""
@@ -19,10 +19,12 @@ import pytest
 
 from skinpipe.cli import main
 from skinpipe.profile.reference_data import DEON_2007_SKIN
-from skinpipe.render import tile_store
-from skinpipe.render.diffusion import LEVEL_ARRAYS, DiffusionLayout, LevelGrid, diffuse_prepared
-from skinpipe.render.renderer import Renderer, RenderOptions
-from skinpipe.render.tile_store import TileStore
+from skinpipe.render.diffusion import tile_store
+from skinpipe.render.diffusion.diffuse import diffuse_prepared
+from skinpipe.render.diffusion.layout import LEVEL_ARRAYS, DiffusionLayout, LevelGrid
+from skinpipe.render.diffusion.tile_store import TileStore
+from skinpipe.render.options import RenderOptions
+from skinpipe.render.renderer import Renderer
 from skinpipe.usd.io import open_stage_guarded
 
 from .test_chart_tiles import _layout
@@ -83,7 +85,7 @@ def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Pat
     store = TileStore(tmp_path, "patch")
     level, margin = next(iter(layout._grids))
     # LevelGrid dropped the texel sizes: the store takes tiles straight from tile_level
-    from skinpipe.render.chart_tiles import tile_level
+    from skinpipe.render.diffusion.chart_tiles import tile_level
 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
@@ -266,7 +268,7 @@ def test_prepare_makes_the_blurs_device_buffers_beside_the_irradiance(patch_layo
 def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: Path) -> None:
     """Farm nodes rendering the same asset at once write the same key: each renames a
     whole file into place, the last one stays, nothing temporary is left behind."""
-    from skinpipe.render.chart_tiles import tile_level
+    from skinpipe.render.diffusion.chart_tiles import tile_level
 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
@@ -359,7 +361,7 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
     read by the device as they are: LevelGrid refuses indices past their steps (a
     kernel would read beyond its table) or of another shape, and the store removes a
     file whose arrays are refused (the tiles are made again)."""
-    from skinpipe.render.chart_tiles import tile_level
+    from skinpipe.render.diffusion.chart_tiles import tile_level
 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
@@ -475,19 +477,19 @@ def test_stored_tiles_read_a_band_at_a_time_give_the_same_diffusion(
     across the seams, the recursive and the direct per-texel blurs) run a band of rows at
     a time, each band's pages let go after it: the same diffused light bit for bit as the
     tiles made in the process."""
-    from skinpipe.render import diffusion
+    import skinpipe.render.diffusion.layout as layout_module
 
     reference, _ = _diffused(patch_layout, None)
     _diffused(patch_layout, TileStore(tmp_path, "patch"))  # made and saved
     dropped: list[int] = []
-    drop = diffusion.drop_resident_pages
+    drop = layout_module.drop_resident_pages
 
     def counted(arrays: list[np.ndarray]) -> None:
         dropped.append(len(arrays))
         drop(arrays)
 
-    monkeypatch.setattr(diffusion, "drop_resident_pages", counted)
-    monkeypatch.setattr(diffusion, "TILE_BAND_BYTES", 4096)
+    monkeypatch.setattr(layout_module, "drop_resident_pages", counted)
+    monkeypatch.setattr(layout_module, "TILE_BAND_BYTES", 4096)
     store = TileStore(tmp_path, "patch")
     out, layout = _diffused(patch_layout, store)
     assert store.loaded and all(grid.stored for grid in layout._grids.values())

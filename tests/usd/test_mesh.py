@@ -8,8 +8,8 @@ import pytest
 import scipy.ndimage as ndi
 from scipy.spatial import cKDTree
 
-from skinpipe.render.raytrace import RayScene
-from skinpipe.render.unwrap import triangulate
+from skinpipe.render.light.raytrace import RayScene
+from skinpipe.render.surface.unwrap import triangulate
 from skinpipe.usd.mesh import MeshData, load_mesh, prepare_scan, pymeshlab_face_scan, seal_scan
 
 

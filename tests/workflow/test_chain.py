@@ -9,7 +9,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from skinpipe.render.renderer import display_image, write_outputs
+from skinpipe.render.outputs import display_image, write_outputs
 from skinpipe.workflow.chain import side_by_side
 
 

@@ -127,10 +127,10 @@ def test_report_page_needs_a_measured_stage(tmp_path: Path) -> None:
 
 def test_report_cli_fit_writes_the_page(tmp_path: Path, capsys) -> None:
     from skinpipe.cli import main
-    from skinpipe.profile.fit import MeasuredProfile
     from skinpipe.profile.io import write_profile_csv
     from skinpipe.profile.models import sum_of_gaussians
     from skinpipe.profile.reference_data import DEON_2007_SKIN
+    from skinpipe.profile.types import MeasuredProfile
 
     r = np.linspace(0.0, 4.0, 120)
     csv = tmp_path / "deon.csv"

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from ..errors import InputError
+from ...errors import InputError
 
 HUGE_PAGES_ENV = "SKINPIPE_HUGE_PAGES"
 """``on`` or ``off``: large buffers ask for transparent huge pages or not, whatever the

@@ -1,5 +1,5 @@
 """Run as a script (``python -P _xatlas_child.py MESH.npz OUT.npz CHART_AREA RESOLUTION
-PADDING``) by :func:`skinpipe.render.unwrap.unwrap`: xatlas charts and packs the mesh,
+PADDING``) by :func:`skinpipe.render.surface.unwrap.unwrap`: xatlas charts and packs the mesh,
 and the UVs go to OUT.npz. A crash or a hang kills only this process. It imports nothing
 of skinpipe (0.3 s to start, against 0.9 s for a child importing skinpipe's modules).
 

@@ -23,6 +23,10 @@ from pxr import Sdf, Usd, UsdShade
 
 from ..errors import InputError
 from ..imageio import write_texture
+from ..render.diffusion.push_pull import dilate_charts, push_pull
+from ..render.surface.texture_maps import TextureMaps, rasterize, texel_rows
+from ..render.surface.unwrap import triangulate
+from ..render.surface.uvs import ensure_skin_uvs
 from ..usd.author import MTLX_NAME
 from ..usd.io import export_layer_atomic
 from ..usd.materialx import (
@@ -33,10 +37,6 @@ from ..usd.materialx import (
     write_mtlx_document,
 )
 from ..usd.schema import WORKING_COLORSPACE
-from .push_pull import dilate_charts, push_pull
-from .renderer import ensure_skin_uvs
-from .texture_maps import TextureMaps, rasterize, texel_rows
-from .unwrap import triangulate
 
 # Linear ACEScg tones; about sRGB (225, 170, 145) for the face, redder lips and nose.
 REGION_TONES: dict[str, tuple[float, float, float]] = {

@@ -21,9 +21,15 @@ from typing import Any, TypeVar
 
 from ..errors import InputError
 from ..fileio import atomic_write_text
-from .opencl_runtimes import cache_root
 
 T = TypeVar("T")
+
+
+def cache_root() -> Path:
+    """skinpipe's cache folder: ``$XDG_CACHE_HOME/skinpipe``, else ``~/.cache/skinpipe``
+    (OpenCL vendors list, built programs, PoCL's kernels, the blur switch)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "skinpipe"
 
 LIMIT_ENV = "SKINPIPE_KEPT_CACHE_MB"
 """Environment variable: the most one kind's folder of kept results may hold, in MB (10^6

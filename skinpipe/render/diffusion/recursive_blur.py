@@ -27,19 +27,10 @@ import numpy as np
 import pyopencl as cl
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from .opencl import (
-    STORE_MACRO,
-    DeviceTexture,
-    Kernel,
-    RowBands,
-    build,
-    cl_context,
-    device_cache,
-    in_bands,
-    jit_at_first_launch,
-    streams,
-)
+from ...errors import InputError
+from ..device.choice import cl_context, device_cache
+from ..device.memory import DeviceTexture, RowBands, in_bands, streams
+from ..device.programs import STORE_MACRO, Kernel, build, jit_at_first_launch
 
 # Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
 # sum over the pairs of (a cos(w x) + b sin(w x)) exp(-lam x)

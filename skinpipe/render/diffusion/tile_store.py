@@ -24,6 +24,7 @@ entries go when the folder passes its limit (:data:`LIMIT_ENV`, default
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import mmap
 import os
 import re
@@ -44,16 +45,18 @@ from typing import IO, Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
+from ...errors import InputError
+from ..options import LAYOUT_CACHE_ENV
 from .chart_tiles import SeamReads, TileLevel
-from .options import LAYOUT_CACHE_ENV
 
 LIMIT_ENV = "SKINPIPE_LAYOUT_CACHE_GB"
 """Environment variable: the most the store's folder may hold, in GB (10^9 bytes)."""
 DEFAULT_LIMIT_GB = 8.0
 """The demo face's tiles take 0.10 GB at texture 1024, 0.27 GB at 2048, 0.80 GB at 4096."""
-_SOURCES = ("chart_tiles.py", "diffusion.py", "texture_maps.py", "raytrace.py",
-            "sorting.py", "opencl.py", "tile_store.py")
+_SOURCES = ("skinpipe.render.diffusion.chart_tiles", "skinpipe.render.diffusion.margins",
+            "skinpipe.render.diffusion.layout", "skinpipe.render.surface.texture_maps",
+            "skinpipe.render.light.raytrace", "skinpipe.render.sorting",
+            "skinpipe.render.device.programs", "skinpipe.render.diffusion.tile_store")
 """The modules whose code decides the tiles' content (a changed line is a new key)."""
 _LIBRARIES = ("numpy", "scipy", "embreex")
 _FILE = re.compile(r"^L(\d+)_M(\d+)\.npz$")
@@ -74,7 +77,7 @@ def layout_folder(value: str | None = None) -> Path | None:
     ``$SKINPIPE_LAYOUT_CACHE``, else ``layouts`` in skinpipe's cache folder; None where
     the one that decides says ``off``. The size limit (:func:`limit_bytes`) is checked
     here too, so that a bad one stops the command before it renders."""
-    from .opencl_runtimes import cache_root
+    from ..cache import cache_root
 
     chosen = (value if value is not None else os.environ.get(LAYOUT_CACHE_ENV, "")).strip()
     if chosen.lower() == "off":
@@ -100,10 +103,11 @@ def code_fingerprint() -> str:
     """A hash of the source of the modules that make the tiles and the versions of the
     libraries whose arithmetic they use."""
     h = hashlib.blake2b(digest_size=16)
-    here = Path(__file__).parent
     for name in _SOURCES:
+        spec = importlib.util.find_spec(name)
+        assert spec is not None and spec.origin is not None, name
         h.update(name.encode())
-        h.update((here / name).read_bytes())
+        h.update(Path(spec.origin).read_bytes())
     for lib in _LIBRARIES:
         try:
             h.update(f"{lib}={version(lib)}".encode())
@@ -114,7 +118,7 @@ def code_fingerprint() -> str:
 
 def device_identity() -> str:
     """The OpenCL device that computes the margin points (platform, device, driver)."""
-    from .opencl import cl_context
+    from ..device.choice import cl_context
 
     dev = cl_context()[1].device
     return f"{dev.platform.name}|{dev.name}|{dev.driver_version}"

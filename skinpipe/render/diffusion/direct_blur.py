@@ -31,19 +31,10 @@ import numpy as np
 import pyopencl as cl
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from .opencl import (
-    STORE_MACRO,
-    DeviceTexture,
-    Kernel,
-    RowBands,
-    build,
-    cl_context,
-    device_cache,
-    in_bands,
-    jit_at_first_launch,
-    streams,
-)
+from ...errors import InputError
+from ..device.choice import cl_context, device_cache
+from ..device.memory import DeviceTexture, RowBands, in_bands, streams
+from ..device.programs import STORE_MACRO, Kernel, build, jit_at_first_launch
 
 FIR_MAX_ERROR = 6e-4
 """Truncation error budget of the direct kernel, relative to the 2D peak (the recursive

@@ -21,17 +21,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from .opencl import (
-    Kernel,
-    build,
-    cl_context,
-    device_buffer,
-    device_cache,
-    host_buffer,
-    host_output,
-    read_output,
-)
+from ...errors import InputError
+from ..device.choice import cl_context, device_cache
+from ..device.memory import device_buffer, host_buffer, host_output, read_output
+from ..device.programs import Kernel, build
 
 
 def _checked(values: NDArray[Any], coverage: NDArray[Any]

@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..children import child_failure, python_command
-from ..errors import InputError, SkinpipeError
-from ..usd.mesh import MeshData, validate_mesh
+from ...children import child_failure, python_command
+from ...errors import InputError, SkinpipeError
+from ...usd.mesh import MeshData, validate_mesh
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,6 @@ major version).
 
 from __future__ import annotations
 
-import ctypes
 import hashlib
 import importlib.util
 import os
@@ -40,12 +39,13 @@ from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 
-from ..fileio import atomic_write_text
+from ...fileio import atomic_write_text
+from ...native import dist_file, load_newer_tbb
+from ..cache import cache_root
 
 ICD_ENV = "OCL_ICD_VENDORS"
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
 INTEL_DIST, INTEL_LIBRARY = "intel-opencl-rt", "libintelocl.so"
-TBB_DIST, TBB_LIBRARY = "tbb", "libtbb.so.12"
 
 
 @dataclass
@@ -66,27 +66,6 @@ class RuntimeSetup:
         """Add ``text`` to :attr:`notes` once (a process may ask for devices again)."""
         if text not in self.notes:
             self.notes.append(text)
-
-
-def _dist_file(dist: str, name: str) -> Path | None:
-    """Absolute path of the file ``name`` installed by distribution ``dist``, if any."""
-    try:
-        files = metadata.distribution(dist).files or []
-    except metadata.PackageNotFoundError:
-        return None
-    for f in files:
-        if f.name == name:
-            path = Path(str(f.locate())).resolve()
-            if path.is_file():
-                return path
-    return None
-
-
-def cache_root() -> Path:
-    """skinpipe's cache folder: ``$XDG_CACHE_HOME/skinpipe``, else ``~/.cache/skinpipe``
-    (OpenCL vendors list, built programs, PoCL's kernels, the blur switch)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "skinpipe"
 
 
 def _write_vendors(entries: dict[str, str]) -> Path:
@@ -121,20 +100,14 @@ def register_runtimes() -> RuntimeSetup:
     setup = RuntimeSetup()
     # PoCL compiles each kernel again at its first launch: keep those on disk too
     os.environ.setdefault("POCL_CACHE_DIR", str(cache_root() / "pocl"))
-    intel = setup.intel = _dist_file(INTEL_DIST, INTEL_LIBRARY)
+    intel = setup.intel = dist_file(INTEL_DIST, INTEL_LIBRARY)
     if intel is None:
         setup.notes.append("Intel CPU runtime: not installed (pip install "
                            "'skinpipe[intel-cpu]')")
     else:
-        tbb = _dist_file(TBB_DIST, TBB_LIBRARY)
-        if "pymeshlab" in sys.modules:
-            setup.notes.append("Intel CPU runtime: pymeshlab was loaded first with its older "
-                               "TBB; import skinpipe before pymeshlab")
-        elif tbb is not None:
-            try:
-                ctypes.CDLL(str(tbb), mode=ctypes.RTLD_GLOBAL)
-            except OSError as exc:
-                setup.notes.append(f"Intel CPU runtime: cannot load {tbb}: {exc}")
+        note = load_newer_tbb()
+        if note is not None:
+            setup.notes.append(f"Intel CPU runtime: {note}")
     if os.environ.get(ICD_ENV):
         setup.user_vendors = True
         setup.vendors = os.environ[ICD_ENV]

@@ -1,38 +1,37 @@
-"""Texture-space diffusion: Gaussian blurs of the irradiance in OpenCL (PoCL on the CPU).
-
-d'Eon, Luebke, Enderton 2007 (after Borshukov & Lewis 2003): the diffused irradiance is
-sum_i w_i (G(v_i) * E), each 2D Gaussian applied as a horizontal then a vertical 1D
-pass whose width at each texel comes from the stretch map (mm per texel along u and
-v), so the blur is right in mm whatever the UV layout.
-
-:func:`diffuse` (the renderer's) blurs every term from the irradiance, as a normalised
-convolution of (E coverage, coverage) so chart borders neither darken nor leak: narrow
-terms with the one-pass direct kernel of :mod:`.direct_blur` (per-texel weights where
-the texel size varies), the others with the recursive Gaussian of
-:mod:`.recursive_blur` (cost independent of the width), each on the coarsest pyramid
-level its width allows, in per-chart tiles whose margins hold the surface across the
-UV seams (:mod:`.chart_tiles`); the blurred terms are then added up a batch at a time,
-in one pass that reads the region weights once. :func:`diffuse_gather` is the first
-implementation, a per-tap gather whose cost grows with the width, kept for
-comparison; :func:`blur_reference` is its float64 reference (1e-5 relative).
-"""
+"""The diffusion's layout: a pyramid of levels, each an atlas of chart tiles whose
+margins hold the surface across the charts' seams (chart_tiles), made once per mesh,
+UVs and texture size, filled with the irradiance by a splat and the reads across the
+seams, and each term placed on the coarsest level where it is still wide enough."""
 
 from __future__ import annotations
 
 import ctypes
 import math
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
-import pyopencl as cl
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from .blur_switch import prefers_direct
+from ...errors import InputError
+from ..device.choice import device_cache
+from ..device.memory import (
+    RowBands,
+    device_buffer,
+    host_buffer,
+    host_output,
+    in_bands,
+    read_output,
+)
+from ..device.programs import HALF_BITS, Kernel, build
+from ..surface.texture_maps import (
+    REGION_WEIGHT_DTYPE,
+    TexelRegions,
+    at_texels,
+    triangle_jacobians,
+)
 from .chart_tiles import (
-    SeamGeometry,
     TileLevel,
     chart_boxes,
     seam_read_kernel,
@@ -40,308 +39,15 @@ from .chart_tiles import (
     tile_level,
     uv_charts,
 )
-from .direct_blur import direct_kernels, fir_weight_table, kernel_parameter
-from .opencl import (
-    HALF_BITS,
-    DeviceTexture,
-    Kernel,
-    RowBands,
-    build,
-    cl_context,
-    device_buffer,
-    device_cache,
-    host_buffer,
-    host_output,
-    in_bands,
-    read_output,
-)
+from .inputs import _region_presence
+from .margins import SeamGeometry
 from .recursive_blur import (
-    QUANT_STEPS_PER_OCTAVE,
     QUANTIZE_CHUNK,
     TABLE_MIN_SIGMA,
     iir_kernels,
     quantized_log2,
 )
-from .texture_maps import REGION_WEIGHT_DTYPE, TexelRegions, at_texels, triangle_jacobians
 from .tile_store import TileStore, drop_resident_pages, extremes
-
-FloatImage = NDArray[np.float32]
-MIN_SIGMA_TEXELS = 0.25
-"""Narrower blurs change less than 1e-3 of a texel's energy: the pass is skipped."""
-MAX_RADIUS_TEXELS = 512
-DIRECT_SIGMA_TEXELS = 2.5
-"""Terms narrower than this are blurred from the irradiance itself, not incrementally
-from the previous term: a chain of one-texel passes is not Gaussian in shape."""
-
-
-_KERNEL = r"""
-// One 1D Gaussian pass along `axis` (0 = u/x, 1 = v/y) with a per-texel sigma (texels).
-// Every index is clamped to the image before use: PoCL has no bounds checks.
-__kernel void blur_axis(__global const float4 *src, __global float4 *dst,
-                        __global const float *sigma, __global const float *cover,
-                        const int width, const int height, const int axis,
-                        const int max_radius)
-{
-    const int x = get_global_id(0);
-    const int y = get_global_id(1);
-    if (x >= width || y >= height) return;
-    const int i = y * width + x;
-    const float s = sigma[i];
-    if (!(cover[i] > 0.0f) || !(s >= MIN_SIGMA)) { dst[i] = src[i]; return; }
-    const int r = min((int)ceil(3.0f * s), max_radius);
-    const float inv2s2 = 0.5f / (s * s);
-    float4 acc = (float4)(0.0f);
-    float wsum = 0.0f;
-    const int lo = axis == 0 ? max(-r, -x) : max(-r, -y);
-    const int hi = axis == 0 ? min(r, width - 1 - x) : min(r, height - 1 - y);
-    const int step = axis == 0 ? 1 : width;
-    for (int k = lo; k <= hi; ++k) {
-        const int j = i + k * step;
-        const float w = exp(-(float)(k * k) * inv2s2) * cover[j];
-        acc += w * src[j];
-        wsum += w;
-    }
-    dst[i] = wsum > 0.0f ? acc / wsum : src[i];
-}
-"""
-
-
-def blur_reference(image: NDArray[Any], sigma_u: NDArray[Any], sigma_v: NDArray[Any],
-                   coverage: NDArray[Any]) -> NDArray[np.float64]:
-    """float64 numpy reference of one 2D blur (u pass, then v pass), same semantics as
-    the OpenCL kernel. Slow: for tests and small images."""
-    out = np.asarray(image, dtype=np.float64)
-    for axis, sigma in ((0, sigma_u), (1, sigma_v)):
-        sig = np.asarray(sigma, np.float64)
-        param = np.where(sig >= MIN_SIGMA_TEXELS, kernel_parameter(sig).astype(np.float64), sig)
-        out = _pass_reference(out, param, np.asarray(coverage, np.float64), axis)
-    return out
-
-
-def _pass_reference(src: NDArray[np.float64], sigma: NDArray[np.float64],
-                    cover: NDArray[np.float64], axis: int) -> NDArray[np.float64]:
-    h, w = sigma.shape
-    dst = src.copy()
-    for y in range(h):
-        for x in range(w):
-            s = sigma[y, x]
-            if not cover[y, x] > 0 or not s >= MIN_SIGMA_TEXELS:
-                continue
-            r = min(math.ceil(3 * s), MAX_RADIUS_TEXELS)
-            if axis == 0:
-                ks = np.arange(max(-r, -x), min(r, w - 1 - x) + 1)
-                taps, cov = src[y, x + ks], cover[y, x + ks]
-            else:
-                ks = np.arange(max(-r, -y), min(r, h - 1 - y) + 1)
-                taps, cov = src[y + ks, x], cover[y + ks, x]
-            wts = np.exp(-(ks.astype(np.float64) ** 2) / (2 * s * s)) * cov
-            if wts.sum() > 0:
-                dst[y, x] = (wts[:, None] * taps).sum(axis=0) / wts.sum()
-    return dst
-
-
-@device_cache()
-def _cl_state() -> tuple[Any, Any, Any]:
-    """Context, queue and the gather blur's program."""
-    ctx, queue = cl_context()
-    return ctx, queue, build(_KERNEL, [f"-DMIN_SIGMA={MIN_SIGMA_TEXELS}f"])
-
-
-@dataclass
-class BlurStats:
-    """What the diffusion did: passes run, passes skipped and why."""
-
-    passes: int = 0
-    """Passes over a texture: two per recursive 2D blur, one per direct one."""
-    skipped: list[str] = field(default_factory=list)
-    levels: list[int] = field(default_factory=list)
-    """Pyramid level each blurred term ran on (0: full resolution)."""
-    full_blurs: float = 0.0
-    """Texels blurred, in full-resolution 2D blurs."""
-    tile_texels: dict[int, int] = field(default_factory=dict)
-    """Per pyramid level used, the texels of its chart-tile atlas (tiles and margins)."""
-
-
-class OpenCLBlur(DeviceTexture):
-    """Separable 2D Gaussian blurs of an RGBA float32 texture with per-texel sigma.
-
-    Buffers for the stretch-derived sigma maps and coverage live on the device for the
-    life of the object, so a sequence of blurs of one texture uploads them once.
-    """
-
-    def __init__(self, coverage: NDArray[Any]) -> None:
-        super().__init__(*coverage.shape)
-        _, _, program = _cl_state()
-        self.kernel = Kernel(program, "blur_axis")
-        mf = cl.mem_flags
-        cov = np.ascontiguousarray(coverage, dtype=np.float32)
-        self.cover_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cov)
-        self.sigma_u = cl.Buffer(self.ctx, mf.READ_ONLY, self.height * self.width * 4)
-        self.sigma_v = cl.Buffer(self.ctx, mf.READ_ONLY, self.height * self.width * 4)
-
-    def blur_in_place(self, sigma_u: NDArray[Any], sigma_v: NDArray[Any]) -> None:
-        """Blur the device texture by the given per-texel sigmas (texels), u then v."""
-        for buf, sig in ((self.sigma_u, sigma_u), (self.sigma_v, sigma_v)):
-            s = np.asarray(sig, dtype=np.float64)
-            param = np.where(s >= MIN_SIGMA_TEXELS, kernel_parameter(s), s)
-            cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(param, dtype=np.float32))
-        for axis, sig in ((0, self.sigma_u), (1, self.sigma_v)):
-            self.kernel(self.queue, (self.width, self.height), None, self.buf_a, self.buf_b,
-                        sig, self.cover_buf, np.int32(self.width), np.int32(self.height),
-                        np.int32(axis), np.int32(MAX_RADIUS_TEXELS))
-            self.buf_a, self.buf_b = self.buf_b, self.buf_a
-        self.queue.finish()
-
-
-def _check_irradiance(irradiance: NDArray[Any]) -> NDArray[np.float32]:
-    """(H, W, 3) float32 irradiance, every value finite (else InputError naming a texel)."""
-    e = np.asarray(irradiance, dtype=np.float32)
-    if e.ndim != 3 or e.shape[2] != 3:
-        raise InputError(f"irradiance must be (H, W, 3), got {e.shape}")
-    # one float64 sum is finite exactly when every value is (a NaN or inf propagates and
-    # float32 values cannot overflow it); the texel is only looked for when it is not
-    if not np.isfinite(e.sum(dtype=np.float64)):
-        y, x, c = np.argwhere(~np.isfinite(e))[0]
-        raise InputError(f"irradiance must be finite; texel ({x}, {y}) channel {c} is {e[y, x, c]}")
-    return e
-
-
-def _region_presence(region_weights: NDArray[Any] | None) -> NDArray[np.bool_] | None:
-    """Which regions any texel gives a weight other than +0 (None: one region
-    everywhere)."""
-    if region_weights is None:
-        return None
-    n = region_weights.shape[-1]
-    # half floats by their bits (non-zero bits: a non-zero weight, or -0): numpy's
-    # float16 maximum took 0.27 s at texture 4096
-    flat = (region_weights.view(np.uint16) if region_weights.dtype == np.float16
-            else region_weights).reshape(-1, n)
-    # 64 texels a row: numpy's reduction over rows of only R values took 0.88 s at
-    # texture 4096 (the maximum is the same whatever the grouping)
-    whole = flat.shape[0] - flat.shape[0] % 64
-    parts = [flat[whole:]]
-    if whole:
-        parts.append(flat[:whole].reshape(-1, 64 * n).max(axis=0).reshape(64, n))
-    return np.concatenate(parts).max(axis=0, initial=0) > 0
-
-
-def unit_region_weights(region_weights: NDArray[np.float32]) -> NDArray[np.float32]:
-    """(H, W, R) region weights scaled to sum to 1 at each texel (0 where they sum to
-    0), as the blurs read them: a texel is all skin, whatever rounding did to a
-    blend."""
-    total = region_weights.sum(axis=-1, keepdims=True)
-    return np.divide(region_weights, total, out=np.zeros_like(region_weights),
-                     where=total > 0)
-
-
-def _check_terms(
-    shape: tuple[int, int], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
-    region_shape: tuple[int, ...] | None, present: NDArray[np.bool_] | None,
-) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.bool_], BlurStats]:
-    """Checked variances (K,) and term weights (R, K, 3) against a (H, W[, R]) layout
-    (``region_shape``: its region weight map's shape, None without one), which terms any
-    present region uses, and stats noting the regions no texel uses."""
-    h, w = shape
-    v = np.asarray(variances_mm2, dtype=np.float64)
-    tw = np.asarray(term_weights, dtype=np.float32)
-    if tw.ndim == 2:
-        tw = tw[None]
-    n_regions = tw.shape[0]
-    if v.ndim != 1 or tw.shape != (n_regions, v.size, 3):
-        raise InputError(f"term weights must be (R, K, 3) with K = {v.size}, got {tw.shape}")
-    if region_shape is None:
-        if n_regions != 1:
-            raise InputError(f"{n_regions} regions' weights but no region weight map")
-    elif tuple(region_shape) != (h, w, n_regions):
-        raise InputError(f"region weights must be ({h}, {w}, {n_regions}), "
-                         f"got {tuple(region_shape)}")
-    if np.any(np.diff(v) < 0) or np.any(v <= 0) or not np.all(np.isfinite(v)):
-        raise InputError(f"variances must be finite, > 0 and ascending, got {v.tolist()}")
-    stats = BlurStats()
-    if present is not None:
-        for r in np.flatnonzero(~present):
-            stats.skipped.append(f"region {r}: no texel uses it")
-        used = (tw[present].max(axis=(0, 2)) > 0) if present.any() else np.zeros(v.size, bool)
-    else:
-        used = tw[0].max(axis=1) > 0
-    return v, tw, used, stats
-
-
-def _diffusion_inputs(
-    irradiance: NDArray[Any], variances_mm2: NDArray[Any], term_weights: NDArray[Any],
-    region_weights: NDArray[Any] | None,
-) -> tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float32],
-           NDArray[np.float32] | None, NDArray[np.bool_], BlurStats]:
-    """Checked arrays (E, v, term weights (R, K, 3), region weights or None), which
-    terms any present region uses, and stats noting the regions no texel uses."""
-    e = _check_irradiance(irradiance)
-    rw = None if region_weights is None else \
-        unit_region_weights(np.asarray(region_weights, dtype=np.float32))
-    v, tw, used, stats = _check_terms(e.shape[:2], variances_mm2, term_weights,
-                                      None if rw is None else rw.shape, _region_presence(rw))
-    return e, v, tw, rw, used, stats
-
-
-def diffuse_gather(
-    irradiance: NDArray[Any],
-    mm_per_texel_u: NDArray[Any],
-    mm_per_texel_v: NDArray[Any],
-    coverage: NDArray[Any],
-    variances_mm2: NDArray[Any],
-    term_weights: NDArray[Any],
-    region_weights: NDArray[Any] | None = None,
-) -> tuple[NDArray[np.float32], BlurStats]:
-    """The first diffusion: the gather kernel, each term blurred from the previous one.
-
-    Same arguments as :func:`diffuse`. Its cost grows with the blur width; it is kept
-    as the comparison for the benchmarks and the render report (``--blur gather``), and
-    :func:`blur_reference` checks its kernel. Each pass renormalises over the covered
-    taps of its own axis (the recursive path normalises in 2D). Equal variances share
-    a pass; a term narrower than MIN_SIGMA_TEXELS everywhere is the unblurred irradiance.
-    """
-    e, v, tw, rw, used, stats = _diffusion_inputs(irradiance, variances_mm2, term_weights,
-                                                  region_weights)
-    h, w, _ = e.shape
-    out = np.zeros((h, w, 3), dtype=np.float32)
-    mm_u = np.asarray(mm_per_texel_u, dtype=np.float64)
-    mm_v = np.asarray(mm_per_texel_v, dtype=np.float64)
-    cov = np.asarray(coverage, dtype=np.float32)
-    blur = OpenCLBlur(cov)
-    rgba = np.concatenate([e, np.zeros((h, w, 1), np.float32)], axis=2)
-    blur.upload(rgba)
-    current = e
-    previous_v = 0.0
-    finest_mm = max(float(np.min(np.where(cov > 0, np.minimum(mm_u, mm_v), np.inf))), 1e-12)
-    for i in range(v.size):
-        if not used[i]:
-            stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): zero weight everywhere")
-            continue
-        dv = v[i] - previous_v
-        if dv > 0:
-            if math.sqrt(v[i]) / finest_mm < DIRECT_SIGMA_TEXELS and previous_v > 0:
-                blur.upload(rgba)  # start again from the irradiance: see DIRECT_SIGMA
-                dv, previous_v = v[i], 0.0
-            sig_u = np.sqrt(dv) / np.maximum(mm_u, 1e-12)
-            sig_v = np.sqrt(dv) / np.maximum(mm_v, 1e-12)
-            if max(sig_u.max(), sig_v.max()) < MIN_SIGMA_TEXELS:
-                stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): narrower than a texel, "
-                                     "folded into the unblurred irradiance")
-                if previous_v == 0.0:
-                    current = e  # the device still holds the unblurred irradiance
-                else:
-                    previous_v = v[i]  # within a quarter texel of the last blur
-            else:
-                blur.blur_in_place(sig_u, sig_v)
-                stats.passes += 2
-                stats.full_blurs += 1.0
-                current = blur.download()[..., :3]
-                previous_v = v[i]
-        elif i > 0:
-            stats.skipped.append(f"term {i}: same variance as term {i - 1}, pass shared")
-        weight = tw[0, i] if rw is None else rw @ tw[:, i, :]
-        out += weight * current
-    return out, stats
-
 
 # ------------------------------------------- recursive, on per-chart tile pyramids
 
@@ -616,20 +322,6 @@ TILE_BAND_BYTES = 32 << 20
 (:meth:`LevelGrid.row_bands`)."""
 LAYOUT_LEVELS_AT_ONCE = 2
 """Pyramid levels whose chart tiles :meth:`DiffusionLayout.prepare` makes side by side."""
-TERM_BUFFER_TEXTURES = 4
-"""Blurred terms kept at once before they are added up, in full-resolution textures
-(64 MiB each at 2048^2): each further batch reads and writes the result once more."""
-TERM_BUFFER_MAX_BYTES = 256 << 20
-"""...but at most this many bytes of them (or one term, if larger): at texture 4096 four
-textures are 1 GiB; at 512 MiB the demo scene's render peaked at 6.71 GB instead of
-7.38 GB, the same image, the diffusion as fast (two textures: 9.15 s against 9.19 s);
-at 256 MiB, with the seam reads as positions and one level's atlas at a time, 4.25-4.30
-GB instead of 4.42-4.58 GB, the diffusion 4.6-5.0 s against 4.2-5.5 s (three renders
-each, in turns) and the image bit for bit: each batch adds its terms in turn to what the
-last left, so the cap changes no sum."""
-_TERM_ALIGN = 4096
-"""Byte alignment of each term in the term buffer (a sub-buffer's origin must be aligned
-to the device's base address alignment, at most 4 KiB)."""
 
 
 class TexelSteps(NamedTuple):
@@ -1192,283 +884,8 @@ def _release_level(queue: Any, grid: LevelGrid) -> None:
         grid.release_pages()
 
 
-def _term_batches(sizes: list[int], budget: int) -> list[dict[int, tuple[int, int]]]:
-    """Consecutive jobs grouped so that each group's blurred textures (``sizes`` bytes,
-    0 for one that reads the irradiance itself) fit ``budget`` bytes side by side: per
-    group, job -> (start, end) byte range in the term buffer."""
-    batches: list[dict[int, tuple[int, int]]] = [{}]
-    used = 0
-    for j, size in enumerate(sizes):
-        span = -(-size // _TERM_ALIGN) * _TERM_ALIGN
-        if batches[-1] and used + span > budget:
-            batches.append({})
-            used = 0
-        batches[-1][j] = (used, used + max(size, 16))
-        used += span
-    return batches
-
-
 def _job_sigma_mm(layout: DiffusionLayout, variance: float, k: int) -> list[float]:
     """Per axis the blur's sigma in mm for a term of ``variance`` mm^2 at pyramid level
     ``k``: less what reaching the level and reading it back add."""
     return [math.sqrt(max(variance - _added_variance_texels2(k) * t**2, 1e-30))
             for t in layout.typical]
-
-
-def _direct_sigmas(layout: DiffusionLayout, grid: LevelGrid, variance: float
-                   ) -> list[Any] | None:
-    """Per axis the sigma (texels) of the direct blur of a term of ``variance`` mm^2 on
-    ``grid``'s level where :func:`_blur_job` runs that one (narrow: its one pass is
-    cheaper), else None (the recursive blur): a float each on a level of one texel
-    size, else one per step of the level's texel sizes (:class:`TexelSteps`)."""
-    sigma_mm = _job_sigma_mm(layout, variance, grid.level)
-    if grid.uniform:
-        su, sv = (sg / t for sg, t in zip(sigma_mm, grid.typical, strict=True))
-        return [su, sv] if prefers_direct(su, sv) else None
-    steps = grid.texel_steps()
-    if steps is None:
-        return None
-    # per-texel sigma (level texels) on each axis's log2 grid; the widest at its smallest
-    # texel sets the radius
-    sigmas = [sg / 2.0 ** (q / QUANT_STEPS_PER_OCTAVE)
-              for sg, q in zip(sigma_mm, (steps.u, steps.v), strict=True)]
-    return sigmas if prefers_direct(float(sigmas[0][0]), float(sigmas[1][0]),
-                                    per_texel=True) else None
-
-
-def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst: Any,
-              variance: float, stats: BlurStats) -> None:
-    """Enqueue the blur of one term (``variance`` mm^2) of one level's tile atlas
-    (``src``) into ``dst``: sigma per axis less what the tile level and its B-spline read
-    add; the direct kernel for narrow blurs (:func:`_direct_sigmas`: ``tmp`` unused),
-    else the recursive one (per texel where the layout's texel sizes vary; ``dst`` may
-    be ``src``)."""
-    iir = layout.iir
-    lh, lw = grid.shape
-    direct = _direct_sigmas(layout, grid, variance)
-    if direct is not None:
-        if grid.uniform:
-            direct_kernels().blur(src, dst, lh, lw, *direct)
-        else:
-            steps = grid.texel_steps()
-            assert steps is not None
-            direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(direct[0]),
-                                            fir_weight_table(direct[1]), steps.index_u,
-                                            steps.index_v, grid.row_bands(*grid.texel_arrays()))
-            note = (f"level {grid.level}: {steps.smaller} texel sizes below the "
-                    f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
-            if steps.smaller and note not in stats.skipped:
-                stats.skipped.append(note)
-        stats.passes += 1
-        return
-    sigma_mm = _job_sigma_mm(layout, variance, grid.level)
-    if grid.uniform:
-        su, sv = (sg / t for sg, t in zip(sigma_mm, grid.typical, strict=True))
-        iir.blur(src, tmp, dst, lh, lw, iir.coefficients(su), iir.coefficients(sv))
-    else:
-        lo_u, hi_u, lo_v, hi_v, index_u, index_v = grid.index()
-        coefs = [iir.coefficients(sg / 2.0 ** (np.arange(lo, hi + 1) / QUANT_STEPS_PER_OCTAVE))
-                 for sg, lo, hi in ((sigma_mm[0], lo_u, hi_u), (sigma_mm[1], lo_v, hi_v))]
-        qu, qv = grid.index_arrays()
-        bands_u, bands_v = grid.row_bands(qu), grid.row_bands(qv)
-        iir.blur(src, tmp, dst, lh, lw, coefs[0], coefs[1], index_u, index_v,
-                 None if bands_u is None or bands_v is None else (bands_u, bands_v))
-    stats.passes += 2
-
-
-def _alone_into(layout: DiffusionLayout, grids: dict[int, LevelGrid],
-                jobs: list[tuple[float, int]], batches: list[dict[int, tuple[int, int]]]
-                ) -> dict[int, str]:
-    """The jobs whose blurred term needs no room in the term buffer, and the work buffer
-    it goes to instead: a job alone in its batch (a level-0 term fills the buffer alone)
-    is added up before anything else is blurred, so one pass of the direct kernel
-    writes it to ``tmp`` (free once the level's fill is done), the recursive blur of
-    its level's last job over ``source`` (no later job reads it; where the device fills
-    it, not the host). The demo face at texture 4096: its three level-0 terms then take
-    no third 0.32 GB buffer beside ``tmp`` and ``source``."""
-    last_at_level = {k: j for j, (_, k) in enumerate(jobs)}  # jobs come level by level
-    into: dict[int, str] = {}
-    for batch in batches:
-        if len(batch) != 1:
-            continue
-        (j,) = batch
-        variance, k = jobs[j]
-        if variance == 0.0:
-            continue
-        if _direct_sigmas(layout, grids[k], variance) is not None:
-            into[j] = "tmp"
-        elif last_at_level[k] == j and grids[k].seam_buffers() is not None:
-            into[j] = "source"
-    return into
-
-
-def _term_buffer(layout: DiffusionLayout, grids: dict[int, LevelGrid],
-                 jobs: list[tuple[float, int]], batches: list[dict[int, tuple[int, int]]],
-                 into: dict[int, str], tmp: Any, tmp_bytes: int) -> tuple[Any, int]:
-    """(buffer, byte offset) of the blurred terms that go to no work buffer
-    (:func:`_alone_into`): the room in ``tmp`` (``tmp_bytes``) past what the fills and
-    recursive blurs of those terms' levels use there, where they fit (a term there is
-    added up before a later fill or blur of a larger level writes over it: the queue is
-    in order), else the layout's own from 0 (OpenCL makes no sub-buffer of a
-    sub-buffer: the terms' are made from the buffer at the offset). The demo face at
-    texture 4096: its six coarse terms (0.19 GB) beside level 1's 0.09 GB in tmp's 0.32
-    GB."""
-    rest = [j for batch in batches for j in batch if j not in into]
-    need = max((end for batch in batches for j, (_, end) in batch.items() if j not in into),
-               default=16)
-    used = max((grids[jobs[j][1]].shape[0] * grids[jobs[j][1]].shape[1] * 16
-                for j in rest if jobs[j][0] > 0), default=0)
-    at = -(-used // _TERM_ALIGN) * _TERM_ALIGN
-    if at + need <= tmp_bytes:
-        return tmp, at
-    return layout.buffer("terms", need), 0
-
-
-def diffuse(
-    irradiance: NDArray[Any],
-    mm_per_texel_u: NDArray[Any],
-    mm_per_texel_v: NDArray[Any],
-    coverage: NDArray[Any],
-    variances_mm2: NDArray[Any],
-    term_weights: NDArray[Any],
-    region_weights: NDArray[Any] | None = None,
-    charts: ChartLayout | None = None,
-) -> tuple[NDArray[np.float32], BlurStats]:
-    """Diffused irradiance sum_i w_i(texel) (G(v_i) * E) for RGB irradiance (H, W, 3).
-
-    ``variances_mm2`` (K,) ascending, shared by all regions; ``term_weights`` (R, K, 3)
-    each region's weight per term and channel; ``region_weights`` (H, W, R) how much of
-    each region a texel is (None: one region everywhere), read as half floats
-    (:data:`~.texture_maps.REGION_WEIGHT_DTYPE`) scaled to sum to 1 at each texel
-    (:func:`unit_region_weights`). A texel's weights are the
-    region-blended ones, so borders between regions blend smoothly. ``charts``: the UV
-    layout's charts and the surface across their seams (:class:`ChartLayout`). The
-    layout is made for this call; :class:`DiffusionLayout` and :func:`diffuse_prepared`
-    keep it.
-    """
-    layout = DiffusionLayout(mm_per_texel_u, mm_per_texel_v, coverage, region_weights,
-                             charts)
-    return diffuse_prepared(layout, irradiance, variances_mm2, term_weights)
-
-
-def diffuse_prepared(
-    layout: DiffusionLayout,
-    irradiance: NDArray[Any],
-    variances_mm2: NDArray[Any],
-    term_weights: NDArray[Any],
-) -> tuple[NDArray[np.float32], BlurStats]:
-    """:func:`diffuse` on a prepared layout.
-
-    Each term is blurred from the irradiance (:func:`_blur_job`: the direct kernel when
-    narrow, else the recursive one), with per-texel sigma from the stretch maps, as a
-    normalised convolution of (E cov, cov) (chart borders neither darken nor leak), on
-    the coarsest pyramid level where it is still LEVEL_MIN_SIGMA_TEXELS wide (the
-    variance the tent splat and the B-spline read add is taken off the blur). Every level is an
-    atlas of chart tiles whose margins hold the surface across the charts' seams, as
-    wide as the level's widest blur reaches (:mod:`.chart_tiles`), so light crosses
-    seams. The blurred terms are kept TERM_BUFFER_TEXTURES at a time (at most
-    TERM_BUFFER_MAX_BYTES) and added up in one pass per batch, each texel reading its
-    own chart's tiles. On a CPU device the
-    irradiance is read and the result written where they are, in host memory. Terms
-    with zero weight on every texel are skipped; one narrower than a quarter texel
-    everywhere is the unblurred irradiance.
-    """
-    h, w = layout.height, layout.width
-    e = _check_irradiance(irradiance)
-    if e.shape[:2] != (h, w):
-        raise InputError(f"irradiance must be ({h}, {w}, 3) like its layout, got {e.shape}")
-    v, tw, used, stats = _check_terms((h, w), variances_mm2, term_weights,
-                                      layout.region_shape, layout.present)
-    if not layout.any_covered or not used.any():
-        if not layout.any_covered:
-            stats.skipped.append("diffusion: no covered texel")
-        return np.zeros((h, w, 3), np.float32), stats
-    iir = layout.iir
-    queue = iir.queue
-
-    # one job per distinct (variance, level): equal variances share a blur, and their
-    # weights add (accumulation is linear in them); sub-texel terms share the unblurred
-    # irradiance (variance 0)
-    jobs: list[tuple[float, int]] = []
-    job_weights: list[NDArray[np.float32]] = []
-    for i in range(v.size):
-        if not used[i]:
-            stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): zero weight everywhere")
-            continue
-        job = (float(v[i]), layout.term_level(float(v[i])))
-        if math.sqrt(v[i]) / layout.finest_mm < TABLE_MIN_SIGMA:
-            stats.skipped.append(f"term {i} (v = {v[i]:.4g} mm^2): narrower than a quarter "
-                                 "texel, the unblurred irradiance")
-            job = (0.0, 0)
-        if job in jobs:
-            if job[0] > 0:
-                stats.skipped.append(f"term {i}: same variance as term {i - 1}, pass shared")
-            job_weights[jobs.index(job)] += tw[:, i]
-        else:
-            jobs.append(job)
-            job_weights.append(tw[:, i].copy())
-    # each level's tile atlas, its margin as wide as its widest blur reaches, filled
-    # with this irradiance (host memory, read in place on a CPU device)
-    grids = {k: layout.grid(k, margin)
-             for k, margin in sorted(layout.level_margins(v[used]).items())}
-    e_buf = host_buffer(e)
-    stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
-    nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
-    tmp = layout.buffer("tmp", nbytes)
-    # one level's atlas at a time, filled before its first job: the jobs come level by
-    # level (a wider term never on a finer level), and the in-order queue fills the
-    # next level only after this one's blurs (every level's at once held 0.47 GB at
-    # texture 4096, one 0.32 GB)
-    source_buf = layout.buffer("source", nbytes)
-    source, source_level = None, -1
-    sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
-             for var, k in jobs]
-    batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
-                                       max(TERM_BUFFER_MAX_BYTES, nbytes)))
-    kernels = pyramid_kernels(layout.n_regions, layout.by_triangle)
-    tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
-    tw4[..., :3] = np.stack(job_weights)
-    mf = cl.mem_flags
-    tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
-    levels = sorted(grids)
-    shift = np.concatenate([grids[k].tiles.shift for k in levels] or
-                           [np.zeros((1, 2), np.float32)]).astype(np.float32)
-    shift_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shift)
-    shift_at = {k: n * layout.charts.n_charts for n, k in enumerate(levels)}
-    into = _alone_into(layout, grids, jobs, batches)
-    terms, terms_at = _term_buffer(layout, grids, jobs, batches, into, tmp, nbytes)
-    out = np.empty((h, w, 3), np.float32)
-    out_buf = host_output(out)  # every batch adds its terms there
-
-    blurred_texels = 0.0
-    for b, batch in enumerate(batches):
-        table = np.zeros((len(batch), 6), np.int32)
-        batch_terms = terms
-        for n, (j, (start, end)) in enumerate(batch.items()):
-            variance, k = jobs[j]
-            if variance == 0.0:
-                table[n] = (0, j, 1, 1, -1, 0)
-                continue
-            grid = grids[k]
-            lh, lw = grid.shape
-            table[n] = ((0 if j in into else terms_at + start) // 16, j, lw, lh, k,
-                        shift_at[k])
-            if k != source_level:
-                source, source_level = _fill_level(layout, grid, e_buf, tmp, source_buf), k
-                _release_level(queue, grid)  # the fill is done with the splat and reads
-            work = {"tmp": tmp, "source": source}[into[j]] if j in into else \
-                terms.get_sub_region(terms_at + start, end - start)
-            _blur_job(layout, grid, source, tmp, work, variance, stats)
-            _release_level(queue, grid)  # the next job may read other steps
-            if j in into:
-                batch_terms = work
-            stats.levels.append(k)
-            blurred_texels += lh * lw
-        kernels["accumulate_terms"](
-            queue, (w, h), None, batch_terms, e_buf,
-            cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
-            out_buf, layout.cover_buf, *layout.region_args, tw_buf, layout.chart_buf, shift_buf,
-            np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))
-    read_output(queue, out_buf, out)
-    stats.full_blurs = blurred_texels / (h * w)
-    return out, stats

@@ -26,23 +26,18 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from .. import __version__
-from ..errors import InputError
+from ... import __version__
+from ...errors import InputError
+from ..cache import cache_root
+from ..device.choice import cl_context, device_cache, device_choice
+from ..device.memory import device_buffer, streams
+from ..device.programs import wait_for_prewarm
 from .direct_blur import (
     FIR_MAX_RADIUS_PER_TEXEL,
     direct_kernels,
     direct_radius,
     fir_weight_table,
 )
-from .opencl import (
-    cl_context,
-    device_buffer,
-    device_cache,
-    device_choice,
-    streams,
-    wait_for_prewarm,
-)
-from .opencl_runtimes import cache_root
 from .recursive_blur import iir_kernels
 
 FIR_MAX_RADIUS_TUNED = 32

@@ -21,17 +21,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from .opencl import (
-    HALF_BITS,
-    Kernel,
-    build,
-    cl_context,
-    device_cache,
-    host_buffer,
-    host_output,
-    read_output,
-)
+from ...errors import InputError
+from ..device.choice import cl_context, device_cache
+from ..device.memory import host_buffer, host_output, read_output
+from ..device.programs import HALF_BITS, Kernel, build
 from .resample import take_rows
 
 CHUNK_CANDIDATES = 4_000_000

@@ -7,7 +7,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .opencl import Kernel, build, cl_context, device_cache, run_on_host_arrays
+from ..device.choice import cl_context, device_cache
+from ..device.memory import run_on_host_arrays
+from ..device.programs import Kernel, build
 
 
 def _axis_weights(n_in: int, n_out: int) -> tuple[NDArray[np.int64], NDArray[np.float32]]:

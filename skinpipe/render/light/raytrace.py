@@ -22,9 +22,9 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from ..usd.mesh import MAX_COORDINATE
-from .sorting import stable_order
+from ...errors import InputError
+from ...usd.mesh import MAX_COORDINATE
+from ..sorting import stable_order
 
 CHUNK_RAYS = 65536
 

@@ -1,0 +1,313 @@
+"""Programs built for the chosen device (kept on disk by pyopencl's binary cache and
+PoCL's kernel cache), kernels launched on fixed work-group shapes and counted for
+``render.json``, and a background thread that builds ahead what a render will need."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import warnings
+from collections import Counter
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pyopencl as cl
+
+from ..cache import cache_root
+from .choice import (
+    cl_context,
+    device_cache,
+    device_choice,
+    program_cache_dir,
+)
+
+STORE_MACRO = r"""
+#if STREAM && NT_STORE
+#define STORE(v, p) __builtin_nontemporal_store((v), (p))
+#else
+#define STORE(v, p) (*(p) = (v))
+#endif
+"""
+
+HALF_BITS = r"""
+// Half floats by their bits, as numpy's float16 <-> float32 (round to nearest even):
+// vload_half and vstore_half are calls on PoCL, not inlined (with vload_half the
+// diffusion's level-0 batches at texture 4096 took 120 ms, 70 with float32 weights).
+// half_bits_to_float (finite halves): the exponent and mantissa shifted into a float's
+// place, the exponent rebased from half's bias (15) to float's (127); a subnormal half
+// (exponent 0, m 2^-24) read as the normal number 2^-14 (1 + m 2^-10), less 2^-14: both
+// exact.
+__attribute__((always_inline)) inline float half_bits_to_float(ushort h)
+{
+    const uint b = (uint)(h & 0x7fff) << 13;
+    const float v = (h & 0x7c00) ? as_float(b + (112u << 23))
+                                 : as_float(b + (113u << 23)) - 6.103515625e-05f;
+    return (h & 0x8000) ? -v : v;
+}
+// float_to_half_bits (finite floats below 65520, half's largest after rounding; after
+// Giesen's float_to_half_fast3_rtne): below 2^-14 the float's addition to 0.5 (whose
+// ulp is 2^-24, a subnormal half's step) rounds to nearest even, and its bits less 0.5's
+// are the half's; above, the exponent rebased and the 13 dropped bits rounded by adding
+// 0xfff plus the kept mantissa's lowest bit (ties to even).
+__attribute__((always_inline)) inline ushort float_to_half_bits(float f)
+{
+    const uint sign = as_uint(f) & 0x80000000u, u = as_uint(f) ^ sign;
+    const uint small = as_uint(as_float(u) + 0.5f) - as_uint(0.5f);
+    const uint normal = (u + 0xc8000fffu + ((u >> 13) & 1u)) >> 13;  // 0xc8...: -112 << 23
+    return (ushort)((u < (113u << 23) ? small : normal) | (sign >> 16));
+}
+"""
+"""OpenCL C: ``half_bits_to_float(ushort)`` and ``float_to_half_bits(float)``, half floats
+kept as ``ushort`` bits, converted as numpy's float16 does, without PoCL's calls."""
+
+
+def cache_is_cold() -> bool:
+    """Whether nothing has been compiled into skinpipe's disk caches yet (pyopencl's
+    binaries, which it keeps only for runtimes without a cache of their own, and
+    PoCL's kernels): a cheap sign of a first render, which asks nothing of the
+    device."""
+    for folder in (program_cache_dir(), cache_root() / "pocl"):
+        try:
+            if any(folder.iterdir()):
+                return False
+        except OSError:
+            continue
+    return True
+
+
+@dataclass
+class KernelLedger:
+    """Program builds (count, seconds) and kernel launches by name, for this process:
+    a render reports its difference (:meth:`since`)."""
+
+    builds: int = 0
+    build_seconds: float = 0.0
+    launches: Counter[str] = field(default_factory=Counter)
+    prewarmed: int = 0
+    """Kernels made by a :class:`Prewarm` (built, and on PoCL compiled, ahead of use)."""
+    prewarm_seconds: float = 0.0
+    """Wall seconds the prewarms ran (beside the render's own work)."""
+
+    def copy(self) -> KernelLedger:
+        return KernelLedger(self.builds, self.build_seconds, Counter(self.launches),
+                            self.prewarmed, self.prewarm_seconds)
+
+    def since(self, before: KernelLedger) -> dict[str, Any]:
+        launches = self.launches - before.launches
+        return {"programs_built": self.builds - before.builds,
+                "build_seconds": round(self.build_seconds - before.build_seconds, 4),
+                "kernels_prewarmed": self.prewarmed - before.prewarmed,
+                "prewarm_seconds": round(self.prewarm_seconds - before.prewarm_seconds, 4),
+                "kernel_launches": dict(sorted(launches.items()))}
+
+
+LEDGER = KernelLedger()
+
+
+_BUILD_LOCK = threading.Lock()
+
+
+@device_cache()
+def _programs() -> dict[tuple[str, tuple[str, ...]], Future[Any]]:
+    """Programs of this process by (source, options), built or being built: a program
+    that :func:`prewarm` is building is waited for, not built twice."""
+    return {}
+
+
+def build(source: str, options: list[str] | None = None) -> Any:
+    """A program for the shared context, built once per process (callers may call
+    again), from the disk cache when it was built before; ``NT_STORE`` says whether
+    streaming stores work. Safe to call from several threads."""
+    key = (source, tuple(options or ()))
+    with _BUILD_LOCK:
+        pending = _programs().get(key)
+        if pending is None:
+            pending = _programs()[key] = Future()
+            mine = True
+        else:
+            mine = False
+    if not mine:
+        return pending.result()
+    try:
+        program = _build_now(source, options)
+    except BaseException as exc:
+        with _BUILD_LOCK:
+            _programs().pop(key, None)  # a later call tries again and sees the error
+        pending.set_exception(exc)
+        raise
+    pending.set_result(program)
+    return program
+
+
+def _build_now(source: str, options: list[str] | None) -> Any:
+    ctx, _ = cl_context()
+    # argument info lets Kernel.warm fill a launch of any kernel
+    opts = [*(options or []), f"-DNT_STORE={int(device_choice().nontemporal_stores)}",
+            "-cl-kernel-arg-info"]
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        # Intel's runtime writes a build log for every program, errors or not
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        program = cl.Program(ctx, source).build(options=opts,
+                                                cache_dir=str(program_cache_dir()))
+    with _BUILD_LOCK:
+        LEDGER.builds += 1
+        LEDGER.build_seconds += time.perf_counter() - start
+    return program
+
+
+FIXED_LOCAL_SIZES = {1: (256,), 2: (32, 8)}
+"""Work-group shape of launches that leave it to the runtime (``local_size`` None): the
+global size is padded to a multiple and the kernels test their bounds. Left to itself,
+PoCL picks a shape from the global size and compiles the kernel again for each one (its
+kernel cache is keyed by the shape): a push-pull pyramid of 10 levels cost 20
+compilations of two kernels on a cold cache, and every new texture size more."""
+
+
+def fixed_local_size(global_size: tuple[int, ...], limit: int
+                     ) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(padded global size, local size) for :data:`FIXED_LOCAL_SIZES`, the local size
+    halved (first axis first) until it fits the kernel's ``limit`` of work items."""
+    local = list(FIXED_LOCAL_SIZES[len(global_size)])
+    while math.prod(local) > max(1, limit):
+        k = 0 if local[0] > 1 else 1
+        local[k] //= 2
+    padded = tuple(-(-int(g) // n) * n for g, n in zip(global_size, local, strict=True))
+    return padded, tuple(local)
+
+
+_SCALAR_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,
+                 "int": np.int32, "uint": np.uint32, "long": np.int64, "ulong": np.uint64,
+                 "float": np.float32, "double": np.float64}
+
+
+class Kernel:
+    """A kernel of a built program whose launches are counted in :data:`LEDGER`.
+
+    ``shape`` is its work-group shape: a tuple (the launches give it) or the number of
+    dimensions of launches that give none: those run on :func:`fixed_local_size`, on a
+    grid padded past the global size, so such a kernel must test its bounds (each of
+    skinpipe's does: ``tests/render/test_opencl.py`` reads every kernel source for it)."""
+
+    __slots__ = ("_kernel", "_limit", "_program", "name", "shape")
+
+    def __init__(self, program: Any, name: str, shape: int | tuple[int, ...] = 2) -> None:
+        self._program = program
+        self._kernel = cl.Kernel(program, name)
+        self.name = name
+        self.shape = shape
+        self._limit = self._kernel.get_work_group_info(
+            cl.kernel_work_group_info.WORK_GROUP_SIZE, device_choice().device)
+
+    def __call__(self, queue: Any, global_size: tuple[int, ...],
+                 local_size: tuple[int, ...] | None, *args: Any, **kwargs: Any) -> Any:
+        LEDGER.launches[self.name] += 1
+        if local_size is None:
+            global_size, local_size = fixed_local_size(tuple(global_size), self._limit)
+        return self._kernel(queue, global_size, local_size, *args, **kwargs)
+
+    def warm(self, queue: Any) -> None:
+        """Launch one work group of the kernel's shape with every buffer a dummy and
+        every number 0 (each of skinpipe's kernels returns at its bounds test), on a
+        kernel object of its own (arguments belong to the object): PoCL compiles a
+        kernel for its work-group shape at the first launch, and that is then done."""
+        kernel = cl.Kernel(self._program, self.name)
+        ctx = queue.context
+        args: list[Any] = []
+        aq = cl.kernel_arg_address_qualifier
+        for i in range(kernel.num_args):
+            where = kernel.get_arg_info(i, cl.kernel_arg_info.ADDRESS_QUALIFIER)
+            if where == aq.LOCAL:
+                args.append(cl.LocalMemory(64))
+            elif where in (aq.GLOBAL, aq.CONSTANT):
+                args.append(cl.Buffer(ctx, cl.mem_flags.READ_WRITE, 256))
+            else:
+                type_name = kernel.get_arg_info(i, cl.kernel_arg_info.TYPE_NAME)
+                args.append(_SCALAR_TYPES[type_name.strip().rstrip("*")](0))
+        local = self.shape if isinstance(self.shape, tuple) else \
+            fixed_local_size((1,) * self.shape, self._limit)[1]
+        kernel(queue, local, local, *args)
+        queue.finish()
+
+
+def jit_at_first_launch() -> bool:
+    """Whether the device compiles kernels at their first launch (PoCL) rather than when
+    their program is built (Intel's runtime, GPU drivers)."""
+    return _on_pocl()
+
+
+def _on_pocl() -> bool:
+    return device_choice().candidate.runtime.startswith("pocl")
+
+
+class Prewarm:
+    """Programs built, and on PoCL kernels compiled, on a background thread ahead of
+    their first use, while the render's host work (texture maps, Embree's rays, numpy)
+    goes on: a cold first render otherwise waits for each compilation in turn.
+
+    ``steps`` run in order; each returns the kernels it made (built through the
+    modules' own cached builders, so the render finds them there) or None. A step that
+    fails is left for the render to meet again where its error is reported."""
+
+    def __init__(self, steps: Sequence[Callable[[], Any]]) -> None:
+        cl_context()  # the device is chosen before the thread starts
+        self.seconds = 0.0
+        self.kernels = 0
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(list(steps),),
+                                        name="skinpipe-prewarm", daemon=True)
+        self._thread.start()
+
+    def _run(self, steps: list[Callable[[], Any]]) -> None:
+        start = time.perf_counter()
+        try:
+            ctx, _ = cl_context()
+            queue = cl.CommandQueue(ctx)
+            jit = jit_at_first_launch()
+            for step in steps:
+                try:
+                    made = step()
+                    if isinstance(made, dict):
+                        made = list(made.values())
+                    elif not isinstance(made, (list, tuple)):
+                        made = [made]
+                    for kernel in made:
+                        if isinstance(kernel, Kernel):
+                            self.kernels += 1
+                            if jit:
+                                kernel.warm(queue)
+                except Exception:  # the render meets it again, where it is reported
+                    continue
+        except Exception:  # the render reports a device that fails itself
+            pass
+        finally:
+            self.seconds = time.perf_counter() - start
+            with _BUILD_LOCK:
+                LEDGER.prewarmed += self.kernels
+                LEDGER.prewarm_seconds += self.seconds
+            self._done.set()
+
+    def wait(self) -> None:
+        """Until every step has run (before timing kernels, which must not share the
+        host with compilations)."""
+        self._done.wait()
+
+
+_ACTIVE: list[Prewarm] = []
+
+
+def start_prewarm(steps: Sequence[Callable[[], Any]]) -> Prewarm:
+    """A :class:`Prewarm` of ``steps``, which :func:`wait_for_prewarm` waits for."""
+    _ACTIVE[:] = [pre for pre in _ACTIVE if not pre._done.is_set()]
+    _ACTIVE.append(Prewarm(steps))
+    return _ACTIVE[-1]
+
+
+def wait_for_prewarm() -> None:
+    """Until every started :class:`Prewarm` is done."""
+    for pre in _ACTIVE:
+        pre.wait()
