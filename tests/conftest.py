@@ -17,7 +17,7 @@ from skinpipe.render.diffusion.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS
 from .reference_profiles import deon_profile
 
 # Which blur runs is measured per device (render.diffusion.blur_switch); tests that count blur
-# passes pin it to the values measured on PoCL. tests/render/test_blur_switch.py measures.
+# passes pin it to the values measured on PoCL. tests/render/diffusion/test_blur_switch.py measures.
 os.environ[SWITCH_ENV] = f"{FIR_MAX_RADIUS},{FIR_MAX_RADIUS_PER_TEXEL}"
 
 

@@ -191,7 +191,7 @@ class Kernel:
     ``shape`` is its work-group shape: a tuple (the launches give it) or the number of
     dimensions of launches that give none: those run on :func:`fixed_local_size`, on a
     grid padded past the global size, so such a kernel must test its bounds (each of
-    skinpipe's does: ``tests/render/test_opencl.py`` reads every kernel source for it)."""
+    skinpipe's does: ``tests/render/device/test_opencl.py`` reads every kernel source for it)."""
 
     __slots__ = ("_kernel", "_limit", "_program", "name", "shape")
 

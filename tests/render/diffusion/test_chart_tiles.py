@@ -31,7 +31,7 @@ from skinpipe.usd.author import RegionAssignment, author_asset
 from skinpipe.usd.mesh import MeshData
 from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
-from ..render_scenes import distant_down, exact_fit, scene_over
+from ...render_scenes import distant_down, exact_fit, scene_over
 from .splat_reference import fill
 
 pytestmark = pytest.mark.usefixtures("cl_device")

@@ -27,8 +27,8 @@ from skinpipe.render.options import RenderOptions
 from skinpipe.render.renderer import Renderer
 from skinpipe.usd.io import open_stage_guarded
 
+from ..test_renderer import SMALL
 from .test_chart_tiles import _layout
-from .test_renderer import SMALL
 
 SIZE = 256
 

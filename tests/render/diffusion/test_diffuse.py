@@ -494,7 +494,7 @@ def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
     from skinpipe.render.diffusion.terms import diffusion_terms
     from skinpipe.render.surface.texture_maps import rasterize
 
-    from ..render_scenes import exact_fit, grid_patch
+    from ...render_scenes import exact_fit, grid_patch
 
     fits = [exact_fit(name, DEON_2007_SKIN.variances_mm2[:4] * s, DEON_2007_SKIN.weights[:4])
             for name, s in (("a", 1.0), ("b", 3.0), ("c", 0.5))]
