@@ -25,6 +25,7 @@ from .runtimes import (
     pocl_passed_here,
     register_vendors,
 )
+from .sources import cl_source
 
 MIN_LOCAL_MEM_BYTES = 32 << 10
 """Local memory a device needs: the direct blur's ring (20 KiB). The recursive blur's
@@ -157,21 +158,7 @@ def order_candidates(found: Sequence[tuple[Candidate, Any]], spec: str
     return sorted(pool, key=rank)
 
 
-_PROBE_SOURCE = r"""
-__kernel void probe(__global const float4 *src, __global float4 *dst,
-                    volatile __global int *peak, __local float4 *tile) {
-    const int l = get_local_id(0), n = get_local_size(0), g = get_global_id(0);
-    tile[l] = src[g];
-    barrier(CLK_LOCAL_MEM_FENCE);
-    float4 v = tile[n - 1 - l] * 2.0f;
-#if NT_STORE
-    __builtin_nontemporal_store(v, dst + g);
-#else
-    dst[g] = v;
-#endif
-    atomic_max(peak, (int)src[g].x);
-}
-"""
+_PROBE_SOURCE = cl_source(__package__, "probe.cl")
 
 
 def _first_error_line(exc: BaseException) -> str:

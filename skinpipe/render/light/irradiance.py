@@ -26,6 +26,7 @@ from ..device.memory import (
     run_on_host_arrays,
 )
 from ..device.programs import Kernel, build
+from ..device.sources import cl_source
 from ..options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS, INTERLEAVE_PERIODS
 from ..scene import Light
 from .raytrace import (
@@ -43,76 +44,7 @@ from .samples import (
     sample_plan,
 )
 
-_INTERLEAVE_KERNEL = r"""
-// one work-item per texel (AT: per texel of the list at, flat indices); planes (light,
-// y, x) of the visibility, its sign bit set where the texel traced no ray toward the
-// light (-0.0 for 0: visibility_plane): one load a light and tap where a plane of its
-// own was two, and the host made that plane as floats (texture 4096, period 4, two
-// lights: the kernel 0.53-0.56 -> 0.46 s); normals packed xyz per texel, read as
-// floats (vload3, dot and abs are calls or vector values to PoCL, which then does not
-// vectorise the work-item loop). The tent spans PERIOD - 1 texels each side, weights
-// (PERIOD - |dx|)(PERIOD - |dy|): each class of the period weighs the same.
-// A light's sums are scalars of their own (FOR_LIGHTS) and a tap beyond the texture's
-// edge or across a crease weighs 0 rather than being skipped: with arrays of LIGHTS
-// sums and a branch per tap the kernel kept its sums on the stack, and the 49 taps of
-// period 4 at texture 4096 took 1.0-1.2 s against 0.7-1.0; the same values (a tap of
-// weight 0 adds +0 to sums of non-negative terms)
-#if LIGHTS == 1
-#define FOR_LIGHTS(M) M(0)
-#elif LIGHTS == 2
-#define FOR_LIGHTS(M) M(0) M(1)
-#elif LIGHTS == 3
-#define FOR_LIGHTS(M) M(0) M(1) M(2)
-#else
-#define FOR_LIGHTS(M) M(0) M(1) M(2) M(3)
-#endif
-__kernel void filter_interleaved(__global const float *vis,
-                                 __global const float *normal, __global float *out,
-                                 const int h, const int w, const float min_cos
-#if AT
-                                 , __global const int *at, const int n)
-{
-    const int o = get_global_id(0);
-    if (o >= n) return;
-    const int i = at[o], x = i % w, y = i / w, stride = n;  // out: (light, n)
-#else
-                                 )
-{
-    const int x = get_global_id(0), y = get_global_id(1);
-    if (x >= w || y >= h) return;
-    const int i = y * w + x, o = i, stride = h * w;  // out: planes like vis
-#endif
-    const float nx = normal[3 * i], ny = normal[3 * i + 1], nz = normal[3 * i + 2];
-    const int plane = h * w;
-#define SUMS(l) float num##l = 0.0f, den##l = 0.0f;
-    FOR_LIGHTS(SUMS)
-    for (int dy = 1 - PERIOD; dy < PERIOD; ++dy) {
-        const int yy = y + dy;
-        const int y_in = yy >= 0 && yy < h;
-        const int row = (y_in ? yy : y) * w;
-        const float ty = (float)(PERIOD - (dy < 0 ? -dy : dy));
-        for (int dx = 1 - PERIOD; dx < PERIOD; ++dx) {
-            const int xx = x + dx;
-            const int in = y_in && xx >= 0 && xx < w;
-            const int j = row + (in ? xx : x);  // an edge's tap reads the texel, weight 0
-            const float cos_n = nx * normal[3 * j] + ny * normal[3 * j + 1] +
-                                nz * normal[3 * j + 2];
-            const float tent = in && !(cos_n < min_cos) ?
-                               ty * (float)(PERIOD - (dx < 0 ? -dx : dx)) : 0.0f;
-// an untraced tap weighs 0 (its value is -v: 0 x -v adds -0 to sums of non-negative
-// terms, which leaves them as they were)
-#define TAP(l) { const float v = vis[l * plane + j]; \
-                 const float kt = as_int(v) >= 0 ? tent : 0.0f; \
-                 num##l += kt * v; den##l += kt; }
-            FOR_LIGHTS(TAP)
-        }
-    }
-// no tap weighed: the texel's own visibility, its sign bit cleared (fabs is a call)
-#define OUT(l) out[l * stride + o] = den##l > 0.0f ? num##l / den##l : \
-                                     as_float(as_uint(vis[l * plane + i]) & 0x7fffffffu);
-    FOR_LIGHTS(OUT)
-}
-"""
+_INTERLEAVE_KERNEL = cl_source(__package__, "interleave.cl")
 MAX_FILTER_LIGHTS = 4
 """Lights one filter launch handles (a kernel is built per count, loops unrolled); more
 go in further launches."""
@@ -126,34 +58,7 @@ def _interleave_kernel(lights: int, at: bool = False, period: int = 2) -> Any:
     return Kernel(program, "filter_interleaved", 1 if at else 2)
 
 
-_PENUMBRA_KERNEL = r"""
-// penumbra_texels at the texels of the list at (flat indices): the maximum and minimum
-// of the visibility over traced texels within PERIOD - 1 of the texel (the filter's
-// reach), where an untraced texel or one beyond the texture's edge counts 0 for the
-// maximum and 1 for the minimum (the numpy definition's constant edges); comparisons
-// only, so the same booleans
-__kernel void penumbra_at(__global const float *vis, __global const uchar *traced,
-                          __global const int *at, const int h, const int w, const int n,
-                          __global uchar *out)
-{
-    const int o = get_global_id(0);
-    if (o >= n) return;
-    const int i = at[o], x = i % w, y = i / w;
-    float hi = -INFINITY, lo = INFINITY;
-    for (int dy = 1 - PERIOD; dy < PERIOD; ++dy) {
-        for (int dx = 1 - PERIOD; dx < PERIOD; ++dx) {
-            const int xx = x + dx, yy = y + dy;
-            const int j = yy * w + xx;
-            const int in = xx >= 0 && xx < w && yy >= 0 && yy < h && traced[j];
-            const float up = in ? vis[j] : 0.0f, down = in ? vis[j] : 1.0f;
-            hi = up > hi ? up : hi;
-            lo = down < lo ? down : lo;
-        }
-    }
-    const float v = vis[i];
-    out[o] = traced[i] && (hi > lo || (v > 0.0f && v < 1.0f));
-}
-"""
+_PENUMBRA_KERNEL = cl_source(__package__, "penumbra.cl")
 
 
 @device_cache(maxsize=len(INTERLEAVE_PERIODS))
@@ -355,23 +260,7 @@ class IrradianceResult:
         return sum_axis1(coloured(weights, colour)) > 0
 
 
-_OFFSET_KERNEL = r"""
-// offset_ray_origin per coordinate (points and normals as 3N floats): the integer
-// offset away from zero, or p + s n within OFFSET_ORIGIN of zero, rounded as numpy
-// rounds it (a product and a sum, not one fused operation)
-#pragma OPENCL FP_CONTRACT OFF
-__kernel void offset_origin(__global const float *p, __global const float *nrm,
-                            const float int_scale, const float near, const float origin,
-                            const int n, __global float *out)
-{
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    const float pc = p[i], nc = nrm[i];
-    const int of_i = (int)(int_scale * nc);  // toward zero, as numpy's astype
-    const uint shifted = (uint)as_int(pc) + (uint)(pc < 0.0f ? -of_i : of_i);
-    out[i] = (pc < 0.0f ? -pc : pc) < origin ? pc + near * nc : as_float(shifted);
-}
-"""
+_OFFSET_KERNEL = cl_source(__package__, "offset_origin.cl")
 
 
 @device_cache(maxsize=1)
