@@ -123,7 +123,7 @@ def measure(scene: Path, size: int) -> dict[str, Any]:
     try:
         sc = renderer.delegate.sync()
         rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
-        tex = renderer._textures(TaskLog(), sc, sc.skin[0])
+        tex = renderer.skin_textures(TaskLog(), sc, sc.skin[0])
     finally:
         renderer.close()
     covered = tex.maps.triangle >= 0
@@ -160,8 +160,8 @@ def measure(scene: Path, size: int) -> dict[str, Any]:
         try:
             s2 = r.delegate.sync()
             log = TaskLog()
-            t2 = r._textures(log, s2, s2.skin[0])
-            r._irradiance(log, s2, t2, scene_rays, {})
+            t2 = r.skin_textures(log, s2, s2.skin[0])
+            r.irradiance(log, s2, t2, scene_rays, {})
         finally:
             r.close()
         return log.measures["irradiance"]

@@ -82,9 +82,9 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
         mesh = sc.skin[0]
         log = TaskLog()
         rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
-        tex = renderer._textures(log, sc, mesh)
-        renderer._irradiance(log, sc, tex, rays, {})
-        renderer._albedo(log, sc, tex)
+        tex = renderer.skin_textures(log, sc, mesh)
+        renderer.irradiance(log, sc, tex, rays, {})
+        renderer.albedo(log, sc, tex)
     finally:
         renderer.close()
     maps = tex.maps

@@ -73,7 +73,7 @@ class SkinTextures:
     albedo: NDArray[np.float32] | None = None
     """The albedo map (:func:`albedo_texture`), made only for a split whose powers
     :func:`~.resample.times_resampled_power` does not take as numpy does
-    (:meth:`Renderer._albedo`)."""
+    (:meth:`Renderer.albedo`)."""
     albedo_image: NDArray[np.float32] | None = None
     """The albedo's own image (:func:`albedo_image`; after the irradiance, which does not
     read it): the split's weights and the shading's lookups are made from it, the same

@@ -193,7 +193,10 @@ class Renderer:
             steps += [tuning_kernels, partial(texel_kernels, stream)]
         return steps
 
-    def _textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
+    def skin_textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
+        """A skin mesh's texture-space maps (the task texture_maps; its UVs made first where
+        they are missing or unusable), with the keys the later tasks cache under: the
+        first texture-space step, for a report or a benchmark that runs some of them."""
         opts = self.options
         uv, uv_tris = self._uvs(log, mesh)
         tris = triangulate(mesh.mesh)
@@ -228,7 +231,7 @@ class Renderer:
             else opts.light_samples
         return interleave_period(per_pixel, points, opts.interleave_period), per_pixel
 
-    def _albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
+    def albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures) -> None:
         """``tex``'s albedo image and, where the split's weights need it, its map (a
         split of 0.5, the default, does not): after the irradiance, which does not read
         them (a painted albedo's map held 201 MB beside the irradiance's peak at texture
@@ -243,10 +246,10 @@ class Renderer:
             tex.albedo = self._cached(log, "albedo_map", key, lambda: albedo_texture(
                 image, self.options.texture_size))
 
-    def _irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
-                    rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
-                    release: _BothArrived | None = None,
-                    after_rays: Callable[[], None] | None = None) -> None:
+    def irradiance(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
+                   rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
+                   release: _BothArrived | None = None,
+                   after_rays: Callable[[], None] | None = None) -> None:
         """``tex``'s irradiance and visibility maps. In a render's last frame
         (``release``) the position and normal maps go once the texels' rows are taken
         and the seam layout beside needs them no more (:meth:`_release_maps`): 0.4 GB
@@ -611,7 +614,7 @@ class Renderer:
         camera's hits and, per part, their :func:`ray_owners`), a last frame that writes no
         irradiance texture looks the irradiance and visibility up at the hits before the
         diffusion and lets the maps go (:meth:`_look_up_at_hits`)."""
-        tex = self._textures(log, scene, mesh)
+        tex = self.skin_textures(log, scene, mesh)
         terms, texel_mm = self._terms(tex)
         # a last frame lets the maps the irradiance and the layout read go once both are
         # done with them
@@ -632,14 +635,14 @@ class Renderer:
             # the camera's rays and the hits' uvs need no irradiance: on a thread once the
             # rays are cast, while the filter's numpy steps leave a core idle (0.2 s of the
             # main thread at texture 4096)
-            self._irradiance(log, scene, tex, rays, dome_textures or {}, release,
+            self.irradiance(log, scene, tex, rays, dome_textures or {}, release,
                              (lambda: uvs.append(beside(hit_uvs, "skinpipe-camera")))
                              if look_up else None)
         except BaseException:
             # no thread outlives its frame, not even on errors
             wait([*uvs, *([] if layout is None else [layout])])
             raise
-        self._albedo(log, scene, tex)
+        self.albedo(log, scene, tex)
         if look_up:
             self._look_up_at_hits(tex, uvs[0].result() if uvs else hit_uvs())
         self._diffusion(log, tex, terms, texel_mm, layout)

@@ -366,8 +366,8 @@ def lighting_tradeoff(scene: Path, texture_size: int = 1024,
                 raise InputError("the scene needs a skin mesh and lights", scene)
             log = TaskLog()
             rays = RayScene([(m.mesh.points, triangulate(m.mesh)) for m in sc.meshes])
-            tex = renderer._textures(log, sc, sc.skin[0])
-            renderer._irradiance(log, sc, tex, rays, {})
+            tex = renderer.skin_textures(log, sc, sc.skin[0])
+            renderer.irradiance(log, sc, tex, rays, {})
         finally:
             renderer.close()
         covered = tex.maps.triangle >= 0

@@ -322,7 +322,7 @@ def test_the_render_takes_the_interleaving_period_of_its_texels_per_pixel(
         if period != 2:  # another period, another irradiance
             key = renderer.textures[0].keys["irradiance"]
             renderer.options = replace(options, interleave_period=2)
-            assert renderer._textures(log, renderer.delegate.sync(None),
+            assert renderer.skin_textures(log, renderer.delegate.sync(None),
                                       renderer.textures[0].mesh).keys["irradiance"] != key
         renderer.close()
     # a period asked for whose classes the samples cannot fill: the largest that they
@@ -478,7 +478,7 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
     renderer.last_frame = True
     layouts: list[DiffusionLayout] = []
     release = DiffusionLayout.release_surface
-    beside, albedo = Renderer._layout_beside, Renderer._albedo
+    beside, albedo = Renderer._layout_beside, Renderer.albedo
     at_albedo: list[bool] = []
 
     def spy(layout: DiffusionLayout) -> None:
@@ -498,7 +498,7 @@ def test_a_last_frame_lets_the_surface_maps_go_and_renders_the_same(lit_patch: P
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(DiffusionLayout, "release_surface", spy)
         mp.setattr(Renderer, "_layout_beside", layout_done_first)
-        mp.setattr(Renderer, "_albedo", albedo_after_irradiance)
+        mp.setattr(Renderer, "albedo", albedo_after_irradiance)
         got, _ = renderer.render()
     assert at_albedo == [True]  # let go by the irradiance, not at the diffusion
     maps = renderer.textures[0].maps

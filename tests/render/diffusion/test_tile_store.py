@@ -519,7 +519,7 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = T
     second.last_frame = True
     texs: list[Any] = []
     let_go: list[bool] = []
-    irradiance, cast = Renderer._irradiance, renderer_module.irradiance_texture
+    irradiance, cast = Renderer.irradiance, renderer_module.irradiance_texture
     prepare, arrive = DiffusionLayout.prepare, renderer_module._BothArrived.arrive
     rays_began = threading.Event()
 
@@ -552,7 +552,7 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = T
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(DiffusionLayout, "prepare", prepare_after_the_rays)
         mp.setattr(renderer_module._BothArrived, "arrive", layout_goes_on_after_the_release)
-        mp.setattr(Renderer, "_irradiance", keep_tex)
+        mp.setattr(Renderer, "irradiance", keep_tex)
         mp.setattr(renderer_module, "irradiance_texture", rays)
         got, log = second.render()
     second.close()
