@@ -13,7 +13,9 @@ import errno
 import os
 import sys
 import traceback
+import warnings
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from .. import __version__
 from ..errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, InputError, SkinpipeError
@@ -79,6 +81,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse: 0 for --help, 2 for usage errors
         return int(exc.code or 0)
     handler: Handler = args.handler
+    _one_line_warnings(args.verb)
+    try:
+        return _handle(handler, args)
+    finally:
+        _quiesce()
+
+
+def _quiesce() -> None:
+    """Before the process ends: no native work left running on other threads."""
+    programs = sys.modules.get("skinpipe.render.device.programs")
+    if programs is not None:
+        programs.stop_prewarm()
+
+
+def _handle(handler: Handler, args: argparse.Namespace) -> int:
+    """The verb's exit code; every error it raises as one line on stderr."""
     try:
         return handler(args)
     except InputError as exc:
@@ -100,6 +118,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"{str(exc).strip().splitlines()[0] if str(exc).strip() else ''} "
                 "(please report it; SKINPIPE_DEBUG=1 shows the traceback)")
         return EXIT_CHECK_FAILED
+
+
+def _one_line_warnings(verb: str) -> None:
+    """Warnings (a cache that cannot be used, a fit's note) as one line on stderr each,
+    named by the verb, as the CLI's other diagnostics are."""
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+             file: Any = None, line: str | None = None) -> None:
+        _eprint(f"skinpipe {verb}: warning: {message}")
+
+    warnings.showwarning = show
 
 
 def _os_error(exc: OSError) -> str:

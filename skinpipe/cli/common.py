@@ -247,10 +247,10 @@ def _period(periods: tuple[int, ...]) -> Any:
 def _layout_cache(value: str | None) -> str | None:
     """--layout-cache as the folder it names (None: off); the cache folders' size limits
     from the environment are checked here too, before the command renders."""
-    from ..render import cache as kept
+    from ..render import cache
     from ..render.diffusion.tile_store import layout_folder
 
-    kept.limit_bytes()
+    cache.limit_bytes()
     folder = layout_folder(value)
     return None if folder is None else str(folder)
 

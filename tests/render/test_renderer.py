@@ -220,6 +220,7 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     file that does not read back, or whose weights do not fit the fits, is made again;
     a cache folder that cannot be written keeps nothing."""
     from skinpipe.render import cache as kept_module
+    from skinpipe.render.cache import write_json_entry
     from skinpipe.render.diffusion import terms as terms_module
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -240,10 +241,10 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
 
     made: list[Any] = []
 
-    def counted(path: Path, doc: Any) -> None:
+    def counted(path: Path, key: Any, doc: Any) -> None:
         made.append(path)
 
-    monkeypatch.setattr(kept_module, "keep", counted)
+    monkeypatch.setattr(kept_module, "write_json_entry", counted)
     for case, want in zip(cases, wants, strict=True):  # read back: nothing made
         same(kept_diffusion_terms(fits, **case), want)
     assert made == []
@@ -261,9 +262,10 @@ def test_kept_diffusion_terms_are_the_terms_bit_for_bit(tmp_path: Path,
     for damage in ("{", "weights"):
         for kept in folder.glob("terms-*.json"):
             if damage == "weights":  # one region's weights fewer than the fits
-                doc = json.loads(kept.read_text())
+                entry = json.loads(kept.read_text())
+                doc = entry["payload"]
                 doc["weights"] = doc["weights"][:1]
-                kept.write_text(json.dumps(doc))
+                write_json_entry(kept, entry["key"], doc)  # its checksum holds
             else:
                 kept.write_text(damage)
         for case, want in zip(cases, wants, strict=True):

@@ -4,6 +4,7 @@ kernel that uses what skinpipe's kernels use; the first that passes is used."""
 
 from __future__ import annotations
 
+import atexit
 import os
 import threading
 import warnings
@@ -17,7 +18,7 @@ import numpy as np
 import pyopencl as cl
 
 from ...errors import InputError
-from ..cache import cache_root
+from ..cache import GuardedTree, cache_root
 from ..options import DEVICE_ENV
 from .runtimes import (
     SETUP,
@@ -263,9 +264,13 @@ def no_device_message(spec: str, found: Sequence[tuple[Candidate, Any]],
             f"with --device / ${DEVICE_ENV}" + (f" ({notes})" if notes else ""))
 
 
+@lru_cache(maxsize=1)
 def program_cache_dir() -> Path:
-    """Where built programs are kept (pyopencl's binary cache, for every runtime)."""
-    return cache_root() / "opencl" / "programs"
+    """Where built programs are kept (pyopencl's binary cache, which it fills for
+    runtimes without a cache of their own), checked before its first use."""
+    tree = GuardedTree(cache_root() / "opencl" / "programs", "OpenCL programs")
+    atexit.register(tree.close)
+    return tree.open()
 
 
 _preference: str | None = None

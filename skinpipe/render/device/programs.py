@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from ..cache import cache_root
 from .choice import (
     cl_context,
     device_cache,
@@ -31,20 +30,6 @@ STORE_MACRO = cl_source(__package__, "streaming_store.cl")
 HALF_BITS = cl_source(__package__, "half_bits.cl")
 """OpenCL C: ``half_bits_to_float(ushort)`` and ``float_to_half_bits(float)``, half floats
 kept as ``ushort`` bits, converted as numpy's float16 does, without PoCL's calls."""
-
-
-def cache_is_cold() -> bool:
-    """Whether nothing has been compiled into skinpipe's disk caches yet (pyopencl's
-    binaries, which it keeps only for runtimes without a cache of their own, and
-    PoCL's kernels): a cheap sign of a first render, which asks nothing of the
-    device."""
-    for folder in (program_cache_dir(), cache_root() / "pocl"):
-        try:
-            if any(folder.iterdir()):
-                return False
-        except OSError:
-            continue
-    return True
 
 
 @dataclass
@@ -226,6 +211,7 @@ class Prewarm:
         self.seconds = 0.0
         self.kernels = 0
         self._done = threading.Event()
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(list(steps),),
                                         name="skinpipe-prewarm", daemon=True)
         self._thread.start()
@@ -237,6 +223,8 @@ class Prewarm:
             queue = cl.CommandQueue(ctx)
             jit = jit_at_first_launch()
             for step in steps:
+                if self._stop.is_set():
+                    break
                 try:
                     made = step()
                     if isinstance(made, dict):
@@ -273,6 +261,16 @@ def start_prewarm(steps: Sequence[Callable[[], Any]]) -> Prewarm:
     _ACTIVE[:] = [pre for pre in _ACTIVE if not pre._done.is_set()]
     _ACTIVE.append(Prewarm(steps))
     return _ACTIVE[-1]
+
+
+def stop_prewarm() -> None:
+    """Let every :class:`Prewarm` end after the step it is in, and wait for it: a process
+    must not end while a compiler runs on another thread (the runtime's destructors
+    would run under it: "terminate called without an active exception")."""
+    for pre in _ACTIVE:
+        pre._stop.set()
+    for pre in _ACTIVE:
+        pre.wait()
 
 
 def wait_for_prewarm() -> None:

@@ -29,6 +29,7 @@ major version).
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import importlib.util
 import os
@@ -41,9 +42,10 @@ from pathlib import Path
 
 from ...fileio import atomic_write_text
 from ...native import dist_file, load_newer_tbb
-from ..cache import cache_root
+from ..cache import GuardedTree, cache_root, settle_cache_root
 
 ICD_ENV = "OCL_ICD_VENDORS"
+POCL_CACHE_ENV = "POCL_CACHE_DIR"
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
 INTEL_DIST, INTEL_LIBRARY = "intel-opencl-rt", "libintelocl.so"
 
@@ -98,8 +100,13 @@ def register_runtimes() -> RuntimeSetup:
     and what :func:`register_vendors` will need (Intel's library, whether the user set
     ``OCL_ICD_VENDORS``, which is left alone)."""
     setup = RuntimeSetup()
-    # PoCL compiles each kernel again at its first launch: keep those on disk too
-    os.environ.setdefault("POCL_CACHE_DIR", str(cache_root() / "pocl"))
+    settle_cache_root()  # before pyopencl keeps anything in the user's cache folder
+    # PoCL compiles each kernel again at its first launch: keep those on disk too, in a
+    # folder checked before PoCL reads it (a damaged kernel there kills the process)
+    if not os.environ.get(POCL_CACHE_ENV):
+        tree = GuardedTree(cache_root() / "pocl", "PoCL's kernels", ("last_accessed",))
+        os.environ[POCL_CACHE_ENV] = str(tree.open())
+        atexit.register(tree.close)
     intel = setup.intel = dist_file(INTEL_DIST, INTEL_LIBRARY)
     if intel is None:
         setup.notes.append("Intel CPU runtime: not installed (pip install "

@@ -13,14 +13,13 @@ version.
 
 from __future__ import annotations
 
-import hashlib
-import json
+import contextlib
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,7 +27,7 @@ import pyopencl as cl
 
 from ... import __version__
 from ...errors import InputError
-from ..cache import cache_root
+from ..cache import entry_name, kind_folder, read_json_entry, reject, write_json_entry
 from ..device.choice import cl_context, device_cache, device_choice
 from ..device.memory import device_buffer, streams
 from ..device.programs import wait_for_prewarm
@@ -162,12 +161,16 @@ def tuning_kernels() -> list[Any]:
     return [direct.kernel(r, r, TUNE_STREAM, True) for r in TEXEL_RADII]
 
 
-def _cache_path() -> str:
+def _cache_key() -> list[Any]:
+    """What the measured switch depends on: the device, its driver, skinpipe's version."""
     d = device_choice().device
-    key = "|".join(str(x) for x in (device_choice().candidate.label, d.driver_version,
-                                    d.version, d.max_compute_units, __version__, TUNE_SIZE))
-    name = hashlib.sha256(key.encode()).hexdigest()[:16]
-    return os.path.join(cache_root(), "opencl", f"blur-switch-{name}.json")
+    return ["blur-switch", device_choice().candidate.label, d.driver_version, d.version,
+            d.max_compute_units, __version__, TUNE_SIZE]
+
+
+def _cache_path() -> Path | None:
+    folder = kind_folder("opencl")
+    return None if folder is None else folder / f"{entry_name('blur-switch', _cache_key())}.json"
 
 
 SWITCH_ENV = "SKINPIPE_BLUR_SWITCH"
@@ -190,13 +193,22 @@ def fixed_limits(text: str) -> DirectLimits:
 _KINDS = {False: "max_radius", True: "max_radius_per_texel"}
 
 
-def _read_cache() -> dict[str, Any]:
-    try:
-        with open(_cache_path(), encoding="utf-8") as f:
-            saved = json.load(f)
-        return saved if isinstance(saved, dict) else {}
-    except (OSError, ValueError):
+_BOUNDS = {"max_radius": FIR_MAX_RADIUS_TUNED, "max_radius_per_texel": FIR_MAX_RADIUS_PER_TEXEL}
+
+
+def _read_cache() -> dict[str, int]:
+    """The switch measured before on this device, each kind checked against the radii
+    the kernels are built for (a record out of range is removed, and measured again)."""
+    path = _cache_path()
+    saved = None if path is None else read_json_entry(path, _cache_key())
+    if saved is None:
         return {}
+    for kind, value in saved.items():
+        if kind not in _BOUNDS or not isinstance(value, int) or isinstance(value, bool) \
+                or not 0 <= value <= _BOUNDS[kind]:
+            reject(path, f"{kind} = {value!r} is not a radius 0-{_BOUNDS.get(kind, 0)}")
+            return {}
+    return saved
 
 
 def known_limit(per_texel: bool) -> int | None:
@@ -204,8 +216,7 @@ def known_limit(per_texel: bool) -> int | None:
     be measured."""
     if os.environ.get(SWITCH_ENV):
         return getattr(fixed_limits(os.environ[SWITCH_ENV]), _KINDS[per_texel])
-    value = _read_cache().get(_KINDS[per_texel])
-    return value if isinstance(value, int) and not isinstance(value, bool) else None
+    return _read_cache().get(_KINDS[per_texel])
 
 
 @device_cache(maxsize=2)
@@ -220,14 +231,9 @@ def direct_limit(per_texel: bool) -> tuple[int, str, float]:
     value = getattr(measured, _KINDS[per_texel])
     assert value is not None
     path = _cache_path()
-    try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump({**_read_cache(), _KINDS[per_texel]: value}, f)
-        os.replace(tmp, path)
-    except OSError:
-        pass  # a read-only cache costs a measurement per process, nothing else
+    if path is not None:
+        with contextlib.suppress(OSError):  # unkept, it costs a measurement a process
+            write_json_entry(path, _cache_key(), {**_read_cache(), _KINDS[per_texel]: value})
     return value, "measured", measured.seconds
 
 

@@ -2,34 +2,33 @@
 
 A skin mesh's chart tiles (:class:`~.chart_tiles.TileLevel`, one per pyramid level and
 margin) depend on its geometry, UVs and texture size only, never on the lights, the
-camera or the fits' weights; they are most of a first render's work at large textures
-(the demo face at texture 4096: 32-34 s of a 46-48 s render, against 0.8 GB on disk).
-A look-development loop renders the same asset again and again under other lights, and
-a farm renders its frames in separate processes, so the tiles are kept on disk as one
-uncompressed ``.npz`` per level and margin, with what the level's blurs derive from its
-texel sizes (each array's data 64-byte aligned in the file, so that a render maps it
-rather than reads it), under a key of everything they are made from: the mesh and
-texture maps' key, the scene's geometry, the skin mesh's place in it, the source of the
-modules that make them, the libraries whose arithmetic they use and the OpenCL device
-that computed their margin points.
+camera or the fits' weights, and they are most of a first render's work at large
+textures. A look-development loop renders the same asset again and again under other
+lights, and a farm renders its frames in separate processes, so the tiles are kept on
+disk (skinpipe's cache rules, :mod:`..cache`): one layout a folder
+``layout-<key>`` (the key: a hash of the mesh and texture maps' key, the scene's
+geometry, the skin mesh's place in it, the source of the modules that make the tiles,
+the libraries whose arithmetic they use and the OpenCL device that computed their
+margin points), one uncompressed ``.npz`` per level and margin, each array's data
+64-byte aligned so that a render maps it rather than reads it.
 
-Every file is written to a temporary name and renamed (processes may write the same key
-at once), never changed in place, so a render that maps one keeps it whole; a file that
-does not read back (zip CRC, shapes) is removed and the tiles are made again; a folder
-that cannot be written is reported and the render goes on. The least recently used
-entries go when the folder passes its limit (:data:`LIMIT_ENV`, default
-:data:`DEFAULT_LIMIT_GB`).
+Each file carries a header member (the format, the full key, its level and margin),
+checked before anything is mapped, and each array's zip CRC-32, checked as it is
+mapped: a file that fails (another layout's file, damage, a link) is removed with a
+warning and the tiles are made again. The least recently used layouts go when the
+folder passes its limit (:data:`LIMIT_ENV`), and only folders the store made.
 """
 
 from __future__ import annotations
 
 import hashlib
 import importlib.util
+import json
 import mmap
 import os
 import re
 import secrets
-import shutil
+import stat
 import struct
 import threading
 import time
@@ -46,6 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import InputError
+from ..cache import FORMAT, MARKER, STALE_TMP_S, evict, usable_folder, warn
 from ..options import LAYOUT_CACHE_ENV
 from .chart_tiles import SeamReads, TileLevel
 
@@ -64,7 +64,6 @@ _DERIVED = "grid_"
 """The prefix of the arrays a level's grid derived from the tiles' texel sizes (stored
 with the tiles, in their place)."""
 Made = TypeVar("Made")
-_STALE_TMP_S = 3600.0
 ALIGN = 64
 """Each stored array's data starts at a multiple of this many bytes in its file (numpy's
 own header alignment within a .npy), so that it maps into memory as an aligned array."""
@@ -125,22 +124,22 @@ def device_identity() -> str:
 
 
 class TileStore:
-    """One layout's tiles in ``folder/<key>/L<level>_M<margin>.npz``. ``notes`` says what
-    was read, written, removed or could not be (for the render's log)."""
+    """One layout's tiles in ``folder/layout-<key>/L<level>_M<margin>.npz``. ``notes``
+    says what was read, written, removed or could not be (for the render's log)."""
 
     def __init__(self, folder: Path, layout_key: str, limit: int | None = None) -> None:
         self.root = Path(folder)
         self.key = hashlib.blake2b(
             f"{layout_key}|{code_fingerprint()}|{device_identity()}".encode(),
             digest_size=16).hexdigest()
-        self.entry = self.root / self.key
+        self.entry = self.root / f"layout-{self.key}"
         self.limit = limit_bytes() if limit is None else limit
         self.notes: list[str] = []
         self.loaded: list[tuple[int, int]] = []
         self.saved: list[tuple[int, int]] = []
         self.read_s = self.write_s = 0.0
         self._lock = threading.Lock()
-        self._unwritable = False
+        self._unwritable = usable_folder(self.root, "seam layouts are made each time") is None
         self._writer: ThreadPoolExecutor | None = None
         self._pending: list[Future[None]] = []
 
@@ -151,6 +150,8 @@ class TileStore:
 
     def stored(self) -> list[tuple[int, int]]:
         """The (level, margin) pairs this layout has on disk."""
+        if self._unwritable:
+            return []
         try:
             names = [p.name for p in self.entry.iterdir()]
         except OSError:
@@ -175,15 +176,16 @@ class TileStore:
         path = self.entry / f"L{level}_M{served}.npz"
         start = time.perf_counter()
         try:
-            made = make(*_read_tiles(path, level, served))
+            made = make(*_read_tiles(path, self.key, level, served))
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             try:
                 path.unlink(missing_ok=True)
                 gone = "removed"
             except OSError:  # another user's file in a shared folder
-                gone = "left"
-            self._note(f"tile store: {path} did not read back ({exc}); {gone}, tiles made "
-                       "again")
+                gone = "left in place"
+            why = str(exc) or type(exc).__name__
+            self._note(f"tile store: {path} cannot be used ({why}); {gone}, tiles made again")
+            warn(f"cache entry {path} cannot be used ({why}); {gone}, made again")
             return None
         with self._lock:
             self.read_s += time.perf_counter() - start
@@ -201,7 +203,7 @@ class TileStore:
         0.8 GB in about 1 s. :meth:`flush` waits for the writes."""
         if self._unwritable:
             return
-        arrays = _tile_arrays(tiles, derived)
+        arrays = _tile_arrays(tiles, derived, self.key)
         with self._lock:
             if self._writer is None:
                 self._writer = ThreadPoolExecutor(1, thread_name_prefix="skinpipe-tiles")
@@ -229,6 +231,8 @@ class TileStore:
         tmp: Path | None = None
         try:
             self.entry.mkdir(parents=True, exist_ok=True)
+            (self.entry / MARKER).touch()  # the store made this folder: eviction may go
+            _remove_stale_temporaries(self.entry)
             # the umask's mode (mkstemp's 0600 would keep the file from a farm's other
             # users sharing the folder), a name of its own per writer
             tmp = self.entry / f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
@@ -252,35 +256,11 @@ class TileStore:
 
     def _evict(self) -> None:
         """Remove the least recently used other layouts (and stale temporary files)
-        while the folder holds more than the limit."""
-        entries = []
-        now = time.time()
-        try:
-            folders = [p for p in self.root.iterdir() if p.is_dir()]
-        except OSError:
-            return
-        for folder in folders:
-            size = 0
-            try:
-                for f in folder.iterdir():
-                    st = f.stat()
-                    if f.name.endswith(".tmp") and now - st.st_mtime > _STALE_TMP_S:
-                        f.unlink(missing_ok=True)  # left by a killed process
-                        continue
-                    size += st.st_size
-                entries.append((folder.stat().st_mtime, size, folder))
-            except OSError:
-                continue
-        total = sum(size for _, size, _ in entries)
-        for _, size, folder in sorted(entries, key=lambda e: e[0]):
-            if total <= self.limit:
-                break
-            if folder == self.entry:
-                continue
-            shutil.rmtree(folder, ignore_errors=True)
-            total -= size
-            self.notes.append(f"tile store: removed {folder.name} ({size / 1e9:.2f} GB, "
-                              f"least recently used) to stay under {self.limit / 1e9:.1f} GB")
+        while the folder holds more than the limit: only layout folders the store made
+        (:func:`..cache.evict`), and in them only its files."""
+        for folder in evict(self.root, self.limit, keep=self.entry, files=_FILE):
+            self.notes.append(f"tile store: removed {folder.name} (least recently used) "
+                              f"to stay under {self.limit / 1e9:.1f} GB")
 
     def summary(self) -> dict[str, Any]:
         """What this render did with the store, for render.json."""
@@ -290,8 +270,27 @@ class TileStore:
                 "notes": list(self.notes)}
 
 
-def _tile_arrays(tiles: TileLevel, derived: dict[str, NDArray[Any]]) -> dict[str, Any]:
-    return {"shape": np.asarray(tiles.shape, np.int64), "shift": tiles.shift,
+def _remove_stale_temporaries(folder: Path) -> None:
+    """Temporary files a killed writer left in a layout's folder."""
+    now = time.time()
+    for tmp in folder.glob(".*.tmp"):
+        try:
+            if now - tmp.lstat().st_mtime > STALE_TMP_S:
+                tmp.unlink()
+        except OSError:
+            continue
+
+
+def _header(key: str, level: int, margin: int) -> NDArray[np.uint8]:
+    """The header member: what the file is for, as JSON bytes."""
+    doc = {"format": FORMAT, "key": key, "level": level, "margin": margin}
+    return np.frombuffer(json.dumps(doc, sort_keys=True).encode(), np.uint8)
+
+
+def _tile_arrays(tiles: TileLevel, derived: dict[str, NDArray[Any]], key: str
+                 ) -> dict[str, Any]:
+    return {"header": _header(key, tiles.level, tiles.margin),
+            "shape": np.asarray(tiles.shape, np.int64), "shift": tiles.shift,
             "owner": tiles.owner, "count": tiles.count, "rows": tiles.reads.rows,
             "xy": tiles.reads.xy, **{_DERIVED + k: v for k, v in derived.items()}}
 
@@ -363,13 +362,15 @@ def mapped_npz(path: Path, names: tuple[str, ...] | None = None
     array whose data is not aligned in the file (a file :func:`write_aligned_npz` did
     not write) is copied. ValueError, KeyError or OSError where the file is not such an
     .npz or a CRC differs."""
+    if not stat.S_ISREG(os.lstat(path).st_mode):
+        raise ValueError("not a regular file")
     with zipfile.ZipFile(path) as z:
         infos = {info.filename: info for info in z.infolist()}
     if names is None:
         names = tuple(n[:-4] for n in infos if n.endswith(".npy"))
     out: dict[str, NDArray[Any]] = {}
     chunk = bytearray(_CRC_CHUNK)
-    with open(path, "rb") as f:
+    with open(os.open(path, os.O_RDONLY | os.O_NOFOLLOW), "rb") as f:
         whole = _StoreMapping(f.fileno(), 0, access=mmap.ACCESS_COPY)
         whole.address = np.frombuffer(whole, np.uint8).ctypes.data
         for name in names:
@@ -462,11 +463,18 @@ def nondecreasing(array: NDArray[Any]) -> bool:
     return all(not bool((np.diff(part) < 0).any()) for part in _chunks(array, overlap=1))
 
 
-def _read_tiles(path: Path, level: int, margin: int
+def _read_tiles(path: Path, key: str, level: int, margin: int
                 ) -> tuple[TileLevel, dict[str, NDArray[Any]]]:
     """A stored level and the arrays derived with it, mapped from the file
-    (:func:`mapped_npz`, each member's CRC checked), the tiles' checked against each
-    other."""
+    (:func:`mapped_npz`, each member's CRC checked) once its header says it is this
+    layout's level and margin; the tiles checked against each other."""
+    header = mapped_npz(path, ("header",))["header"]
+    if header.dtype != np.uint8 or header.ndim != 1 or header.size > 4096:
+        raise ValueError("no header")
+    doc = json.loads(header.tobytes())
+    if doc != json.loads(_header(key, level, margin).tobytes()):
+        raise ValueError("another layout's file" if doc.get("key") != key else
+                         "another level's file")
     a = mapped_npz(path)
     h, w = (int(x) for x in a["shape"])
     n = h * w

@@ -328,6 +328,7 @@ def test_kept_uv_charts_are_the_connected_components(tmp_path: Path,
     triangle, with a UV vertex no triangle uses), the same after they are kept and read
     back from skinpipe's cache folder; a damaged kept file is made again, and other
     triangles are another file."""
+    from skinpipe.render.cache import write_json_entry
     from skinpipe.render.diffusion.chart_tiles import connected_uv_charts, uv_charts
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -340,9 +341,11 @@ def test_kept_uv_charts_are_the_connected_components(tmp_path: Path,
         assert chart.tolist() == want and count == 4 and chart.dtype == np.int32
     folder = tmp_path / "cache" / "skinpipe" / "uv-charts"
     (kept,) = folder.glob("charts-*.json")
-    doc = json.loads(kept.read_text())
+    entry = json.loads(kept.read_text())
+    doc = entry["payload"]
     assert doc["count"] == 4
-    kept.write_text(json.dumps({**doc, "count": 3}))  # charts beyond the count
+    # charts beyond the count, in an entry whose checksum holds: the reader refuses it
+    write_json_entry(kept, entry["key"], {**doc, "count": 3})
     assert uv_charts(uv_tris, 14)[0].tolist() == want
     chart, count = uv_charts(uv_tris[:2], 14)  # other triangles: another file
     assert chart.tolist() == connected_uv_charts(uv_tris[:2], 14)[0].tolist() == [0, 0]

@@ -19,6 +19,7 @@ import pytest
 
 from skinpipe.cli import main
 from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render.cache import MARKER, CacheWarning
 from skinpipe.render.diffusion import tile_store
 from skinpipe.render.diffusion.diffuse import diffuse_prepared
 from skinpipe.render.diffusion.layout import LEVEL_ARRAYS, DiffusionLayout, LevelGrid
@@ -101,7 +102,7 @@ def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Pat
 def test_a_damaged_file_is_removed_and_the_tiles_made_again(patch_layout,
                                                             tmp_path: Path) -> None:
     reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch"))
-    files = sorted((tmp_path / TileStore(tmp_path, "patch").key).glob("*.npz"))
+    files = sorted(TileStore(tmp_path, "patch").entry.glob("*.npz"))
     damaged = files[0]
     data = bytearray(damaged.read_bytes())
     data[len(data) // 2] ^= 0xFF  # one flipped byte inside an array: the zip's CRC
@@ -110,7 +111,7 @@ def test_a_damaged_file_is_removed_and_the_tiles_made_again(patch_layout,
     store = TileStore(tmp_path, "patch")
     out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
-    assert sum("did not read back" in n for n in store.notes) == 2, store.notes
+    assert sum("cannot be used" in n for n in store.notes) == 2, store.notes
     assert len(store.saved) == 2  # both made again and written again
 
 
@@ -121,7 +122,7 @@ def test_an_old_format_or_reads_past_their_end_are_made_again(patch_layout,
     (indptr, indices, data), one whose texel rows would read past the reads' end (the
     device kernel would read out of bounds)."""
     reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch"))
-    files = sorted((tmp_path / TileStore(tmp_path, "patch").key).glob("*.npz"))
+    files = sorted(TileStore(tmp_path, "patch").entry.glob("*.npz"))
     assert len(files) >= 2
     for path, how in zip(files, ("old format", "past the end"), strict=False):
         with np.load(path) as z:
@@ -139,7 +140,7 @@ def test_an_old_format_or_reads_past_their_end_are_made_again(patch_layout,
     store = TileStore(tmp_path, "patch")
     out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
-    assert sum("did not read back" in n for n in store.notes) == 2, store.notes
+    assert sum("cannot be used" in n for n in store.notes) == 2, store.notes
     assert len(store.saved) == 2
 
 
@@ -147,28 +148,37 @@ def test_a_folder_that_cannot_be_written_costs_only_the_store(patch_layout,
                                                                tmp_path: Path) -> None:
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where the store's folder should be")
-    store = TileStore(blocker, "patch")
+    with pytest.warns(CacheWarning, match="not-a-folder cannot be used"):
+        store = TileStore(blocker, "patch")
     reference, _ = _diffused(patch_layout, None)
     out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
-    assert not store.saved and any("cannot write" in n for n in store.notes)
+    assert not store.saved and not store.loaded
     assert blocker.read_text().startswith("a file")  # nothing of the user's touched
 
 
 def test_the_least_recently_used_layouts_go_past_the_limit(patch_layout,
                                                            tmp_path: Path) -> None:
-    old = tmp_path / ("0" * 32)
+    """Another layout the store made goes (with a killed writer's temporary file in it);
+    the user's own folders beside it stay, one named like a layout among them."""
+    old = tmp_path / f"layout-{'0' * 32}"
     old.mkdir()
+    (old / MARKER).touch()
     (old / "L0_M5.npz").write_bytes(b"x" * 5000)
-    stale = tmp_path / ("1" * 32)
-    stale.mkdir()
-    tmp = stale / ".L0_M5.npz.abc.tmp"
+    tmp = old / ".L0_M5.npz.abc.tmp"
     tmp.write_bytes(b"x" * 10)
     os.utime(old, (1.0, 1.0))  # long unused
-    os.utime(tmp, (1.0, 1.0))  # a killed writer's
+    scans = tmp_path / "my-scans"
+    scans.mkdir()
+    (scans / "head.ply").write_bytes(b"y" * 5000)
+    lookalike = tmp_path / f"layout-{'2' * 32}"  # no marker: the store did not make it
+    lookalike.mkdir()
+    (lookalike / "L0_M5.npz").write_bytes(b"z" * 5000)
+    os.utime(lookalike, (1.0, 1.0))
     store = TileStore(tmp_path, "patch", limit=1)  # smaller than anything: evict all else
     _diffused(patch_layout, store)
-    assert not old.exists() and not tmp.exists()
+    assert not old.exists()
+    assert (scans / "head.ply").is_file() and (lookalike / "L0_M5.npz").is_file()
     assert store.entry.is_dir() and any(store.entry.glob("*.npz"))  # its own entry stays
     assert any("least recently used" in n for n in store.notes)
 
@@ -281,7 +291,7 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
         store.flush()
         assert store.saved == [(0, 6)] and not store.notes
     entry = stores[0].entry
-    assert [p.name for p in entry.iterdir()] == ["L0_M6.npz"]
+    assert [p.name for p in entry.iterdir() if p.name != MARKER] == ["L0_M6.npz"]
     umask = os.umask(0)
     os.umask(umask)
     # readable as the umask allows (mkstemp's 0600 would shut out a farm's other users)
@@ -394,7 +404,7 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
         raise ValueError("refused")
 
     assert store.load(0, 6, refuse) is None
-    assert store.stored() == [] and any("did not read back (refused)" in n
+    assert store.stored() == [] and any("cannot be used (refused)" in n
                                         for n in store.notes)
 
 
@@ -592,7 +602,7 @@ def test_a_stored_level_that_does_not_read_back_after_the_maps_went_is_made_agai
     want, got, log, let_go = _render_twice(lit_patch, tmp_path, spoil=True)
     assert let_go == [True]
     notes = log.measures["tile_store"]["notes"]
-    assert any("did not read back" in n for n in notes), notes
+    assert any("cannot be used" in n for n in notes), notes
     assert log.measures["tile_store"]["saved"]
     for aov, image in want.items():
         np.testing.assert_array_equal(got[aov], image, err_msg=aov)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
+from skinpipe.render.cache import write_json_entry
 from skinpipe.render.light import irradiance
 from skinpipe.render.light.irradiance import (
     IrradianceResult,
@@ -113,10 +114,13 @@ def test_kept_rho_dt_table_is_the_quadrature(tmp_path: Path,
         assert not got.flags.writeable
     folder = tmp_path / "cache" / "skinpipe" / "specular-albedo"
     (path,) = folder.glob("rho-dt-*.json")
-    doc = json.loads(path.read_text())
-    for damage in ("{", json.dumps({**doc, "table": doc["table"][:-1]}),
-                   json.dumps({**doc, "table": [-1.0] * 64})):
-        path.write_text(damage)
+    entry = json.loads(path.read_text())
+    doc = entry["payload"]
+    for damage in ("{", {**doc, "table": doc["table"][:-1]}, {**doc, "table": [-1.0] * 64}):
+        if isinstance(damage, str):
+            path.write_text(damage)
+        else:  # a whole entry whose table the reader refuses
+            write_json_entry(path, entry["key"], damage)
         _rho_dt_table.cache_clear()
         np.testing.assert_array_equal(_rho_dt_table(0.3, 0.2), want)
     _rho_dt_table.cache_clear()
@@ -278,9 +282,13 @@ def test_kept_sobol_points_are_scipys(tmp_path: Path, monkeypatch: pytest.Monkey
             assert rng.bit_generator.state == scipy_rng.bit_generator.state
     kept = sorted((tmp_path / "cache" / "skinpipe" / "light-samples").glob("sobol-*.json"))
     assert len(kept) == 3
-    for damage in ("{", '{"m": 16, "before": 0, "after": 0, "points": [2.0]}'):
-        for path in kept:
-            path.write_text(damage)
+    keys = [json.loads(path.read_text())["key"] for path in kept]
+    for damage in ("{", {"m": 16, "before": 0, "after": 0, "points": [2.0]}):
+        for path, key in zip(kept, keys, strict=True):
+            if isinstance(damage, str):
+                path.write_text(damage)
+            else:  # a whole entry whose points the reader refuses
+                write_json_entry(path, key, damage)
         rng = np.random.default_rng([3, 11])
         want = qmc.Sobol(2, scramble=True, seed=np.random.default_rng([3, 11])).random(16)
         np.testing.assert_array_equal(scrambled_sobol(16, rng), want)
