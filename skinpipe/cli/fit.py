@@ -23,6 +23,16 @@ def _float_list(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
 
 
+def _weight(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (value >= 0 and value < float("inf")):  # NaN too
+        raise argparse.ArgumentTypeError(f"a finite number >= 0, got {text!r}")
+    return value
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "fit",
@@ -30,8 +40,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description=(
             "Fit f(r) = sum_i w_i G(v_i, r) per colour channel, G the normalised 2D Gaussian "
             "(variance v in mm^2, radius r in mm), weights >= 0 summing to 1 per channel "
-            "(Park & Oh 2009, eq. 1-2). A genetic algorithm seeds the variances, casadi's IPOPT "
-            "refines variances and weights. Error: eq. 2c (relative, r-weighted RMS)."
+            "(Park & Oh 2009, eq. 1-2), by the profile's values (eq. 2a) and its radial "
+            "energy (the light within each radius: what shadow edges show, an entry spike "
+            "included). A genetic algorithm seeds the variances, casadi's IPOPT refines "
+            "variances and weights. Reported per channel: eq. 2c (relative, r-weighted RMS "
+            "of the values) and, against the measured profile, a hard shadow edge's "
+            "spread error (share of the plateau), its 10-90%% width and the light in the "
+            "shadow (docs/fit.md)."
         ),
         formatter_class=HelpFormatter,
     )
@@ -53,6 +68,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also fit the total diffuse reflectance per channel (absolute captures)")
     p.add_argument("--use-stddev", action="store_true",
                    help="weight samples by 1/std^2 (from std_R,std_G,std_B) besides r dr")
+    p.add_argument("--energy-weight", type=_weight, default=None, metavar="W",
+                   help="weight of the radial energy term against the values' (both "
+                        "normalised to the data; default 10; 0: the paper's eq. 2a alone)")
     p.add_argument("--solver", choices=["ipopt", "slsqp"], default="ipopt",
                    help="local refinement after the seed (slsqp = the paper's SQP, for comparison)")
     p.add_argument("--init", choices=["ga", "naive", "random"], default="ga",
@@ -82,7 +100,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from ..profile.io import read_profile_csv
 
     fixed = args.fixed_variances or None
-    ga = {name: value for name in ("generations", "population")
+    ga = {name: value for name in ("generations", "population", "energy_weight")
           if (value := getattr(args, name)) is not None}
     options = FitOptions(
         k=args.k, share=args.share, fixed_variances_mm2=fixed, min_radius_mm=args.min_radius_mm,
@@ -137,5 +155,15 @@ def _fit_groups(args: argparse.Namespace, options: Any, profiles: list[Any], sev
             errs = " ".join(f"{c}={e:.2e}" for c, e in zip("RGB", res.error, strict=True))
             print(f"{res.name}: {len(res.variances_mm2)} terms, eq.2c error {errs}, "
                   f"{res.seconds:.2f} s, {res.status} -> {target}")
+            if res.edge is not None:
+                e = res.edge
+                print("  shadow edge: spread error " + " ".join(
+                    f"{c}={x:.2%}" for c, x in zip("RGB", e["edge_error"], strict=True))
+                    + "; 10-90% width " + " ".join(
+                    f"{c}={f:.3g}/{m:.3g}" for c, f, m in zip(
+                        "RGB", e["edge_width_mm"], e["edge_width_measured_mm"], strict=True))
+                    + " mm (fit/measured); light in the shadow " + " ".join(
+                    f"{c}={x:.3f}" for c, x in zip("RGB", e["shadow_light_ratio"], strict=True))
+                    + "x measured")
             for note in res.warnings:
                 _eprint(f"note: {res.name}: {note}")

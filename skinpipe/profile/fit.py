@@ -2,8 +2,16 @@
 
 Model: f_c(r) = sum_j w_jc G(v_j, r), with G the normalised 2D Gaussian, per channel c
 weights w_jc >= 0 summing to 1 (eq. 2b). Objective: eq. 2a with the r (area) weighting
-of eq. 2c and optional per-sample standard deviations. A genetic algorithm over the
-log-variances seeds casadi's IPOPT, which refines log-variances and weights together.
+of eq. 2c (and optional per-sample standard deviations), plus the profile's radial
+energy: the share of light within each ring's outer edge, fitted to the measured one, so
+that the energy goes where the measurement puts it, an entry spike included (the values'
+r-weighted residual gives the first samples almost no say, and a fit by values alone
+spread a skin profile's spike into its tails: shadow edges 7-18% too hard). The light
+within a radius is measured whole even where the image cuts the tail off, so the term
+holds for a truncated profile too. Both terms are normalised to the data and weighted
+equally (``energy_weight``); :mod:`.edge` reports what a shadow edge shows. A genetic algorithm over
+the log-variances seeds casadi's IPOPT, which refines log-variances and weights
+together.
 
 The problem is split into independent *groups*: a group is a set of curves (one curve
 = one channel of one profile) that share one variance grid. ``share="channels"`` makes
@@ -28,7 +36,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..errors import FitError, InputError
-from .models import fit_error_eq2c, ring_widths_mm
+from .edge import edge_report, ring_edges_mm
+from .models import fit_error_eq2c, ring_areas_mm2, ring_widths_mm
 from .types import CHANNELS, FitResult, FloatArray, MeasuredProfile
 
 Share = Literal["channels", "none", "profiles"]
@@ -67,7 +76,9 @@ class FitOptions:
     entry point, eq. 2 sums from i = 2). free_scale: fit the total diffuse reflectance
     per channel too (absolute captures, or a profile truncated by the image) instead of
     sum w = 1. use_stddev: weight samples by 1/std^2 as well as by r dr; off by default
-    because eq. 2c, the error we report, weights by area alone.
+    because eq. 2c weights by area alone. energy_weight: the radial energy term's
+    weight against the values' (both normalised to the data; 0: the paper's eq. 2a
+    alone).
     """
 
     k: int = 6
@@ -82,6 +93,7 @@ class FitOptions:
     init: Init = "ga"
     free_scale: bool = False
     use_stddev: bool = False
+    energy_weight: float = 10.0
     max_plausible_radius_mm: float = 100.0
     merge_log_variance: float = 0.02
 
@@ -102,10 +114,21 @@ class _Curve:
     # their own standard deviations), so their Gram matrices differ by a factor only.
     a_unit: FloatArray
     a_scale: float
+    # The energy term: at the rings' outer edges ``rho_e``, the light within, ``t``, with
+    # weights b = b_unit * b_scale (the edges' spacing, shared by a profile's curves;
+    # normalised so that the curve's sum b t^2 = energy_weight).
+    rho_e: FloatArray
+    t: FloatArray
+    b_unit: FloatArray
+    b_scale: float
 
     @cached_property
     def a(self) -> FloatArray:
         return self.a_unit * self.a_scale
+
+    @cached_property
+    def b(self) -> FloatArray:
+        return self.b_unit * self.b_scale
 
 
 MAX_FIT_SAMPLES = 4000
@@ -245,29 +268,34 @@ def _k_of(options: FitOptions) -> int:
     return check_terms(options.k)
 
 
-def _variance_bounds_mm2(profiles: Sequence[MeasuredProfile]) -> tuple[float, float]:
-    """Search range for variances: from below the sample spacing to beyond the data."""
+def _variance_bounds_mm2(profiles: Sequence[MeasuredProfile], energy: bool = True
+                         ) -> tuple[float, float]:
+    """Search range for variances: from below the sample spacing to beyond the data. With
+    the energy term a term narrower than the first ring is still seen (its light within
+    that ring's edge: an entry spike), so the range reaches a quarter spacing, else half."""
     gaps = np.concatenate([np.diff(p.radius_mm) for p in profiles])
     positive = np.concatenate([p.radius_mm[p.radius_mm > 0] for p in profiles])
     smallest = min(float(gaps[gaps > 0].min()), float(positive.min()))
     largest = max(float(p.radius_mm.max()) for p in profiles)
-    lo = (0.5 * smallest) ** 2
+    lo = ((0.25 if energy else 0.5) * smallest) ** 2
     hi = (2.0 * largest) ** 2
     return lo, max(hi, 10.0 * lo)
 
 
 def _make_curves(
     profiles: Sequence[MeasuredProfile], channels: Sequence[tuple[int, int]], length_mm: float,
-    use_stddev: bool = False,
+    use_stddev: bool = False, energy_weight: float = 1.0,
 ) -> list[_Curve]:
     curves = []
-    rhos: dict[int, tuple[FloatArray, FloatArray]] = {}
+    rhos: dict[int, tuple[FloatArray, ...]] = {}
     for pi, c in channels:
         prof = profiles[pi]
         if pi not in rhos:
             rho = prof.radius_mm / length_mm
-            rhos[pi] = (rho, rho * ring_widths_mm(rho))
-        rho, unit = rhos[pi]
+            rho_e = ring_edges_mm(prof.radius_mm) / length_mm
+            within = np.cumsum(prof.values * ring_areas_mm2(prof.radius_mm)[:, None], axis=0)
+            rhos[pi] = (rho, rho * ring_widths_mm(rho), rho_e, ring_widths_mm(rho_e), within)
+        rho, unit, rho_e, b_unit, within = rhos[pi]
         q = prof.values[:, c] * length_mm**2
         if use_stddev and prof.stddev is not None:
             inv_var = 1.0 / (prof.stddev[:, c] * length_mm**2) ** 2
@@ -275,7 +303,10 @@ def _make_curves(
         norm = float(np.sum(unit * q * q))
         # A silent channel (free_scale only) keeps unit weights; its amplitude goes to 0.
         scale = 1.0 / norm if norm > 0 else 1.0 / max(float(np.sum(unit)), 1e-300)
-        curves.append(_Curve(rho, q, pi, c, unit, scale))
+        t = within[:, c]
+        t_norm = float(np.sum(b_unit * t * t))
+        b_scale = energy_weight / t_norm if t_norm > 0 else 0.0
+        curves.append(_Curve(rho, q, pi, c, unit, scale, rho_e, t, b_unit, b_scale))
     return curves
 
 
@@ -398,6 +429,13 @@ def _basis(log_u: FloatArray, rho: FloatArray) -> FloatArray:
     return np.exp(-(rho[:, None] ** 2) / (2.0 * u)) / (2.0 * np.pi * u)
 
 
+def _energy_basis(log_u: FloatArray, rho: FloatArray) -> FloatArray:
+    """The light of G(u) within radius rho, 1 - exp(-rho^2 / 2u), for a batch of
+    log-variances (..., k) at radii (n,) -> (..., n, k)."""
+    u = np.exp(log_u)[..., None, :]
+    return -np.expm1(-(rho[:, None] ** 2) / (2.0 * u))
+
+
 def _fitness(log_u: FloatArray, curves: Sequence[_Curve], free_scale: bool) -> tuple[
     FloatArray, FloatArray
 ]:
@@ -406,21 +444,22 @@ def _fitness(log_u: FloatArray, curves: Sequence[_Curve], free_scale: bool) -> t
     hess = np.empty((n_pop, len(curves), k, k))
     grad = np.empty((n_pop, len(curves), k))
     const = np.empty(len(curves))
-    basis: dict[int, FloatArray] = {}
-    gram: dict[int, FloatArray] = {}
+    basis: dict[int, tuple[FloatArray, FloatArray]] = {}
+    gram: dict[tuple[int, int], tuple[FloatArray, FloatArray]] = {}
     for ci, cv in enumerate(curves):
         # Curves of one profile share their radii and, up to a factor, their sample
-        # weights: evaluate the Gaussians and their Gram matrix once.
-        b = basis.get(id(cv.rho))
-        if b is None:
-            b = basis[id(cv.rho)] = _basis(log_u, cv.rho)
-        unit = gram.get(id(cv.a_unit))
-        if unit is None:
-            bu = np.swapaxes(b * cv.a_unit[:, None], 1, 2)
-            unit = gram[id(cv.a_unit)] = bu @ b
-        hess[:, ci] = cv.a_scale * unit
-        grad[:, ci] = np.swapaxes(b, 1, 2) @ (cv.a * cv.q)
-        const[ci] = float(np.sum(cv.a * cv.q * cv.q))
+        # weights: evaluate the Gaussians and their Gram matrices once.
+        if id(cv.rho) not in basis:
+            basis[id(cv.rho)] = (_basis(log_u, cv.rho), _energy_basis(log_u, cv.rho_e))
+        b, e = basis[id(cv.rho)]
+        key = (id(cv.a_unit), id(cv.b_unit))
+        if key not in gram:
+            gram[key] = (np.swapaxes(b * cv.a_unit[:, None], 1, 2) @ b,
+                         np.swapaxes(e * cv.b_unit[:, None], 1, 2) @ e)
+        unit, edge = gram[key]
+        hess[:, ci] = cv.a_scale * unit + cv.b_scale * edge
+        grad[:, ci] = np.swapaxes(b, 1, 2) @ (cv.a * cv.q) + np.swapaxes(e, 1, 2) @ (cv.b * cv.t)
+        const[ci] = float(np.sum(cv.a * cv.q * cv.q) + np.sum(cv.b * cv.t * cv.t))
     w = _gram_weights(hess.reshape(-1, k, k), grad.reshape(-1, k), free_scale)
     w = w.reshape(n_pop, len(curves), k)
     objective = (
@@ -433,7 +472,8 @@ def _fitness(log_u: FloatArray, curves: Sequence[_Curve], free_scale: bool) -> t
 def simplex_least_squares(
     basis: FloatArray, target: FloatArray, sample_weight: FloatArray, free_scale: bool = False
 ) -> FloatArray:
-    """Exact min sum a (target - B w)^2 with w >= 0 and, unless free_scale, sum w = 1.
+    """Exact min sum a (target - B w)^2 with w >= 0 and, unless free_scale, sum w = 1
+    (several residuals: their rows stacked).
 
     Lawson-Hanson NNLS on the system augmented by a heavily weighted row sum w = 1.
     """
@@ -579,21 +619,22 @@ def _gauss_newton_problem(
     of x, p, lam_f, lam_g giving the upper triangle) for one group's data layout.
 
     ``layout`` lists, per sample set, (samples, curves using it): curves of one sample
-    set share their radii and, up to a factor, their sample weights a = s_c a_unit
-    (:class:`_Curve`). Decision variables are [log-variances (k, unless fixed), weights
-    (k per curve)]; parameters are, per sample set, [rho, a_unit, then q and s_c of each
-    curve], then fixed log-variances if any.
+    set share their radii and, up to a factor, their sample weights a = s_c a_unit and
+    energy weights b = e_c b_unit (:class:`_Curve`). Decision variables are
+    [log-variances (k, unless fixed), weights (k per curve)]; parameters are, per sample
+    set, [rho, a_unit, rho_e, b_unit, then q, s_c, t, e_c of each curve], then fixed
+    log-variances if any.
 
-    The objective is a weighted sum of squares, so the Lagrangian Hessian given to
-    IPOPT is the Gauss-Newton one, 2 J' diag(a) J (the constraints are linear): exact
-    at a zero-residual fit, always positive semi-definite, and an order of magnitude
-    cheaper to evaluate than the full second derivative. Its blocks come from three
-    k x k Gram matrices per sample set, with G the Gaussians and D = dG/dlog u:
+    The objective is a weighted sum of squares of two residuals, the values' q - G w and
+    the energy's t - E w (E = 1 - exp(-rho_e^2 / 2u), :func:`_energy_basis`), so the Lagrangian
+    Hessian given to IPOPT is the Gauss-Newton one, 2 J' diag(a, b) J (the constraints
+    are linear): exact at a zero-residual fit, always positive semi-definite, and an
+    order of magnitude cheaper than the full second derivative. Its blocks come from
+    k x k Gram matrices per sample set and residual, with D = dG/dlog u (or dE/dlog u):
     2 sum_c s_c (D'AD o w_c w_c') for the log-variances, 2 s_c diag(w_c) D'AB between
-    them and curve c's weights, 2 s_c B'AB for those weights (3x fewer operations than
-    forming J'J for three curves).
+    them and curve c's weights, 2 s_c B'AB for those weights, and the same with b, E.
     """
-    n_total = sum(n * (2 + m) + m for n, m in layout)
+    n_total = sum(n * (4 + 2 * m) + 2 * m for n, m in layout)
     n_curves = sum(m for _, m in layout)
     log_u = ca.SX.sym("log_u", k)
     w = ca.SX.sym("w", k * n_curves)
@@ -608,29 +649,43 @@ def _gauss_newton_problem(
     for n, m in layout:
         rho = params[offset : offset + n]
         a_unit = params[offset + n : offset + 2 * n]
-        offset += 2 * n
+        rho_e = params[offset + 2 * n : offset + 3 * n]
+        b_unit = params[offset + 3 * n : offset + 4 * n]
+        offset += 4 * n
         uu = ca.repmat(u, n, 1)
         half_rho2 = ca.repmat(rho**2, 1, k) / 2
         basis = ca.exp(-half_rho2 / uu) / (2 * math.pi * uu)
-        weighted_basis = basis * ca.repmat(a_unit, 1, k)
-        gram_bb = _upper_gram(basis, weighted_basis, True)
-        if not fixed:
-            d_basis = basis * (half_rho2 / uu - 1.0)  # dG/dlog u
-            gram_db = _upper_gram(d_basis, weighted_basis, False)
-            gram_dd = _upper_gram(d_basis, d_basis * ca.repmat(a_unit, 1, k), True)
+        half_e2 = ca.repmat(rho_e**2, 1, k) / 2
+        outside = ca.exp(-half_e2 / uu)
+        edge = 1 - outside
+        grams = []
+        for g, d_g, unit in (
+                (basis, basis * (half_rho2 / uu - 1.0), a_unit),  # dG/dlog u
+                (edge, -outside * half_e2 / uu, b_unit)):  # dE/dlog u
+            weighted = g * ca.repmat(unit, 1, k)
+            grams.append((_upper_gram(g, weighted, True),
+                          None if fixed else _upper_gram(d_g, weighted, False),
+                          None if fixed else _upper_gram(d_g, d_g * ca.repmat(unit, 1, k),
+                                                         True)))
         for _ in range(m):
             q = params[offset : offset + n]
             scale = params[offset + n]
-            offset += n + 1
+            t = params[offset + n + 1 : offset + 2 * n + 1]
+            edge_scale = params[offset + 2 * n + 1]
+            offset += 2 * n + 2
             wc = w[ci * k : (ci + 1) * k]
             resid = q - ca.mtimes(basis, wc)
-            objective += scale * ca.dot(a_unit, resid * resid)
+            resid_edge = t - ca.mtimes(edge, wc)
+            objective += scale * ca.dot(a_unit, resid * resid) \
+                + edge_scale * ca.dot(b_unit, resid_edge * resid_edge)
             constraints.append(ca.sum1(wc))
             at = w0 + ci * k
-            hess[at : at + k, at : at + k] = 2 * scale * gram_bb
-            if not fixed:
-                hess[:k, :k] += 2 * scale * gram_dd * ca.mtimes(wc, wc.T)
-                hess[:k, at : at + k] = 2 * scale * ca.mtimes(ca.diag(wc), gram_db)
+            for sc, (gram_bb, gram_db, gram_dd) in zip((scale, edge_scale), grams,
+                                                       strict=True):
+                hess[at : at + k, at : at + k] += 2 * sc * gram_bb
+                if not fixed:
+                    hess[:k, :k] += 2 * sc * gram_dd * ca.mtimes(wc, wc.T)
+                    hess[:k, at : at + k] += 2 * sc * ca.mtimes(ca.diag(wc), gram_db)
             ci += 1
     x = w if fixed else ca.vertcat(log_u, w)
     lam_f = ca.SX.sym("lam_f")
@@ -700,14 +755,16 @@ def _objective(log_u: FloatArray, weights: FloatArray, curves: Sequence[_Curve])
     total = 0.0
     for ci, cv in enumerate(curves):
         resid = cv.q - _basis(log_u, cv.rho) @ weights[ci]
-        total += float(np.sum(cv.a * resid * resid))
+        edge = cv.t - _energy_basis(log_u, cv.rho_e) @ weights[ci]
+        total += float(np.sum(cv.a * resid * resid) + np.sum(cv.b * edge * edge))
     return total
 
 
 def _polish_weights(log_u: FloatArray, curves: Sequence[_Curve], free_scale: bool) -> FloatArray:
-    return np.array(
-        [simplex_least_squares(_basis(log_u, cv.rho), cv.q, cv.a, free_scale) for cv in curves]
-    )
+    return np.array([simplex_least_squares(
+        np.vstack([_basis(log_u, cv.rho), _energy_basis(log_u, cv.rho_e)]),
+        np.concatenate([cv.q, cv.t]), np.concatenate([cv.a, cv.b]), free_scale)
+        for cv in curves])
 
 
 def _layout(curves: Sequence[_Curve]) -> tuple[tuple[tuple[int, int], ...], list[FloatArray]]:
@@ -715,14 +772,15 @@ def _layout(curves: Sequence[_Curve]) -> tuple[tuple[tuple[int, int], ...], list
     layout and the parameter chunks (:func:`_ipopt_solver`)."""
     layout: list[tuple[int, int]] = []
     chunks: list[FloatArray] = []
-    last: tuple[FloatArray, FloatArray] | None = None
+    last: tuple[FloatArray, FloatArray, FloatArray] | None = None
     for cv in curves:
-        if last is None or cv.rho is not last[0] or cv.a_unit is not last[1]:
+        if last is None or cv.rho is not last[0] or cv.a_unit is not last[1] \
+                or cv.b_unit is not last[2]:
             layout.append((cv.rho.size, 0))
-            chunks.extend([cv.rho, cv.a_unit])
-            last = (cv.rho, cv.a_unit)
+            chunks.extend([cv.rho, cv.a_unit, cv.rho_e, cv.b_unit])
+            last = (cv.rho, cv.a_unit, cv.b_unit)
         layout[-1] = (layout[-1][0], layout[-1][1] + 1)
-        chunks.extend([cv.q, np.array([cv.a_scale])])
+        chunks.extend([cv.q, np.array([cv.a_scale]), cv.t, np.array([cv.b_scale])])
     return tuple(layout), chunks
 
 
@@ -1086,7 +1144,7 @@ def fit_profiles(
         prepared.append(tidy)
         prep_notes.append(notes)
     rng = np.random.default_rng(options.seed)
-    lo_v, hi_v = _variance_bounds_mm2(prepared)
+    lo_v, hi_v = _variance_bounds_mm2(prepared, options.energy_weight > 0)
     length_mm = math.sqrt(math.sqrt(lo_v * hi_v))
     log_bounds = (math.log(lo_v / length_mm**2), math.log(hi_v / length_mm**2))
     fixed_log_u = None
@@ -1102,7 +1160,8 @@ def fit_profiles(
         for i in range(len(profiles))
     ]
     for group in _groups_for(options.share, len(prepared)):
-        curves = _make_curves(prepared, group, length_mm, options.use_stddev)
+        curves = _make_curves(prepared, group, length_mm, options.use_stddev,
+                              options.energy_weight)
         sol, notes = _solve_group(curves, k, log_bounds, options, rng, fixed_log_u)
         if not (np.all(np.isfinite(sol.log_u)) and np.all(np.isfinite(sol.weights))):
             raise FitError(f"the optimiser returned non-finite values (status {sol.status})")
@@ -1153,8 +1212,31 @@ def fit_profiles(
             source=None if prof.source is None else str(prof.source),
         )
         result.error = fit_error_eq2c(prof.radius_mm, prof.values, result.evaluate(prof.radius_mm))
+        result.edge = edge_report(prof.radius_mm, prof.values, variances, weights)
+        result.warnings.extend(_beyond_the_measurement(result))
         results.append(result)
     return results
+
+
+WIDE_TERM_WEIGHT = 0.01
+"""A term that carries more light than this in a channel is named when it reaches past
+the measured range (:func:`_beyond_the_measurement`)."""
+
+
+def _beyond_the_measurement(fit: FitResult) -> list[str]:
+    """Notes naming each term that puts light where nothing was measured: half its
+    light or more beyond the largest radius (its 1.18 sigma, the median of a 2D
+    Gaussian's radius, past it), with more than WIDE_TERM_WEIGHT of a channel's light."""
+    r_max = fit.radius_range_mm[1]
+    notes = []
+    for i, (v, w) in enumerate(zip(fit.variances_mm2, fit.weights, strict=True)):
+        median_radius = math.sqrt(2.0 * math.log(2.0) * v)
+        if median_radius > r_max and w.max() > WIDE_TERM_WEIGHT:
+            shares = "/".join(f"{x:.2f}" for x in w)
+            notes.append(f"term {i + 1} (variance {v:.4g} mm^2, sigma {math.sqrt(v):.3g} mm, "
+                         f"weights R/G/B {shares}) puts half its light beyond the measured "
+                         f"{r_max:.3g} mm: that light is extrapolated, not measured")
+    return notes
 
 
 def fit_sum_of_gaussians(

@@ -51,6 +51,10 @@ class FitResult:
     total_reflectance: FloatArray | None = None
     warnings: list[str] = field(default_factory=list)
     source: str | None = None
+    edge: dict[str, FloatArray] | None = None
+    """Against the measured profile, per channel (:func:`.edge.edge_report`):
+    ``edge_error`` (share of the plateau), ``edge_width_mm`` and
+    ``edge_width_measured_mm`` (10-90%), ``shadow_light_ratio``."""
 
     def evaluate(self, radius_mm: ArrayLike) -> FloatArray:
         """The fitted profile f(r) (n, 3), times the total reflectance if one was fitted."""
@@ -83,6 +87,11 @@ class FitResult:
             "channels": list(CHANNELS),
             "warnings": list(self.warnings),
         }
+        if self.edge is not None:
+            doc["edge"] = {key: [_f32(x) for x in value] for key, value in self.edge.items()}
+            doc["edge_measure"] = ("a hard shadow edge: the largest difference of the edge-"
+                                   "spread function as a share of the plateau, the 10-90% "
+                                   "width, the light in the shadow (docs/fit.md)")
         if self.total_reflectance is not None:
             doc["total_reflectance"] = [float(x) for x in self.total_reflectance]
         if self.source is not None:
@@ -104,6 +113,12 @@ def fit_result_from_json(doc: dict[str, Any], name: str | None = None) -> FitRes
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"not a fit document: {exc!r}") from exc
     tr = doc.get("total_reflectance")
+    edge = doc.get("edge")
+    try:
+        edge = None if edge is None else {str(k): np.array([float(x) for x in v]).reshape(3)
+                                          for k, v in dict(edge).items()}
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"not a fit document: edge: {exc!r}") from exc
     return FitResult(
         name=name or str(doc.get("name", "profile")),
         variances_mm2=variances,
@@ -121,4 +136,5 @@ def fit_result_from_json(doc: dict[str, Any], name: str | None = None) -> FitRes
         total_reflectance=None if tr is None else np.array(tr, dtype=np.float64),
         warnings=list(doc.get("warnings", [])),
         source=doc.get("source"),
+        edge=edge,
     )

@@ -75,7 +75,12 @@ def test_fit_writes_the_documented_json(tmp_path: Path) -> None:
     doc = json.loads(out.read_text())
     assert len(doc["terms"]) == 6
     assert set(doc["terms"][0]) == {"variance_mm2", "weights"}
-    assert len(doc["error"]) == 3 and max(doc["error"]) < 1e-3
+    # point samples of d'Eon's sum: the energy term reads them as ring means, O(dr^2)
+    # off, so the values' eq. 2c is no longer exactly zero at the optimum
+    assert len(doc["error"]) == 3 and max(doc["error"]) < 2e-3
+    assert set(doc["edge"]) == {"edge_error", "edge_width_mm", "edge_width_measured_mm",
+                                "shadow_light_ratio"}
+    assert max(doc["edge"]["edge_error"]) < 0.01
     assert doc["status"] == "Solve_Succeeded"
     assert doc["units"] == {"radius": "mm", "variance": "mm^2"}
     # the fit's content only: no run facts, its source relative to it, so the same
