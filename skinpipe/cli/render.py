@@ -29,7 +29,8 @@ def _print_render(doc: dict[str, Any]) -> None:
             print(f"  diffusion: {len(diff['variances_mm2'])} variances, "
                   f"{diff['blur_passes']} blur passes, energy ratio "
                   f"{diff['energy_ratio']:.4f}, grid error (eq. 2c) max "
-                  f"{max(diff['grid_error_eq2c'].values()):.2e}")
+                  f"{max(diff['grid_error_eq2c'].values()):.2e}, light within a radius "
+                  f"max {max(diff['grid_edge_error'].values()):.2e}")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

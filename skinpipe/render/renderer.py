@@ -599,6 +599,7 @@ class Renderer:
             **work,
             "energy_ratio": energy,
             "grid_error_eq2c": terms.error,
+            "grid_edge_error": terms.edge_error,
             "mm_per_texel_median": texel_mm,
         }
 

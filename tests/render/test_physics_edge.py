@@ -1,0 +1,137 @@
+"""A hard shadow edge on a flat slab, rendered from a profile the way a user brings one
+(a CSV through ``skinpipe fit`` at its defaults, ``skinpipe author`` on a mesh file,
+``skinpipe render``), against the edge the light itself makes: the pencil profile of an
+independent Monte Carlo light tracer (tests/physics/light_tracer.py, stored in
+tests/fixtures/physics/) integrated over the lit half-plane.
+
+For skin1 index-matched and at eta 1.4, a forward-scattering medium (g = 0.8) and marble,
+per channel: the 10-90% width within 5% of the traced, the light reaching into the
+shadow within 5%, the edge's largest difference at most 2% of the plateau (beyond the
+tracer's central ring). The render unwraps the slab with xatlas and keeps the fit's own
+six variances (a region's six blurs are fewer than the variance grid's twelve)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from pxr import Gf, Sdf, UsdGeom
+
+from skinpipe.cli import main
+from skinpipe.profile.edge import edge_width_mm, spread_beyond_rings
+from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
+
+from ..render_scenes import distant_down, scene_over
+
+PHYSICS = Path(__file__).parents[1] / "fixtures" / "physics"
+SLAB_MM = {"skin1": 60.0, "skin1_eta1.4": 60.0, "forward": 60.0, "marble": 200.0}
+PIXELS = 1024
+RING_MM = 0.025  # the tracer's ring width
+ROWS = 16
+
+pytestmark = pytest.mark.slow  # a fit, an author and a 2048 texture a medium: about 90 s
+
+
+def _grid_obj(path: Path, size_mm: float, n: int = 32) -> Path:
+    """A flat square of ``size_mm`` in z = 0, centred on the origin, as an OBJ without
+    UVs (the render unwraps it with xatlas, as it would a user's mesh)."""
+    xs = np.linspace(-size_mm / 2, size_mm / 2, n + 1)
+    lines = [f"v {x:.6f} {y:.6f} 0" for y in xs for x in xs]
+    for r in range(n):
+        for c in range(n):
+            a = r * (n + 1) + c + 1
+            lines += [f"f {a} {a + 1} {a + n + 2}", f"f {a} {a + n + 2} {a + n + 1}"]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _scene(tmp: Path, asset: Path, size_mm: float) -> Path:
+    """The light straight down, a blocker over x < 0 hidden from the camera, an
+    orthographic camera looking down over a strip across the edge."""
+
+    def build(stage) -> None:
+        cam = UsdGeom.Camera.Define(stage, "/Cam")
+        cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
+        cam.CreateHorizontalApertureAttr(10.0 * size_mm)  # tenths of a scene unit
+        cam.CreateVerticalApertureAttr(10.0 * size_mm * ROWS / PIXELS)
+        UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+        distant_down(stage, intensity=1.0, angle=0.0)
+        big = 10.0 * size_mm
+        blocker = UsdGeom.Mesh.Define(stage, "/Blocker")
+        blocker.CreatePointsAttr([Gf.Vec3f(x, y, 10) for x, y in
+                                  [(-big, -big), (0, -big), (0, big), (-big, big)]])
+        blocker.CreateFaceVertexCountsAttr([4])
+        blocker.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        UsdGeom.PrimvarsAPI(blocker).CreatePrimvar(
+            CAMERA_VISIBILITY_PRIMVAR, Sdf.ValueTypeNames.Bool,
+            UsdGeom.Tokens.constant).Set(False)
+
+    return scene_over(asset, tmp / "scene.usda", build)
+
+
+def _rendered_edge(tmp: Path, medium: str) -> tuple[np.ndarray, np.ndarray]:
+    """x (mm, pixel centres) and the diffuse radiance across the edge (R, G, B), through
+    the CLI."""
+    size = SLAB_MM[medium]
+    fits = tmp / "fits"
+    fits.mkdir()
+    assert main(["fit", str(PHYSICS / f"{medium}.csv"), "-k", "6",
+                 "-o", str(fits / f"{medium}.json")]) == 0
+    landmarks = tmp / "landmarks.json"  # one region: the fit's, named after its CSV
+    landmarks.write_text(json.dumps({"regions": {medium: [[0.0, 0.0, 0.0]]}}))
+    asset = tmp / "asset"
+    assert main(["author", "--fits", str(fits), "--mesh", str(_grid_obj(tmp / "slab.obj", size)),
+                 "--landmarks", str(landmarks), "-o", str(asset)]) == 0
+    out = tmp / "out"
+    assert main(["render", str(_scene(tmp, asset / "asset.usda", size)), "-o", str(out),
+                 "--resolution", f"{PIXELS}x{ROWS}", "--texture-size", "2048",
+                 "--aovs", "beauty,diffuse"]) == 0
+    buf = oiio.ImageBuf(str(out / "scene.exr"))
+    names = list(buf.spec().channelnames)
+    px = np.asarray(buf.get_pixels(oiio.FLOAT))
+    line = np.stack([px[..., names.index(f"diffuse.{c}")] for c in "RGB"], axis=-1)
+    x = ((np.arange(PIXELS) + 0.5) / PIXELS - 0.5) * size
+    return x, line[ROWS // 4:3 * ROWS // 4].mean(axis=0)
+
+
+def _traced_edge(medium: str, x: np.ndarray, pixel_mm: float) -> np.ndarray:
+    """The traced profile over the lit half-plane x > 0, normalised to its plateau,
+    averaged over each pixel's width as the render's pixel averages it."""
+    rows = np.loadtxt(PHYSICS / f"{medium}.csv", delimiter=",", skiprows=1)
+    r, p = rows[:, 0], rows[:, 1:]
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    xs = (x[:, None] + sub[None, :] * pixel_mm).reshape(-1)
+    lit = spread_beyond_rings(r, p, -xs)  # the light entering at q_x > 0, seen at x
+    total = spread_beyond_rings(r, p, np.array([-1e9]))[0]
+    return (lit / total).reshape(x.size, 8, 3).mean(axis=1)
+
+
+@pytest.mark.parametrize("medium", ["skin1", "skin1_eta1.4", "forward", "marble"])
+def test_a_hard_shadow_edge_matches_the_light_tracer(medium: str, tmp_path: Path) -> None:
+    x, line = _rendered_edge(tmp_path, medium)
+    size = SLAB_MM[medium]
+    pixel = size / PIXELS
+    far = (x > 0.2 * size) & (x < 0.4 * size)  # lit, away from the edge and the border
+    plateau = np.median(line[far], axis=0)
+    got = line / plateau
+    want = _traced_edge(medium, x, pixel)
+    inside = np.abs(x) < 0.4 * size
+    t = -x[inside][::-1]  # as positions of 1 - E: ascending, falling from 1 to 0
+    widths = edge_width_mm(t, got[inside][::-1]), edge_width_mm(t, want[inside][::-1])
+    shadow = (x < 0) & inside
+    light = [np.trapezoid(f[shadow], x[shadow], axis=0) for f in (got, want)]
+    # the central ring says how much light leaves within 0.025 mm, not where: the
+    # pixels whose footprint reaches into it are left out of the pointwise comparison
+    resolved = inside & (np.abs(x) >= RING_MM + pixel / 2)
+    error = np.abs(got - want)[resolved].max(axis=0)
+    report = {"width_mm": [w.round(3).tolist() for w in widths],
+              "shadow_light": (light[0] / light[1]).round(3).tolist(),
+              "edge_error": error.round(4).tolist()}
+    assert np.all(np.abs(widths[0] / widths[1] - 1) < 0.05), report
+    assert np.all(np.abs(light[0] / light[1] - 1) < 0.05), report
+    assert np.all(error < 0.02), report
+    assert math.isfinite(float(plateau.sum()))
