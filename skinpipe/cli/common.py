@@ -194,6 +194,11 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
                    help="albedo exponent applied before scattering (0.5 = sqrt before/after)")
     p.add_argument("--roughness", type=float, default=0.35, help="Beckmann roughness")
     p.add_argument("--rho-s", type=float, default=0.25, help="specular scale rho_s")
+    p.add_argument("--ior", type=float, default=1.4,
+                   help="the skin's refractive index: light entering and leaving at an "
+                        "angle loses a smooth dielectric's Fresnel share, relative to "
+                        "normal incidence (where the profile was measured); 1 = "
+                        "index-matched")
     p.add_argument("--no-write-uvs", action="store_true",
                    help="do not write xatlas UVs back into the asset's geo layer")
     p.add_argument("--ocio", default=None,
@@ -219,7 +224,7 @@ def render_options(args: argparse.Namespace) -> Any:
         resolution=args.resolution, texture_size=args.texture_size, aovs=args.aovs,
         light_samples=args.light_samples, shadow_sampling=args.shadow_sampling,
         interleave_period=args.interleave_period, light_sequence=args.light_sequence,
-        roughness=args.roughness, rho_s=args.rho_s,
+        roughness=args.roughness, rho_s=args.rho_s, ior=args.ior,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,

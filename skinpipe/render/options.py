@@ -74,6 +74,10 @@ class RenderOptions:
     of two) or 'stratified' (a jittered grid)."""
     roughness: float = DEFAULT_ROUGHNESS
     rho_s: float = DEFAULT_RHO_S
+    ior: float = 1.4
+    """The skin's refractive index: light crossing its surface loses the Fresnel share of
+    a smooth dielectric, relative to normal incidence (:mod:`.light.boundary`); 1:
+    index-matched, no loss."""
     albedo_split: float = 0.5
     """Exponent of the albedo applied before scattering (0.5: sqrt before and after)."""
     variance_grid: int = 12
@@ -137,3 +141,6 @@ class RenderOptions:
             raise InputError("the layout cache must be a folder (or None for none), got ''")
         if not (0.01 <= self.roughness <= 1.0 and 0.0 <= self.rho_s <= 1.0):
             raise InputError("roughness must be in [0.01, 1] and rho_s in [0, 1]")
+        if not 1.0 <= self.ior <= 3.0:  # NaN too
+            raise InputError(f"the skin's refractive index (--ior) must be 1-3, got "
+                             f"{self.ior}")

@@ -50,6 +50,7 @@ from .diffusion.recursive_blur import pass_kernels
 from .diffusion.terms import DiffusionTerms, kept_diffusion_terms
 from .diffusion.tile_store import TileStore
 from .frame import CameraHits, SkinTextures, TaskLog, _BothArrived, hit_uvs
+from .light.boundary import SkinBoundary, transmission
 from .light.interleave import (
     interleave_classes,
     interleaved_visibility,
@@ -62,7 +63,7 @@ from .light.irradiance import (
 )
 from .light.raytrace import RayScene, offset_ray_origin
 from .light.samples import interleave_period, light_direction, sobol_points
-from .light.specular import specular_albedo, torrance_sparrow
+from .light.specular import torrance_sparrow
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .shading import (
@@ -71,6 +72,7 @@ from .shading import (
     albedo_texture,
     bilinear,
     bilinear_of,
+    mean_albedo,
     mesh_hits,
     normal_map,
     ray_owners,
@@ -210,8 +212,8 @@ class Renderer:
         period, per_pixel = self._interleaving(scene, mesh, uv, uv_tris, tris)
         irradiance_key = content_hash(
             mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
-            [lt.key() for lt in scene.lights], opts.light_samples, opts.roughness, opts.rho_s,
-            opts.seed, opts.shadow_sampling, opts.light_sequence,
+            [lt.key() for lt in scene.lights], opts.light_samples, opts.ior, mesh.albedo,
+            scene.working_colorspace, opts.seed, opts.shadow_sampling, opts.light_sequence,
             period if opts.shadow_sampling != "full" else 0)  # full sampling has none
         return SkinTextures(mesh, uv, uv_tris, tris, maps, period=period,
                             texels_per_pixel=per_pixel,
@@ -274,15 +276,19 @@ class Renderer:
             if release is not None:
                 maps = maps.without_surface(*self._keeps())
                 release.arrive("irradiance")
+            boundary = SkinBoundary.from_albedo(mean_albedo(tex.mesh, scene.working_colorspace),
+                                                opts.ior)
+            log.measures["boundary"] = {"ior": boundary.eta,
+                                        "reduced_albedo": list(boundary.reduced_albedo)}
             res = irradiance_texture(positions, normals, scene.lights, rays,
-                                     opts.light_samples, opts.roughness, opts.rho_s,
+                                     opts.light_samples, boundary,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
                                      coherent=True, period=period)
             penumbra: dict[str, int] = {}  # texels refined per light (adaptive)
             if opts.shadow_sampling == "adaptive" and res.interleaved:
                 res, refined = refine_penumbrae(
                     res, covered, positions, normals, interleave, scene.lights, rays,
-                    opts.light_samples, opts.roughness, opts.rho_s, opts.seed, dome_textures,
+                    opts.light_samples, boundary, opts.seed, dome_textures,
                     opts.light_sequence, texel, coherent=True, period=period)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
             if after_rays is not None:
@@ -826,7 +832,7 @@ class Renderer:
             # the albedo, irradiance and region lookups were 0.35 s of a 1.1 s shade)
             if wanted & {"beauty", "diffuse"}:
                 n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
-                leave = (1.0 - specular_albedo(n_dot_v, opts.roughness, opts.rho_s))[:, None]
+                leave = transmission(n_dot_v, opts.ior)[:, None]
                 assert tex.radiance is not None
                 out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
             at = self._irradiance_lookups(tex, uv) if tex.at_hits is None else \

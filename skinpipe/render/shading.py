@@ -7,8 +7,10 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import OpenImageIO as oiio
 from numpy.typing import NDArray
 
+from ..errors import InputError
 from ..imageio import (
     convert_colorspace,
     read_image,
@@ -87,6 +89,41 @@ def albedo_image(mesh: SceneMesh, working: str) -> tuple[NDArray[np.float32], st
     px = img.pixels if cs == working else convert_colorspace(img.pixels, cs, working)
     # texture-space row j holds v = (j + 0.5) / size; image row 0 is the top (v = 1)
     return np.ascontiguousarray(px[::-1, :, :3], dtype=np.float32), f"{albedo.texture} ({cs})"
+
+
+def mean_albedo(mesh: SceneMesh, working: str) -> NDArray[np.float64]:
+    """The albedo's mean over its image (RGB, linear in the working space): its
+    coarsest MIP level where the texture has levels (a tiled EXR made as renderers
+    take one), else the whole image's mean."""
+    albedo = mesh.albedo
+    if albedo.texture is None:
+        return np.asarray(albedo.constant, np.float64)
+    image = oiio.ImageInput.open(str(albedo.texture))
+    if image is None:
+        raise InputError(f"cannot read the albedo texture: {oiio.geterror()}", albedo.texture)
+    try:
+        level = 0
+        while image.seek_subimage(0, level + 1):
+            level += 1
+        image.seek_subimage(0, level)
+        spec = image.spec()
+        px = image.read_image(0, level, 0, spec.nchannels, oiio.FLOAT)
+        is_float = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE)
+    finally:
+        image.close()
+    if px is None or not np.all(np.isfinite(px)):
+        raise InputError("the albedo texture does not read back whole", albedo.texture)
+    # decoded per pixel before the mean (sRGB's curve is not linear); every k-th pixel
+    # of a large level is plenty for a mean
+    px = np.asarray(px, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels < 3:  # grey: read_image's rule
+        px = np.repeat(px[..., :1], 3, axis=2)
+    k = max(1, max(px.shape[:2]) // 256)
+    sample = np.ascontiguousarray(px[::k, ::k, :3]).reshape(-1, 3)
+    cs = albedo.colorspace or (working if is_float else "srgb_tx")
+    if cs != working:
+        sample = convert_colorspace(sample, cs, working)
+    return sample.mean(axis=0).astype(np.float64)
 
 
 def albedo_texture(image: NDArray[np.float32], size: int) -> NDArray[np.float32]:

@@ -27,8 +27,9 @@ from ..device.memory import (
 )
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
-from ..options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS, INTERLEAVE_PERIODS
+from ..options import INTERLEAVE_PERIODS
 from ..scene import Light
+from .boundary import SkinBoundary
 from .raytrace import (
     OFFSET_FLOAT_SCALE,
     OFFSET_INT_SCALE,
@@ -288,7 +289,7 @@ def ray_origins(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np.float
 
 def irradiance_texture(
     positions: NDArray[Any], normals: NDArray[Any], lights: list[Light], rays: RayScene,
-    samples: int = 16, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
+    samples: int = 16, boundary: SkinBoundary | None = None,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     interleave: NDArray[Any] | None = None, sequence: str = "stratified",
     coherent: bool = False, complement: bool = False, period: int = 2,
@@ -299,6 +300,10 @@ def irradiance_texture(
     per point for the ``period`` p: a p^2-th of them, see ``LightSampler``; the
     per-point visibility is then noisy until ``filter_interleaved`` has run; with
     ``complement`` too, the other classes' strata).
+
+    ``boundary``: what crossing the skin's surface does to the light (the Fresnel share
+    each sample loses, per channel the depth factor of its angle; :mod:`.boundary`);
+    None: the light enters whole.
 
     Ray origins are pushed off the surface along the normal by what their floating-point
     error needs (:func:`~.raytrace.offset_ray_origin`); rays whose cosine is <= 0 are
@@ -341,7 +346,8 @@ def irradiance_texture(
             continue
         samplers.append(LightSampler(light, origins, nrm, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes,
-                                     roughness, rho_s, point_buffers=point_buffers,
+                                     1.0 if boundary is None else boundary.eta,
+                                     point_buffers=point_buffers,
                                      sequence=sequence, complement=complement,
                                      period=period))
     n_rays = 0
@@ -357,11 +363,34 @@ def irradiance_texture(
             skipped.append(f"light {light.path}: adds nothing (shadowed everywhere)")
         if sampler.sets is not None:
             interleaved.add(light.path)
-        arrived.append((back(lit), sampler.colour))
         visibility[light.path] = back(light_visibility(lit, unshadowed))
+        if boundary is not None:  # per channel: the depth its angle enters to
+            depth = boundary.depth_factor(incidence_cos(light, pos, nrm))
+            lit = (lit if lit.ndim == 2 else lit[:, None]) * depth
+            unshadowed = (unshadowed if unshadowed.ndim == 2 else unshadowed[:, None]) * depth
+        arrived.append((back(lit), sampler.colour))
         unshadowed_by_light[light.path] = (back(unshadowed), sampler.colour)
     return IrradianceResult(arrived, visibility, unshadowed_by_light, skipped, n_rays,
                             time.perf_counter() - start, frozenset(interleaved), n)
+
+
+DOME_MEAN_COS = 2.0 / 3.0
+"""The mean cosine of a dome's light on a surface (cosine-weighted over the hemisphere)."""
+
+
+def incidence_cos(light: Light, points: NDArray[Any], normals: NDArray[Any]
+                  ) -> NDArray[np.float64]:
+    """The cosine at which ``light`` arrives at each point, for the depth factor: its
+    centre's direction (a distant, sphere or rect light), a dome's mean."""
+    n = np.asarray(normals, dtype=np.float64)
+    if light.kind == "dome":
+        return np.full(n.shape[0], DOME_MEAN_COS)
+    if light.kind == "distant":
+        d = np.broadcast_to(-np.asarray(light.axis, np.float64), n.shape)
+    else:
+        d = np.asarray(light.position, np.float64)[:3] - np.asarray(points, np.float64)
+        d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return np.clip(np.einsum("ij,ij->i", n, d), 0.0, 1.0)
 
 
 RAY_BLOCK_POINTS = 1 << 21
@@ -518,7 +547,7 @@ def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
 def refine_penumbrae(
     result: IrradianceResult, covered: NDArray[np.bool_], positions: NDArray[Any],
     normals: NDArray[Any], interleave: NDArray[Any], lights: list[Light], rays: RayScene,
-    samples: int, roughness: float = DEFAULT_ROUGHNESS, rho_s: float = DEFAULT_RHO_S,
+    samples: int, boundary: SkinBoundary | None = None,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     sequence: str = "stratified", texel: NDArray[np.intp] | None = None,
     coherent: bool = False, period: int = 2,
@@ -568,8 +597,8 @@ def refine_penumbrae(
         samplers.append(LightSampler(light, ray_origins(np.take(pos, at, axis=0), nrm_at),
                                      nrm_at, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes[at],
-                                     roughness, rho_s, sequence=sequence, complement=True,
-                                     period=period))
+                                     1.0 if boundary is None else boundary.eta,
+                                     sequence=sequence, complement=True, period=period))
     # each pass's weights average over its own strata, 1 / p^2 and the rest of them:
     # the texel's estimate from all of them weights the passes so (0.25 and 0.75 at 2)
     first = np.float32(1.0 / (period * period))
@@ -578,6 +607,9 @@ def refine_penumbrae(
         path, at = sampler.light.path, cast_at[sampler.light.path]
         n_rays += cast
         vis2 = light_visibility(lit, more_un)
+        if boundary is not None:  # as the first pass's weights carry it
+            more_un = (more_un if more_un.ndim == 2 else more_un[:, None]) * \
+                boundary.depth_factor(incidence_cos(sampler.light, pos[at], nrm[at]))
         # weights, not irradiance: the light's colour is in both passes' and cancels in
         # the visibility
         w1, colour = result.unshadowed[path]

@@ -2,7 +2,7 @@
 // Sample k of every point of a sphere light (KIND 1: uniform in the cone it subtends)
 // or an untextured dome (KIND 2: cosine-weighted about the normal), as
 // LightSampler.sample does it, with the fraction that enters the skin folded into the
-// weight: 1 - rho_dt(cos), linear in the table (specular_albedo). The cone and the
+// weight: the boundary's transmission T(cos), linear in the table (boundary.py). The cone and the
 // frame (Duff et al. 2017) are made here per point, not uploaded.
 // Eight points per work-item, their arithmetic in float8 (loads and stores lane by
 // lane): PoCL's LLVM finds vectorising its work-item loop "not beneficial" for this
@@ -80,7 +80,7 @@ __kernel void sample_entering(__global const float *origin, __global const float
     float8 t0, t1;
 #define TABLE(l) t0.s##l = table[j.s##l]; t1.s##l = table[j.s##l + 1];
     LANES(TABLE)
-    const float8 enters = 1.0f - (t0 + (x - convert_float8(j)) * (t1 - t0));
+    const float8 enters = t0 + (x - convert_float8(j)) * (t1 - t0);
 #if KIND == 1
     const float8 wi = (cos_n > 0.0f ? cos_n : 0.0f) * 6.283185307179586f * one_minus
                       / (float)COUNT * enters;

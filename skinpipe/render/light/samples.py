@@ -24,9 +24,9 @@ from ..device.memory import (
 )
 from ..device.programs import Kernel, build, jit_at_first_launch
 from ..device.sources import cl_source
-from ..options import DEFAULT_RHO_S, DEFAULT_ROUGHNESS, INTERLEAVE_PERIODS
+from ..options import INTERLEAVE_PERIODS
 from ..scene import Light
-from .specular import _rho_dt_table, specular_albedo
+from .boundary import transmission_lookup, transmission_table
 
 # --------------------------------------------------------------------------- sampling
 
@@ -317,13 +317,13 @@ class LightSampler:
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
                  dome_texture: NDArray[np.float32] | None = None,
-                 interleave: NDArray[Any] | None = None, roughness: float = DEFAULT_ROUGHNESS,
-                 rho_s: float = DEFAULT_RHO_S, device: bool = True,
+                 interleave: NDArray[Any] | None = None, eta: float = 1.0,
+                 device: bool = True,
                  point_buffers: dict[str, Any] | None = None,
                  sequence: str = "stratified", complement: bool = False,
                  period: int = 2) -> None:
         self.light = light
-        self.roughness, self.rho_s = float(roughness), float(rho_s)
+        self.eta = float(eta)
         self.origins = origins
         self.normals = normals
         self.sets: NDArray[np.int32] | None = None
@@ -389,7 +389,7 @@ class LightSampler:
                           normal=host_buffer(np.asarray(self.normals, np.float32)))
         if self.classes is not None and "classes" not in points:
             points["classes"] = host_buffer(self.classes)
-        table = _rho_dt_table(self.roughness, self.rho_s)
+        table = transmission_table(self.eta)
         u, v = self.grid[:, 0], self.grid[:, 1]
         strata_uv = np.stack([u, np.cos(2 * math.pi * v), np.sin(2 * math.pi * v), 0 * u], 1)
         interleaved = self.sets is not None
@@ -407,7 +407,8 @@ class LightSampler:
                         | None = None, span: tuple[int, int] | None = None
                         ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
         """:meth:`sample` with the weight times the fraction entering the skin,
-        1 - rho_dt(n . d), and the shadow ray's length 0 where the weight is
+        T(n . d) (:func:`~.boundary.transmission`), and the shadow ray's length 0 where the
+        weight is
         (:meth:`~.raytrace.RayScene.occluded` does not trace it): on the device for
         :data:`DEVICE_SAMPLED_KINDS` (a dome only untextured), else in numpy. Safe to
         call from several threads. ``rays_into``: (N, 3) and (N,) float32 arrays the
@@ -418,8 +419,7 @@ class LightSampler:
             if span is not None and span != (0, self.origins.shape[0]):
                 raise InputError("a span of points is sampled on the device only")
             d, dist, w = self.sample(k)
-            enters = 1 - specular_albedo(np.einsum("ij,ij->i", self.normals, d),
-                                         self.roughness, self.rho_s)
+            enters = transmission_lookup(np.einsum("ij,ij->i", self.normals, d), self.eta)
             w = w * (enters if w.ndim == 1 else enters[:, None])
             return d, np.where((w if w.ndim == 1 else w.max(axis=1)) > 0, dist,
                                np.float32(0)), w

@@ -13,6 +13,7 @@ import pytest
 from skinpipe.errors import InputError
 from skinpipe.render.cache import write_json_entry
 from skinpipe.render.light import irradiance
+from skinpipe.render.light.boundary import transmission_lookup
 from skinpipe.render.light.irradiance import (
     IrradianceResult,
     filter_interleaved,
@@ -37,7 +38,7 @@ from skinpipe.render.light.samples import (
     scrambled_sobol,
     sobol_points,
 )
-from skinpipe.render.light.specular import beckmann_ndf, fresnel_schlick, specular_albedo
+from skinpipe.render.light.specular import beckmann_ndf, fresnel_schlick
 from skinpipe.render.options import INTERLEAVE_PERIODS
 from skinpipe.render.scene import Light
 from skinpipe.render.surface.texture_maps import texels_in_blocks
@@ -64,71 +65,6 @@ def test_beckmann_is_normalised_over_the_hemisphere() -> None:
         assert abs(total - 1.0) < 2e-3, m
 
 
-def test_specular_albedo_is_small_and_rises_at_grazing() -> None:
-    rho = specular_albedo(np.array([1.0, 0.5, 0.1]))
-    assert 0.0 < rho[0] < rho[1] < rho[2] < 0.25  # never more than rho_s
-    assert specular_albedo(1.0, rho_s=0.0) == 0.0
-
-
-def test_rho_dt_quadrature_against_scipys_adaptive_integral() -> None:
-    """The specular lobe's directional albedo table (a 256 x 128 midpoint rule over half
-    the azimuths) against scipy's adaptive dblquad of the same BRDF x cos over the whole
-    hemisphere, at two of the table's cosines: within 5e-5 relative (measured 7e-6 at
-    cos 0.70 and 1.0 for roughness 0.35, 3e-5 at cos 0.30)."""
-    from scipy import integrate
-
-    from skinpipe.render.light.specular import rho_dt_quadrature, torrance_sparrow
-
-    table = rho_dt_quadrature(0.35, 0.25)
-    for i in (44, 63):
-        c = i / (table.size - 1)
-        light = np.array([math.sqrt(max(0.0, 1 - c * c)), 0.0, c])
-
-        def integrand(phi: float, theta: float, c: float = c,
-                      light: np.ndarray = light) -> float:
-            out = np.array([math.sin(theta) * math.cos(phi),
-                            math.sin(theta) * math.sin(phi), math.cos(theta)])
-            h = (out + light) / np.linalg.norm(out + light)
-            brdf = float(torrance_sparrow(c, out[2], h[2], out @ h, 0.35, 0.25))
-            return brdf * out[2] * math.sin(theta)
-
-        want, _ = integrate.dblquad(integrand, 0, math.pi / 2, 0, 2 * math.pi,
-                                    epsabs=1e-7, epsrel=1e-5)
-        assert table[i] == pytest.approx(want, rel=5e-5), c
-
-
-def test_kept_rho_dt_table_is_the_quadrature(tmp_path: Path,
-                                             monkeypatch: pytest.MonkeyPatch) -> None:
-    """The specular albedo's table, made and then read back from skinpipe's cache
-    folder, is the quadrature's own, bit for bit; a damaged kept file (not JSON, another
-    size, a negative value) is made again; another roughness is another file."""
-    from skinpipe.render.light.specular import _rho_dt_table, rho_dt_quadrature
-
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    want = rho_dt_quadrature(0.3, 0.2)
-    assert 0 < want[-1] < want[1] < 0.2  # a rough lobe reflects more at grazing angles
-    for _ in range(2):  # made, then read back
-        _rho_dt_table.cache_clear()
-        got = _rho_dt_table(0.3, 0.2)
-        np.testing.assert_array_equal(got, want)
-        assert not got.flags.writeable
-    folder = tmp_path / "cache" / "skinpipe" / "specular-albedo"
-    (path,) = folder.glob("rho-dt-*.json")
-    entry = json.loads(path.read_text())
-    doc = entry["payload"]
-    for damage in ("{", {**doc, "table": doc["table"][:-1]}, {**doc, "table": [-1.0] * 64}):
-        if isinstance(damage, str):
-            path.write_text(damage)
-        else:  # a whole entry whose table the reader refuses
-            write_json_entry(path, entry["key"], damage)
-        _rho_dt_table.cache_clear()
-        np.testing.assert_array_equal(_rho_dt_table(0.3, 0.2), want)
-    _rho_dt_table.cache_clear()
-    np.testing.assert_array_equal(_rho_dt_table(0.4, 0.2), rho_dt_quadrature(0.4, 0.2))
-    assert len(list(folder.glob("rho-dt-*.json"))) == 2
-    _rho_dt_table.cache_clear()
-
-
 def _floor() -> RayScene:
     pts = np.array([[-1e3, -1e3, -1.0], [1e3, -1e3, -1.0], [0.0, 1e3, -1.0]])
     return RayScene([(pts, np.array([[0, 1, 2]]))])
@@ -142,7 +78,7 @@ def test_sphere_light_irradiance_matches_the_closed_form(sequence: str) -> None:
     light = Light("/S", "sphere", np.ones(3), matrix, radius=2.0)
     pos = np.zeros((1, 3))
     nrm = np.array([[0.0, 0.0, 1.0]])
-    res = irradiance_texture(pos, nrm, [light], _floor(), samples=256, rho_s=0.0,
+    res = irradiance_texture(pos, nrm, [light], _floor(), samples=256,
                              sequence=sequence)
     np.testing.assert_allclose(res.entering[0], math.pi * 0.04, rtol=1e-2)
 
@@ -150,7 +86,7 @@ def test_sphere_light_irradiance_matches_the_closed_form(sequence: str) -> None:
 def test_dome_light_white_furnace() -> None:
     light = Light("/D", "dome", np.full(3, 0.5), np.eye(4))
     res = irradiance_texture(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), [light], _floor(),
-                             samples=64, rho_s=0.0)
+                             samples=64)
     np.testing.assert_allclose(res.entering[0], 0.5 * math.pi, rtol=1e-5)
 
 
@@ -488,13 +424,13 @@ def test_a_light_shadowed_everywhere_is_refined_to_no_light() -> None:
     rays = RayScene([(floor, quads), (floor * [20.0, 20.0, 0.0] + [0.0, 0.0, 10.0], quads)])
     _, key, pos, nrm, classes = _plate_over_floor()
     n = PENUMBRA_TEXELS
-    first = irradiance_texture(pos, nrm, [key], rays, samples=16, rho_s=0.0,
+    first = irradiance_texture(pos, nrm, [key], rays, samples=16,
                                interleave=classes)
     assert any("adds nothing (shadowed everywhere)" in s for s in first.skipped)
     np.testing.assert_array_equal(first.visibility["/Key"], 0.0)
     assert first.unshadowed_irradiance("/Key").min() > 0
     got, refined = refine_penumbrae(first, np.ones((n, n), bool), pos, nrm, classes, [key],
-                                    rays, 16, rho_s=0.0)
+                                    rays, 16)
     assert refined["/Key"].size == 0
     np.testing.assert_array_equal(got.visibility["/Key"], 0.0)
     np.testing.assert_array_equal(got.entering, 0.0)
@@ -532,9 +468,9 @@ def test_interleaved_shadow_rays_match_full_sampling_in_a_penumbra() -> None:
     16 samples everywhere; texels away from the penumbra are exact."""
     rays, light, pos, nrm, classes = _plate_over_floor()
     n = PENUMBRA_TEXELS
-    ref = irradiance_texture(pos, nrm, [light], rays, samples=1024, rho_s=0.0)
-    full = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0)
-    inter = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0,
+    ref = irradiance_texture(pos, nrm, [light], rays, samples=1024)
+    full = irradiance_texture(pos, nrm, [light], rays, samples=16)
+    inter = irradiance_texture(pos, nrm, [light], rays, samples=16,
                                interleave=classes)
     assert inter.rays * 4 == full.rays
     traced = (inter.unshadowed_irradiance("/Key").sum(axis=1) > 0).reshape(1, n, n)
@@ -567,8 +503,8 @@ def test_period_four_matches_full_sampling_per_pixel_of_four_by_four_texels() ->
     rays, light, pos, nrm, classes = _plate_over_floor(period, n, 0.25)
     # the reference on four rows of every sixteen: whole pixels of 4 x 4 texels
     rows = np.arange(n * n).reshape(n, n)[(np.arange(n) % 16) < 4].ravel()
-    want = irradiance_texture(pos[rows], nrm[rows], [light], rays, samples=1024,
-                              rho_s=0.0).entering[:, 0]
+    want = irradiance_texture(pos[rows], nrm[rows], [light], rays,
+                              samples=1024).entering[:, 0]
 
     def per_pixel_rms(entering: np.ndarray) -> float:
         diff = (entering[rows, 0] - want).reshape(-1, 4, n // 4, 4).mean(axis=(1, 3))
@@ -576,8 +512,8 @@ def test_period_four_matches_full_sampling_per_pixel_of_four_by_four_texels() ->
 
     rms_full, rms_inter = [], []
     for seed in range(4):
-        full = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0, seed=seed)
-        inter = irradiance_texture(pos, nrm, [light], rays, samples=16, rho_s=0.0, seed=seed,
+        full = irradiance_texture(pos, nrm, [light], rays, samples=16, seed=seed)
+        inter = irradiance_texture(pos, nrm, [light], rays, samples=16, seed=seed,
                                    interleave=classes, period=period)
         assert inter.rays * 16 == full.rays
         traced = (inter.unshadowed_irradiance("/Key").sum(axis=1) > 0).reshape(1, n, n)
@@ -604,13 +540,13 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays(sequence: str,
     rays, key, pos, nrm, classes = _plate_over_floor(period)
     lights = [key, Light("/Fill", "dome", np.full(3, 0.2), np.eye(4))]
     n = PENUMBRA_TEXELS
-    full = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0,
+    full = irradiance_texture(pos, nrm, lights, rays, samples=16,
                                  sequence=sequence)
-    inter = irradiance_texture(pos, nrm, lights, rays, samples=16, rho_s=0.0,
+    inter = irradiance_texture(pos, nrm, lights, rays, samples=16,
                                interleave=classes, sequence=sequence, period=period)
     covered = np.ones((n, n), bool)
     got, refined = refine_penumbrae(inter, covered, pos, nrm, classes, lights, rays, 16,
-                                    rho_s=0.0, sequence=sequence, period=period)
+                                    sequence=sequence, period=period)
     assert got.interleaved == frozenset()
     for path in ("/Key", "/Fill"):
         np.testing.assert_allclose(got.visibility[path], full.visibility[path], atol=2e-6)
@@ -621,12 +557,12 @@ def test_adaptive_shadow_rays_equal_full_sampling_with_fewer_rays(sequence: str,
     # every floor texel sees the plate somewhere in the dome: all of them are refined;
     # the key's penumbra is a band
     assert refined["/Fill"].size == n * n and 0 < refined["/Key"].size < 0.4 * n * n
-    key_only = irradiance_texture(pos, nrm, lights[:1], rays, samples=16, rho_s=0.0,
+    key_only = irradiance_texture(pos, nrm, lights[:1], rays, samples=16,
                                  sequence=sequence)
-    key_inter = irradiance_texture(pos, nrm, lights[:1], rays, samples=16, rho_s=0.0,
+    key_inter = irradiance_texture(pos, nrm, lights[:1], rays, samples=16,
                                    interleave=classes, sequence=sequence, period=period)
     key_got, _ = refine_penumbrae(key_inter, covered, pos, nrm, classes, lights[:1], rays, 16,
-                                  rho_s=0.0, sequence=sequence, period=period)
+                                  sequence=sequence, period=period)
     assert key_got.rays < 0.5 * key_only.rays
     # outside the refined texels the neighbourhood agreed: visible or blocked
     key = got.visibility["/Key"].reshape(n, n)
@@ -701,11 +637,11 @@ def test_adaptive_visibility_against_an_independent_quadrature(sequence: str,
     texel = texels_in_blocks(covered, block=8) if coherent else np.arange(n * n)
     row = np.arange(n * n).reshape(n, n)[n // 2]
     want = np.array([_visible_fraction(pos[i]) for i in row])
-    first = irradiance_texture(pos[texel], nrm[texel], [key], rays, samples=16, rho_s=0.0,
+    first = irradiance_texture(pos[texel], nrm[texel], [key], rays, samples=16,
                                interleave=classes[texel], sequence=sequence,
                                coherent=coherent, period=period)
     got, _ = refine_penumbrae(first, covered, pos[texel], nrm[texel], classes[texel], [key],
-                              rays, 16, rho_s=0.0, sequence=sequence, texel=texel,
+                              rays, 16, sequence=sequence, texel=texel,
                               coherent=coherent, period=period)
     by_texel = np.empty(n * n, np.float32)
     by_texel[texel] = got.visibility["/Key"]
@@ -723,7 +659,7 @@ def test_adaptive_visibility_against_an_independent_quadrature(sequence: str,
 def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | str,
                                                 period: int) -> None:
     # the OpenCL sampler (sphere lights, untextured domes) computes what LightSampler.sample
-    # and specular_albedo compute in numpy, from the same strata
+    # and the boundary's transmission compute in numpy, from the same strata
     rng = np.random.default_rng(5)
     n = 5003  # the kernel's last work-item holds three points of its eight lanes
     pts = rng.normal(size=(n, 3)).astype(np.float32)
@@ -735,7 +671,7 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
         Light("/L", kind, np.full(3, 0.5), np.eye(4))
     classes = rng.integers(0, period**2, n) if interleaved else None
     sampler, numpy = (LightSampler(light, pts, nrm, 16, np.random.default_rng(1), None,
-                                   classes, 0.3, 0.3, device=dev,
+                                   classes, 1.4, device=dev,
                                    complement=interleaved == "complement", period=period)
                       for dev in (True, False))
     assert sampler.device is not None and numpy.device is None
@@ -744,8 +680,8 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
     for k in range(sampler.count):
         d, dist, w = sampler.entering_sample(k)
         d_ref, dist_ref, w_ref = numpy.sample(k)
-        enters = 1 - specular_albedo(np.einsum("ij,ij->i", nrm, d_ref.astype(np.float64)),
-                                     0.3, 0.3)
+        enters = transmission_lookup(np.einsum("ij,ij->i", nrm, d_ref.astype(np.float64)),
+                                     1.4)
         np.testing.assert_allclose(d, d_ref, atol=2e-6)
         np.testing.assert_allclose(w, w_ref * enters, rtol=2e-5, atol=1e-7)
         # the ray ends where it starts (length 0) where the sample carries nothing: the
