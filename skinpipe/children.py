@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import sys
 
+from .interrupts import raise_if_child_interrupted
+
 
 def python_command(*args: str) -> list[str]:
     """This interpreter running ``args`` (a script, or ``-m`` and a module) with ``-P``:
@@ -19,7 +21,9 @@ def child_failure(tool: str, returncode: int, stderr: str | None,
                   marker: str | None = None) -> str:
     """Why a child failed, in one line: its own refusal (the last stderr line starting
     with ``marker``, for a child that has refusals of its own), else the signal that
-    killed it, else its exit code and the last line it wrote."""
+    killed it, else its exit code and the last line it wrote. A child ended by SIGINT
+    raises KeyboardInterrupt: Ctrl-C, not a crash."""
+    raise_if_child_interrupted(returncode)
     lines = (stderr or "").strip().splitlines()
     refused = [line[len(marker):].strip() for line in lines
                if marker and line.startswith(marker)]

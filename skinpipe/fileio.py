@@ -21,6 +21,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, fields, is_dataclass, replace
@@ -234,6 +235,37 @@ class StagedOutput:
         return relocate_paths(doc, str(self.path), str(self.target))
 
 
+def _stage_prefix(target: Path) -> str:
+    """A stage's name says which host and process made it, so that a later run can tell
+    one a killed process left (and only such one) from one still being written."""
+    host = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
+    return f".{target.name}.tmp-{host}-{os.getpid()}-"
+
+
+def remove_abandoned_stages(target: Path) -> list[Path]:
+    """Remove the stages beside ``target`` that a process of this host left when it was
+    killed (kill -9, power loss): its name carries this host and a process id no longer
+    running. Stages of other hosts (a farm's shared folder) and of live processes stay."""
+    pattern = re.compile(re.escape(f".{target.name}.tmp-") + r"(?P<host>[A-Za-z0-9_-]+)-"
+                         r"(?P<pid>\d+)-[A-Za-z0-9_]+$")
+    host = _stage_prefix(target).split(".tmp-", 1)[1].rsplit("-", 2)[0]
+    removed = []
+    for path in target.parent.iterdir() if target.parent.is_dir() else []:
+        match = pattern.match(path.name)
+        if match is None or match["host"] != host or not path.is_dir() or path.is_symlink():
+            continue
+        try:
+            os.kill(int(match["pid"]), 0)
+            continue  # alive (or another user's): not ours to touch
+        except ProcessLookupError:
+            pass
+        except OSError:
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        removed.append(path)
+    return removed
+
+
 @contextlib.contextmanager
 def staged_output_directory(target: str | Path, verb: str,
                             reads: list[Path] | tuple[Path, ...] = (), force: bool = False,
@@ -255,7 +287,8 @@ def staged_output_directory(target: str | Path, verb: str,
         check_output_file(target / name, reads, force)
     created = [p for p in (target.absolute(), *target.absolute().parents) if not p.exists()]
     target.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent)).absolute()
+    remove_abandoned_stages(target)
+    stage = Path(tempfile.mkdtemp(prefix=_stage_prefix(target), dir=target.parent)).absolute()
     ok = False
     try:
         staged = StagedOutput(stage, target)

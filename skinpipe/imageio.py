@@ -203,7 +203,8 @@ def ocio_config(source: str = "ocio://default") -> Any:
     """An OCIO config from a file path or a built-in URI (``ocio://default``)."""
     try:
         return OCIO.Config.CreateFromFile(source)
-    except OCIO.Exception as exc:
+    except (OCIO.Exception, OCIO.ExceptionMissingFile) as exc:
+        # ExceptionMissingFile is not an OCIO.Exception in the Python bindings
         raise InputError(f"cannot load OCIO config {source!r}: {exc}") from exc
 
 

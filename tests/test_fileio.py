@@ -26,3 +26,30 @@ def test_relocate_paths_only_under_the_old_root() -> None:
     assert relocate_paths(doc, old, new) == {
         "csv": f"{new}{os.sep}f.csv", "n": 3, "list": [new, f"{old}x{os.sep}g"],
         "other": f"{os.sep}elsewhere"}
+
+
+def test_a_killed_runs_stage_goes_at_the_next_run_and_nothing_else(tmp_path: Path) -> None:
+    """kill -9 leaves ``.out.tmp-HOST-PID-*``: the next run into ``out`` removes it when
+    that process is gone, and leaves other hosts' and live processes' stages alone."""
+    import os
+    import subprocess
+    import sys
+
+    from skinpipe.fileio import _stage_prefix, staged_output_directory
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    target = tmp_path / "out"
+    prefix = _stage_prefix(target)
+    ours_dead = tmp_path / (prefix.replace(f"-{os.getpid()}-", f"-{dead.pid}-") + "abc123")
+    ours_live = tmp_path / (prefix + "live99")
+    other_host = tmp_path / f".out.tmp-elsewhere-{dead.pid}-xyz"
+    users = tmp_path / ".out.tmp-notes"
+    for folder in (ours_dead, ours_live, other_host, users):
+        folder.mkdir()
+        (folder / "f.txt").write_text("x")
+    with staged_output_directory(target, "test") as out:
+        (out.path / "a.txt").write_text("a")
+    assert not ours_dead.exists()
+    assert ours_live.exists() and other_host.exists() and users.exists()
+    assert (target / "a.txt").read_text() == "a"

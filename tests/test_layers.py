@@ -10,7 +10,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "skinpipe"
 RANK = {"cli": 5, "workflow": 4, "capture": 3, "usd": 3, "render": 3, "profile": 2,
-        "errors": 1, "fileio": 1, "imageio": 1, "package_data": 1,
+        "errors": 1, "fileio": 1, "imageio": 1, "package_data": 1, "interrupts": 1,
         "native": 1}
 ALSO_ALLOWED = {("render", "usd")}
 """Sideways imports allowed: the render reads USD stages (scene delegate, guarded opens,
@@ -102,6 +102,7 @@ RENDER_RANK = {
     "diffusion": 4, "light": 3, "surface": 2,  # the algorithms
     "device": 1,  # OpenCL devices, programs, memory
     "scene": 0, "options": 0, "cache": 0, "bands": 0, "sorting": 0,  # plain data, caches
+    "budget": 0,  # what a render may ask of the machine
 }
 """Inside ``render/``: the algorithm above, the device and the caches below. A module
 imports from its own rank or lower ranks only, never upwards; ``render/__init__`` is

@@ -119,12 +119,25 @@ class RegionResult:
     tail: TailExtrapolation | None = None
 
 
+SHORT_PROFILE_MM = 2.0
+"""A profile reaching less than this (the entry point near the image's border) is
+noted: skin's red profile carries a tenth of its light past 2 mm."""
+MAX_EXPOSURE_S = 3600.0
+"""The longest exposure a bracket may claim: an hour, well past any skin capture; larger
+values (1e308) overflowed the merge's radiance."""
+
+
 def read_capture_set(root: str | Path) -> CaptureSet:
     """Parse and validate CAPTURES/capture.json; every problem names the file and key."""
     root = Path(root)
     manifest = root / "capture.json"
+    if not root.exists():
+        raise InputError("no such capture folder", root)
+    if not root.is_dir():
+        raise InputError("not a folder: CAPTURES is a folder holding capture.json and the "
+                         "images it names", root)
     if not manifest.is_file():
-        raise InputError("no capture.json in the capture directory", root)
+        raise InputError("no capture.json in the capture folder", root)
     try:
         doc = json.loads(manifest.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -157,10 +170,10 @@ def read_capture_set(root: str | Path) -> CaptureSet:
                 raise InputError(f"region {name!r}, image {i}: needs a 'file' string", manifest)
             exp = img.get("exposure_s")
             if exp is not None and (isinstance(exp, bool) or not isinstance(exp, int | float)
-                                    or not exp > 0 or not math.isfinite(exp)):
+                                    or not 0 < exp <= MAX_EXPOSURE_S):
                 raise InputError(
-                    f"region {name!r}, {img['file']}: exposure_s must be > 0 s, got {exp!r}",
-                    manifest)
+                    f"region {name!r}, {img['file']}: exposure_s must be > 0 and at most "
+                    f"{MAX_EXPOSURE_S:g} s, got {exp!r}", manifest)
             brackets.append(Bracket(root / img["file"], None if exp is None else float(exp)))
         regions[str(name)] = brackets
     sensor = _read_sensor(doc.get("sensor"), manifest)
@@ -247,6 +260,9 @@ def _load_region(captures: CaptureSet, region: str) -> tuple[list[LoadedImage], 
         if t is None:
             raise InputError("no exposure time: neither capture.json nor the file's EXIF "
                              "ExposureTime gives one", b.path)
+        if not 0 < t <= MAX_EXPOSURE_S:
+            raise InputError(f"EXIF ExposureTime {float(t):g} s is not in "
+                             f"(0, {MAX_EXPOSURE_S:g}] s", b.path)
         exposures.append(t)
     shapes = {img.pixels.shape for img in images}
     if len(shapes) > 1:
@@ -367,6 +383,13 @@ def ingest_region(
                                  options.ring_width_px, options.max_radius_mm, options.mode)
     profile = MeasuredProfile(profile.radius_mm, profile.values, profile.stddev, region,
                               captures.root / "capture.json")
+    reach_mm = float(profile.radius_mm.max())
+    if reach_mm < SHORT_PROFILE_MM and (options.max_radius_mm is None
+                                        or options.max_radius_mm > reach_mm):
+        note(f"the profile reaches {reach_mm:.2g} mm only ({profile.radius_mm.size} samples; "
+             f"the entry point at ({centre[0]:.0f}, {centre[1]:.0f}) px is near the image's "
+             "border): skin scatters red light several mm, so most of it is extrapolated; "
+             "centre the spot")
     to_acescg = colorspace_matrix(merged.space, ACESCG)
     tail = None
     if options.absolute:

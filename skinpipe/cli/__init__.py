@@ -17,7 +17,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from .. import __version__
+from .. import __version__, interrupts
 from ..errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, InputError, SkinpipeError
 from . import (
     author,
@@ -82,10 +82,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     handler: Handler = args.handler
     _one_line_warnings(args.verb)
+    previous = interrupts.install()
     try:
         return _handle(handler, args)
     finally:
+        interrupts.restore(previous)
         _quiesce()
+
+
+def console_main() -> int:
+    """The ``skinpipe`` command: :func:`main`, then SIGINT ignored while the process
+    ends, since the verb is done (whole or not) and a Ctrl-C now would only turn its
+    exit code into a signal."""
+    code = main()
+    interrupts.ignore()
+    return code
 
 
 def _quiesce() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import sys
@@ -84,8 +85,29 @@ def local_cluster(workers: int, dashboard: str | None) -> Any:
     if dashboard and importlib.util.find_spec("bokeh") is None:
         raise InputError("the Dask dashboard needs bokeh, which is not installed: "
                          "pip install 'skinpipe[dashboard]' (or leave out --dashboard)")
+    # Workers' own log lines below CRITICAL are the shutdown's (heartbeats to a closed
+    # scheduler after Ctrl-C); a task's failure is reported by the batch itself.
     return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                        dashboard_address=dashboard or None)
+                        dashboard_address=dashboard or None, silence_logs=logging.CRITICAL)
+
+
+def _stop_local_workers() -> None:
+    """Kill this process's children (the local cluster's nannies and workers) at once:
+    after Ctrl-C their tasks are abandoned, and closing them politely waits for the
+    task running in each (seconds)."""
+    import psutil
+
+    def is_worker(child: Any) -> bool:
+        # multiprocessing's resource tracker cleans up after the others: leave it be
+        with contextlib.suppress(psutil.Error):
+            return "resource_tracker" not in " ".join(child.cmdline())
+        return False
+
+    children = [c for c in psutil.Process().children(recursive=True) if is_worker(c)]
+    for child in children:
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+    psutil.wait_procs(children, timeout=5)
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
@@ -105,6 +127,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     # the client's folder, whatever folder the workers run in (they get absolute paths)
     args.output = Path(os.path.abspath(args.output))
     check_output_file(args.output / "batch.json", [args.batch], args.force)
+    root_existed = args.output.exists()
     if args.scheduler is None and not 1 <= args.local_workers <= 256:
         raise InputError(f"--local-workers must be 1-256, got {args.local_workers}")
     cluster = None
@@ -128,14 +151,22 @@ def cmd_batch(args: argparse.Namespace) -> int:
         result = run_batch(client, subjects, args.output, args.stages, progress=_bar)
     except KeyboardInterrupt:
         interrupted = True
-        logging.getLogger("distributed").setLevel(logging.ERROR)  # shutdown chatter
+        # shutdown chatter: the killed workers' closed streams, in Dask's and asyncio's logs
+        for name in ("distributed", "asyncio", "tornado"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
         raise
     finally:
+        if interrupted and cluster is not None:
+            _stop_local_workers()
         client.close()
         if cluster is not None:
-            cluster.close()
+            with contextlib.suppress(Exception) if interrupted else contextlib.nullcontext():
+                cluster.close()
         if interrupted:  # the stopped workers' task temporaries, once they are gone
             remove_temporaries(args.output)
+            if not root_existed:
+                with contextlib.suppress(OSError):
+                    args.output.rmdir()
     doc = batch_document(result, args.output, args.stages)
     atomic_write_json(args.output / "batch.json", doc)
     record_outputs(args.output, ["batch.json"], "batch")

@@ -39,7 +39,10 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def _eprint(*args: object) -> None:
-    print(*args, file=sys.stderr, flush=True)
+    # one write, line and newline together: a Ctrl-C between print's two writes left
+    # the "interrupted" line glued to the last progress line
+    sys.stderr.write(" ".join(str(a) for a in args) + "\n")
+    sys.stderr.flush()
 
 
 class TaskBar:
@@ -218,9 +221,12 @@ def add_device_option(p: argparse.ArgumentParser) -> None:
 
 
 def render_options(args: argparse.Namespace) -> Any:
+    """The render options asked for, refused before any work if invalid or too large for
+    this machine's memory."""
+    from ..render.budget import check_render_fits
     from ..render.options import RenderOptions
 
-    return RenderOptions(
+    options = RenderOptions(
         resolution=args.resolution, texture_size=args.texture_size, aovs=args.aovs,
         light_samples=args.light_samples, shadow_sampling=args.shadow_sampling,
         interleave_period=args.interleave_period, light_sequence=args.light_sequence,
@@ -230,6 +236,8 @@ def render_options(args: argparse.Namespace) -> Any:
         camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,
         texture_outputs=args.texture_outputs,
         half_float=args.half_float, layout_cache=_layout_cache(args.layout_cache))
+    check_render_fits(options.texture_size, options.resolution)
+    return options
 
 
 def _period(periods: tuple[int, ...]) -> Any:
@@ -261,4 +269,10 @@ def _layout_cache(value: str | None) -> str | None:
 
 
 def ocio_source(args: argparse.Namespace) -> str:
-    return args.ocio or os.environ.get("OCIO") or "ocio://default"
+    """The OCIO config asked for (``--ocio``, ``$OCIO``, else OCIO's default), loaded
+    once here so that a bad one is refused before any work."""
+    from ..imageio import ocio_config
+
+    source = args.ocio or os.environ.get("OCIO") or "ocio://default"
+    ocio_config(source)
+    return source

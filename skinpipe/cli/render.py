@@ -72,10 +72,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         ["render.json"]
     reads = usd_inputs(args.scene)
     options = render_options(args)
+    ocio = ocio_source(args)
     with TaskBar(TASK_SHARES, len(frames)) as bar, \
             staged_output_directory(args.output, "render", reads, args.force, expect) as out:
-        doc = render_files(args.scene, out.path, options, args.frames, ocio_source(args),
-                           name, progress=bar)
+        doc = render_files(args.scene, out.path, options, args.frames, ocio, name,
+                           progress=bar)
     doc = out.final(doc)
     _print_render(doc)
     print(f"wrote {args.output / 'render.json'} ({doc['total_seconds']:.1f} s)")

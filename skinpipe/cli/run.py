@@ -77,13 +77,14 @@ def run_staged(args: argparse.Namespace, verb: str, captures: Path, mesh: Path,
     from ..workflow.chain import chain_inputs, run_chain
 
     options = render_options(args)
+    ocio = ocio_source(args)
     checks_start = time.perf_counter()
     reads, loaded = chain_inputs(captures, mesh, landmarks, args.k)
     checks_s = time.perf_counter() - checks_start
     with TaskBar(TASK_SHARES) as bar, staged_output_directory(
             args.output, verb, reads, args.force, ["report.json", "scene.usda"]) as out:
         result = run_chain(captures, mesh, landmarks, out.path, args.k, prepare, paint,
-                           options, ocio_source(args), truth=truth,
+                           options, ocio, truth=truth,
                            comparisons=verb == "demo", loaded_mesh=loaded,
                            progress=lambda m: bar(m.replace(str(out.path), str(args.output))))
         result.report["stages"] = {"check_inputs": {"seconds": checks_s},

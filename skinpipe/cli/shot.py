@@ -36,10 +36,10 @@ def cmd_shot(args: argparse.Namespace) -> int:
     from ..usd.io import usd_inputs
     from ..usd.shot import ShotOptions, author_shot
 
+    options = ShotOptions(key_intensity=args.key_intensity,
+                          fill_intensity=args.fill_intensity, turntable_frames=args.turntable)
     check_output_file(args.output, usd_inputs(args.asset), args.force)
-    out = author_shot(args.asset, args.output, ShotOptions(
-        key_intensity=args.key_intensity, fill_intensity=args.fill_intensity,
-        turntable_frames=args.turntable))
+    out = author_shot(args.asset, args.output, options)
     record_outputs(args.output.parent, [args.output.name], "shot")
     print(f"wrote {out}")
     return EXIT_OK

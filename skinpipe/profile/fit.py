@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..errors import FitError, InputError
+from ..interrupts import raise_if_interrupted
 from .edge import edge_report, ring_edges_mm
 from .models import fit_error_eq2c, ring_areas_mm2, ring_widths_mm
 from .types import CHANNELS, FitResult, FloatArray, MeasuredProfile
@@ -96,6 +97,22 @@ class FitOptions:
     energy_weight: float = 10.0
     max_plausible_radius_mm: float = 100.0
     merge_log_variance: float = 0.02
+
+    def __post_init__(self) -> None:
+        # A GA of fewer than 4 or no generations seeds IPOPT at random; it ran without a
+        # word before, and a user who asks for it has mistyped.
+        if not 1 <= self.generations <= 10_000:
+            raise InputError(f"generations must be 1-10000, got {self.generations}")
+        if not 4 <= self.population <= 100_000:
+            raise InputError(f"population must be 4-100000, got {self.population}")
+        if not (math.isfinite(self.energy_weight) and self.energy_weight >= 0):
+            raise InputError(f"energy_weight must be finite and >= 0, got {self.energy_weight}")
+        if not (math.isfinite(self.min_radius_mm) and self.min_radius_mm >= 0):
+            raise InputError(f"min_radius_mm must be finite and >= 0, got {self.min_radius_mm}")
+        if self.max_radius_mm is not None and not (
+                math.isfinite(self.max_radius_mm) and self.max_radius_mm > self.min_radius_mm):
+            raise InputError(f"max_radius_mm must be finite and > min_radius_mm "
+                             f"({self.min_radius_mm:g}), got {self.max_radius_mm}")
 
 
 # --------------------------------------------------------------------------- data prep
@@ -179,8 +196,8 @@ def prepare_profile(
     if not finite.all():
         bad = np.flatnonzero(~finite)
         notes.append(
-            f"dropped {bad.size} non-finite sample(s), first at row {int(bad[0])} "
-            f"(radius {r[bad[0]]!r} mm)"
+            f"dropped {bad.size} non-finite sample(s), the first sample {int(bad[0]) + 1} "
+            f"(radius {float(r[bad[0]]):g} mm)"
         )
         r, p = r[finite], p[finite]
         s = None if s is None else s[finite]
@@ -812,6 +829,8 @@ def _refine_ipopt(
         x = np.asarray(sol["x"]).reshape(-1)
     except RuntimeError:
         x = None  # error_on_fail: the status below says why
+    # casadi's callbacks catch a KeyboardInterrupt as IPOPT's NonIpopt_Exception_Thrown
+    raise_if_interrupted()
     stats = solver.stats()
     status = str(stats.get("return_status", "unknown"))
     iterations = int(stats.get("iter_count", 0))

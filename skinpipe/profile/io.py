@@ -46,8 +46,11 @@ def read_profile_csv(path: str | Path, name: str | None = None) -> MeasuredProfi
                          "rows is not a radial profile (resample it)", path)
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read as UTF-8 text: {exc}", path) from exc
+    except UnicodeDecodeError:
+        raise InputError("not a CSV text file (binary or not UTF-8): a profile is text "
+                         f"with a header {','.join(PROFILE_COLUMNS)}", path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror or exc}", path) from exc
     lines = text.splitlines()
     first = next((i for i, line in enumerate(lines) if line.strip(", \t")), None)
     if first is None:
@@ -67,6 +70,11 @@ def read_profile_csv(path: str | Path, name: str | None = None) -> MeasuredProfi
                          "radial profile (resample it)", path)
     if not body:
         raise InputError("header only: no samples", path)
+    ragged = next(((n, line) for n, line in body
+                   if line.count(",") > len(header) - 1), None)
+    if ragged is not None:
+        raise InputError(f"line {ragged[0]}: {ragged[1].count(',') + 1} cells, more than "
+                         f"the header's {len(header)}", path)
     has_std = all(c in header for c in STDDEV_COLUMNS)
     wanted = PROFILE_COLUMNS + (STDDEV_COLUMNS if has_std else ())
     index = [header.index(c) for c in wanted]

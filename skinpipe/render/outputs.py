@@ -28,6 +28,7 @@ from ..imageio import (
 )
 from ..usd.io import open_stage_guarded
 from .bands import BAND_THREADS, host_threads, in_bands
+from .budget import check_render_fits
 from .device.choice import device_choice, set_device
 from .device.programs import LEDGER, KernelLedger
 from .diffusion.blur_switch import direct_limits
@@ -171,6 +172,7 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
     start = time.perf_counter()
     scene_path = Path(scene_path)
     check_colorspace("lin_ap1_scene", ocio)
+    check_render_fits(options.texture_size, options.resolution)
     name = name or scene_path.stem
     own = renderer is None
     if renderer is None:

@@ -33,6 +33,7 @@ from ..usd.schema import (
     REGION_WEIGHTS_PRIMVAR,
     REGIONS_API,
 )
+from ..usd.validate import profile_problems
 
 CATEGORIES = ("geometry", "lights", "camera", "material")
 LIGHT_TYPES = {"DistantLight": "distant", "SphereLight": "sphere", "RectLight": "rect",
@@ -291,13 +292,42 @@ def _read_fits(prim: Any, names: list[str]) -> tuple[FitResult, ...]:
         if str(t) not in by_path:
             raise InputError(f"{prim.GetPath()}: {PROFILES_REL} targets {t}, which is not a "
                              "SkinDiffusionProfile")
+        problems = profile_problems(stage.GetPrimAtPath(t))
+        if problems:
+            first = problems[0]
+            raise InputError(f"{first.sites[0]}: {first.message} ({first.rule}; "
+                             "'skinpipe validate' lists every finding)",
+                             stage.GetRootLayer().realPath)
         fits.append(by_path[str(t)][0])
     if len(fits) != len(names):
         raise InputError(f"{prim.GetPath()}: {len(fits)} profiles for {len(names)} regions")
     return tuple(fits)
 
 
+def _check_units(prim: Any, mpu: float) -> None:
+    """The stage's metersPerUnit (its root layer's, else USD's fallback 0.01) must be the
+    one the layers holding the skin's points say: a layer over an asset that does not
+    restate it makes a millimetre face centimetres, ten times too large for its profiles."""
+    stage = prim.GetStage()
+    for spec in prim.GetAttribute("points").GetPropertyStack(Usd.TimeCode.Default()):
+        root = spec.layer.pseudoRoot
+        if not root.HasInfo("metersPerUnit"):
+            continue
+        layer_mpu = float(root.GetInfo("metersPerUnit"))
+        if not math.isclose(layer_mpu, mpu, rel_tol=1e-6):
+            root_layer = stage.GetRootLayer()
+            said = "authors" if root_layer.pseudoRoot.HasInfo("metersPerUnit") else \
+                "does not author it, so USD's fallback applies:"
+            raise InputError(
+                f"{prim.GetPath()}: its points are in {spec.layer.identifier}, whose "
+                f"metersPerUnit is {layer_mpu:g}, but the stage's root layer {said} "
+                f"metersPerUnit {mpu:g}; restate metersPerUnit = {layer_mpu:g} in "
+                f"{root_layer.identifier}", root_layer.realPath or root_layer.identifier)
+        return
+
+
 def _read_mesh(prim: Any, time: Any, mpu: float) -> SceneMesh:
+    _check_units(prim, mpu)
     mesh = UsdGeom.Mesh(prim)
     pts = mesh.GetPointsAttr().Get(time)
     counts = mesh.GetFaceVertexCountsAttr().Get(time)

@@ -98,14 +98,29 @@ def read_landmarks(path: str | Path) -> dict[str, NDArray[np.float64]]:
     return out
 
 
+OUTLIER_FACTOR = 20.0
+"""A vertex farther from the mesh's median point than this many times the median
+vertex's distance is a stray (a face scan's farthest vertex is about 2.5 times)."""
+
+
 def check_landmarks_on_mesh(mesh: MeshData, landmarks: dict[str, NDArray[np.float64]]
                             ) -> None:
     """InputError naming the region whose landmarks lie farther from the mesh's nearest
     vertex than :data:`LANDMARK_TOLERANCE` of its bounding-box diagonal."""
     from scipy.spatial import cKDTree  # lazy: 0.39 s to import
 
-    diagonal = float(np.linalg.norm(np.ptp(mesh.points, axis=0)))
-    tree = cKDTree(mesh.points)
+    used = mesh.points[np.unique(mesh.face_indices)]  # a vertex no face uses is no skin
+    # one stray vertex far away must not widen the tolerance for every landmark
+    spread = np.linalg.norm(used - np.median(used, axis=0), axis=1)
+    typical = float(np.median(spread))
+    if typical > 0 and spread.max() > OUTLIER_FACTOR * typical:
+        far = int(np.argmax(spread))
+        raise InputError(
+            f"a vertex at {used[far].round(4).tolist()} lies {spread[far]:.4g} units from "
+            f"the mesh's median point, {spread[far] / typical:.0f} times the typical "
+            f"{typical:.4g}: remove the stray vertex", mesh.source)
+    diagonal = float(np.linalg.norm(np.ptp(used, axis=0)))
+    tree = cKDTree(used)
     for name, points in landmarks.items():
         off = float(tree.query(points)[0].max())
         if off > LANDMARK_TOLERANCE * diagonal:

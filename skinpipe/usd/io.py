@@ -101,14 +101,19 @@ def composed_layer_files(path: str | Path) -> list[Path]:
     return list(seen)
 
 
-_TF_ERROR = re.compile(r"Error in '[^']*' at line \d+ in file \S+ : '(.*)'\s*$", re.S)
+_TF_ERROR = re.compile(
+    r"Error in '[^']*' at line \d+ in file \S+ : '(.*?)'\s*(?=\n\s*Error in '|\Z)", re.S)
+_PXR_NAMESPACE = re.compile(r"pxrInternal_v[0-9_]+__pxrReserved__::")
 
 
 def usd_error_message(exc: Exception) -> str:
-    """The reason in a Tf error, without USD's source location."""
-    last = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-    match = _TF_ERROR.search(last)
-    return match.group(1) if match else last
+    """The reason in a Tf error (for a parse error USD's own file:line:column message),
+    without the location in USD's sources. A reason may span lines."""
+    text = str(exc).strip()
+    if not text:
+        return type(exc).__name__
+    errors = [m.group(1).strip() for m in _TF_ERROR.finditer(text)] or [text.splitlines()[-1]]
+    return _PXR_NAMESPACE.sub("", "; ".join(e for e in errors if e) or text)
 
 
 def _open_layer(file: Path) -> Any:

@@ -36,6 +36,21 @@ class ShotOptions:
     turntable_frames: int = 0
     margin: float = 1.15
 
+    def __post_init__(self) -> None:
+        for name in ("key_intensity", "fill_intensity"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 <= v <= 1e6):
+                raise InputError(f"{name.replace('_', '-')} must be a finite number in "
+                                 f"0-1e6, got {v}")
+        for name in ("key_radius_fraction", "focal_length", "horizontal_aperture", "margin"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 < v <= 1e4):
+                raise InputError(f"{name.replace('_', '-')} must be a finite number > 0, "
+                                 f"got {v}")
+        if not 0 <= self.turntable_frames <= 100_000:
+            raise InputError("turntable must be 0 (a still) or a number of frames up to "
+                             f"100000, got {self.turntable_frames}")
+
 
 def camera_tenths_per_mm(meters_per_unit: float) -> float:
     """USD camera lengths (focalLength, apertures) are in tenths of a scene unit: the
@@ -48,6 +63,9 @@ def author_shot(asset: Path, out: Path, options: ShotOptions = ShotOptions()) ->
     """Write ``out`` (a .usda shot layer over ``asset``); the asset is only read."""
     asset = Path(asset)
     out = Path(out)
+    if out.suffix.lower() not in (".usda", ".usd", ".usdc"):
+        raise InputError(f"a shot layer is written as USD: the output must end in .usda, "
+                         f".usd or .usdc, not {out.suffix or 'no suffix'!r}", out)
     if out.resolve() == asset.resolve():
         raise InputError("the shot layer would overwrite the asset", out)
     src = open_stage_guarded(asset)

@@ -34,6 +34,9 @@ from .schema import (
 )
 
 WEIGHT_SUM_TOLERANCE = 1e-4
+MAX_VARIANCE_MM2 = 1e4
+"""The widest term a profile may hold: the fit's largest plausible radius (100 mm)
+squared."""
 REGION_WEIGHT_TOLERANCE = 1e-3
 KEYWORD = "skinpipe"
 
@@ -185,15 +188,17 @@ def _array_lengths(prim: Any) -> list[tuple[str, str]]:
 
 @rule("ProfileVariancesValid", "prim")
 def _variances(prim: Any) -> list[tuple[str, str]]:
-    """Variances (mm^2) are finite, > 0 and sorted ascending."""
+    """Variances (mm^2) are finite, > 0, at most 1e4 mm^2 (a 100 mm standard deviation:
+    light that spreads wider than a face is no skin profile) and sorted ascending."""
     if not _is_profile(prim):
         return []
     v = _array(prim, "variances")
     if v is None or v.size == 0:
         return []
     site = f"{prim.GetPath()}.variances"
-    if not np.all(np.isfinite(v)) or np.any(v <= 0):
-        return [(f"variances must be finite and > 0 mm^2, got {v.tolist()}", site)]
+    if not np.all(np.isfinite(v)) or np.any(v <= 0) or np.any(v > MAX_VARIANCE_MM2):
+        return [(f"variances must be finite, > 0 and <= {MAX_VARIANCE_MM2:g} mm^2, got "
+                 f"[{', '.join(f'{x:.6g}' for x in v)}]", site)]
     if np.any(np.diff(v) < 0):
         return [(f"variances are not sorted ascending: {v.tolist()}", site)]
     return []
@@ -249,6 +254,18 @@ def _measured(prim: Any) -> list[tuple[str, str]]:
     if r is not None and np.any(r < 0):
         out.append(("negative radius", f"{prim.GetPath()}.measured:radiusMm"))
     return out
+
+
+PROFILE_RULES = ("ProfileArrayLengths", "ProfileVariancesValid", "ProfileWeightsNormalized",
+                 "ProfileFitErrorValid", "MeasuredSamplesFinite")
+
+
+def profile_problems(prim: Any) -> list[Problem]:
+    """The findings of the profile rules on one SkinDiffusionProfile prim: what ``render``
+    refuses to use is what ``validate`` fails, under the same rule names."""
+    wanted = {f"{KEYWORD}:{name}" for name in PROFILE_RULES}
+    return [Problem(r.name, message, (site,)) for r in RULES if r.name in wanted
+            for message, site in r.check(prim)]
 
 
 def _is_regions_mesh(prim: Any) -> bool:

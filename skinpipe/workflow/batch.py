@@ -441,6 +441,10 @@ def remove_temporaries(out_root: Path) -> list[Path]:
     stale = sorted(out_root.glob("*/.*.tmp-*")) if out_root.is_dir() else []
     for path in stale:
         shutil.rmtree(path, ignore_errors=True)
+    for folder in sorted(out_root.iterdir()) if out_root.is_dir() else []:
+        if folder.is_dir() and not folder.is_symlink():
+            with contextlib.suppress(OSError):  # only an empty one goes: nothing is lost
+                folder.rmdir()
     return stale
 
 

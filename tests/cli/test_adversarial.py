@@ -214,6 +214,55 @@ CASES: list[Case] = [
         {"regions": {"forehead": [[0, 0, 0]], "nose": [[10, 10, 0]]}})),
      ["run", "caps", "--mesh", "mesh.obj", "--landmarks", "landmarks.json", "-o", "out"],
      ["landmarks.json", "nose"]),
+    # 11. accepted silently before
+    ("shot-key-intensity-nan", None,
+     ["shot", "asset/asset.usda", "--key-intensity", "nan", "-o", "s.usda"],
+     ["key-intensity", "nan"]),
+    ("shot-key-intensity-negative", None,
+     ["shot", "asset/asset.usda", "--key-intensity", "-3", "-o", "s.usda"], ["-3"]),
+    ("shot-turntable-negative", None,
+     ["shot", "asset/asset.usda", "--turntable", "-5", "-o", "s.usda"], ["turntable", "-5"]),
+    ("shot-usd-into-png", None, ["shot", "asset/asset.usda", "-o", "x.png"], ["x.png", ".png"]),
+    ("fit-ragged-row", lambda w: (w / "r.csv").write_text(
+        "radius_mm,R,G,B\n0.1,1,1,1\n0.2,1,1,1,5\n"), ["fit", "r.csv", "-o", "r.json"],
+     ["r.csv", "line 3", "5 cells"]),
+    ("fit-no-generations", None,
+     ["fit", "forehead.csv", "--generations", "0", "--population", "1", "-o", "f.json"],
+     ["generations", "0"]),
+    ("fit-a-binary-file", None, ["fit", "asset/geo.usdc", "-o", "f.json"],
+     ["geo.usdc", "not a CSV"]),
+    ("ingest-missing-folder", None, ["ingest", "nowhere", "-o", "out"],
+     ["nowhere", "no such capture folder"]),
+    ("ingest-a-file", None, ["ingest", "forehead.csv", "-o", "out"],
+     ["forehead.csv", "not a folder"]),
+    ("render-missing-ocio", None,
+     ["render", "scene.usda", "--ocio", "missing.ocio", "-o", "out"], ["missing.ocio"]),
+    ("render-usd-syntax-error", lambda w: _edit_look(w, "float[] variances = [",
+                                                    "float[] variances = [[["),
+     ["render", "scene.usda", "-o", "out"], ["look.usda:", "parse error"]),
+    ("ingest-exposure-1e308", lambda w: _exposure(w, 1e308), ["ingest", "caps", "-o", "out"],
+     ["capture.json", "exposure_s", "1e+308"]),
+    ("author-stray-vertex", lambda w: (w / "mesh.obj").write_text(
+        OBJ_QUAD + "v 1000000 0 0\nf 1 2 3\nf 2 4 3\nf 2 5 4\n"),
+     ["author", "--fits", "fits", "--mesh", "mesh.obj", "--landmarks", "landmarks.json",
+      "-o", "out"], ["mesh.obj", "stray vertex"]),
+    ("author-unused-far-vertex-widens-nothing", lambda w: (
+        (w / "mesh.obj").write_text(OBJ_QUAD + "v 1000000 0 0\nf 1 2 3\nf 2 4 3\n"),
+        (w / "landmarks.json").write_text(json.dumps(
+            {"regions": {"forehead": [[0, 0, 0]], "cheek": [[730, 10, 0]]}}))),
+     ["author", "--fits", "fits", "--mesh", "mesh.obj", "--landmarks", "landmarks.json",
+      "-o", "out"], ["cheek", "from the nearest mesh vertex"]),
+    # 12. what validate fails, render refuses, under the same rule's name
+    ("render-huge-variance", lambda w: _profile_edit(w, "variances", 1e30),
+     ["render", "scene.usda", "-o", "out"], ["ProfileVariancesValid", "1e+30"]),
+    ("validate-huge-variance", lambda w: _profile_edit(w, "variances", 1e30),
+     ["validate", "scene.usda"], ["ProfileVariancesValid", "1e+30"]),
+    ("render-nan-weight", lambda w: _profile_edit(w, "weights", float("nan")),
+     ["render", "scene.usda", "-o", "out"], ["ProfileWeightsNormalized", "weights"]),
+    # 13. an override layer that does not restate the asset's units
+    ("render-units-not-restated", lambda w: (w / "over.usda").write_text(
+        "#usda 1.0\n(\n subLayers = [@./scene.usda@]\n)\n"),
+     ["render", "over.usda", "-o", "out"], ["metersPerUnit", "over.usda", "0.001"]),
 ]
 
 
@@ -340,6 +389,12 @@ def _manifest(ws: Path, **changes: object) -> None:
     (ws / "caps" / "capture.json").write_text(json.dumps(doc))
 
 
+def _exposure(ws: Path, seconds: float) -> None:
+    doc = json.loads((ws / "caps" / "capture.json").read_text())
+    next(iter(doc["regions"].values()))["images"][0]["exposure_s"] = seconds
+    (ws / "caps" / "capture.json").write_text(json.dumps(doc))
+
+
 def _edit_look(ws: Path, old: str, new: str) -> None:
     look = ws / "asset" / "look.usda"
     text = look.read_text()
@@ -379,6 +434,24 @@ def _scene_edit(ws: Path, edit: Callable[[object], None]) -> None:
     stage = Usd.Stage.Open(str(ws / "scene.usda"))
     edit(stage)
     stage.GetRootLayer().Save()
+
+
+def _profile_edit(ws: Path, attribute: str, value: float) -> None:
+    """The last number of the first profile's ``attribute`` in the asset's look layer."""
+    from pxr import Sdf, Usd
+
+    look = ws / "asset" / "look.usda"
+    stage = Usd.Stage.Open(str(look))
+    prim = next(p for p in stage.Traverse() if p.GetTypeName() == "SkinDiffusionProfile")
+    attr = prim.GetAttribute(attribute)
+    values = list(attr.Get())
+    if attribute == "weights":
+        values[-1] = type(values[-1])(value, values[-1][1], values[-1][2])
+    else:
+        values[-1] = value
+    attr.Set(values)
+    layer = Sdf.Layer.FindOrOpen(str(look))
+    layer.Save()
 
 
 def _nan_camera(ws: Path) -> None:
@@ -496,3 +569,36 @@ def test_child_processes_find_packages_on_pythonpath(tmp_path: Path) -> None:
     faces, indices = map(int, run.stdout.split())
     assert indices == 3 * faces > 0
     assert sys.executable != str(python)
+
+
+# ------------------------------------------- the user's files where a chain writes its own
+
+def _users_files_survive(ws: Path, args: list[str], outputs: list[str]) -> None:
+    """A user's file at every path the verb writes, except the two it checks before any
+    work: the verb runs, then refuses at its commit naming one, and every user's file is
+    as it was."""
+    out = ws / "out2"
+    mine = [name for name in outputs if name not in ("report.json", "scene.usda")]
+    for name in mine:
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text(f"the user's {name}\n")
+    before, dirs = _snapshot(ws), _dirs(ws)
+    proc = skinpipe(ws, *args, "-o", "out2", timeout=600)
+    assert_refused(ws, proc, "did not write", before=before, dirs=dirs)
+    assert any(name in proc.stderr for name in mine), proc.stderr[-500:]
+
+
+def test_run_never_writes_over_a_users_file_in_its_output(ws: Path) -> None:
+    args = ["run", "caps", "--mesh", "mesh.obj", "--landmarks", "landmarks.json",
+            "--resolution", "32x32", "--texture-size", "64"]
+    first = skinpipe(ws, *args, "-o", "out1", timeout=600)
+    assert first.returncode == 0, first.stderr[-2000:]
+    written = json.loads((ws / "out1" / ".skinpipe-outputs.json").read_text())["files"]
+    shutil.rmtree(ws / "out1")
+    _users_files_survive(ws, args, sorted(written))
+
+
+def test_demo_never_writes_over_a_users_file_in_its_output(
+        ws: Path, demo_run: tuple[Path, str, str]) -> None:
+    written = json.loads((demo_run[0] / ".skinpipe-outputs.json").read_text())["files"]
+    _users_files_survive(ws, ["demo"], sorted(written))
