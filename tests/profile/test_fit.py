@@ -449,9 +449,10 @@ def test_moves_refined_side_by_side_equal_moves_refined_in_turn(monkeypatch) -> 
     fits = {}
     for seed in (0, 1, 2):
         fit_sum_of_gaussians(profile, k=6, seed=seed)  # this thread's solver, then theirs
-    for _ in range(600):  # the threads build theirs in the background (0.25 s each)
-        if len(threads.ready(next(iter(threads._asked))[1])) == len(threads):
-            break
+    # the threads build theirs in the background (0.25 s each); the bound only stops a hang
+    hang = time.monotonic() + 600
+    while len(threads.ready(next(iter(threads._asked))[1])) != len(threads) \
+            and time.monotonic() < hang:
         time.sleep(0.05)
     tries: dict[str, list] = {"side by side": [], "in turn": []}
     real_side_by_side = fit_module._refine_side_by_side

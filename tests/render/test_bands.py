@@ -50,7 +50,7 @@ def test_at_most_band_threads_work_at_once_on_many_cores(
     keeps its free memory), and they do run side by side."""
     monkeypatch.setattr(bands, "host_threads", lambda: 64)
     lock, now, most = threading.Lock(), [0], [0]
-    gate = threading.Barrier(bands.BAND_THREADS, timeout=10)
+    gate = threading.Barrier(bands.BAND_THREADS, timeout=600)  # a hang guard
 
     def band(rows: slice) -> None:
         with lock:

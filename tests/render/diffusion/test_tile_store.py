@@ -32,6 +32,9 @@ from ..test_renderer import SMALL
 from .test_chart_tiles import _layout
 
 SIZE = 256
+HANG_S = 600.0
+"""How long a test waits for another thread before it gives up: a guard against a hang,
+not a time limit (a loaded machine takes what it takes)."""
 
 
 @pytest.fixture(scope="module")
@@ -534,14 +537,14 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = T
     rays_began = threading.Event()
 
     def prepare_after_the_rays(layout: DiffusionLayout, *args: Any) -> None:
-        rays_began.wait(10.0)  # the maps must go before the layout is done
+        rays_began.wait(HANG_S)  # the maps must go before the layout is done
         prepare(layout, *args)
 
     def layout_goes_on_after_the_release(both: Any, party: str) -> None:
         # the layout goes on only once the maps went (a tiny texture's rows are taken
         # at once): it must have taken what it reads of them before it said so
         arrive(both, party)
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + HANG_S
         while party == "layout" and (not texs or texs[0].maps.position is not None) \
                 and time.monotonic() < deadline:
             time.sleep(0.005)
@@ -552,7 +555,7 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = T
 
     def rays(*args: Any, **kwargs: Any) -> Any:
         # the layout's thread says at once that the store holds its tiles: wait for it
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + HANG_S
         while texs[0].maps.position is not None and time.monotonic() < deadline:
             time.sleep(0.005)
         let_go.append(texs[0].maps.position is None and texs[0].maps.normal is None)
