@@ -15,7 +15,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -400,6 +400,12 @@ def ingest_region(
     else:
         profile, _, tail = normalise_profile(profile, to_acescg, options.extrapolate_tail,
                                              usable)
+        if profile.stddev is not None and np.any(profile.values < 0):
+            # a far ring's median can sit a bias below zero (noise the sensor clipped):
+            # a radiance below zero is uncertain by at least its size
+            std = np.where(profile.values < 0,
+                           np.maximum(profile.stddev, np.abs(profile.values)), profile.stddev)
+            profile = replace(profile, stddev=std)
         wide = [f"{c} {f:.0%}" for c, f in zip("RGB", tail.fraction_beyond, strict=True)
                 if f > TAIL_WARN_FRACTION]
         if wide:

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from scipy import special
-from scipy.ndimage import map_coordinates, median_filter
+from scipy.ndimage import label, map_coordinates, median_filter
 
 from ..errors import InputError
 from ..profile.types import MeasuredProfile
@@ -145,7 +145,7 @@ standard deviations of the narrowest skin scattering at 0.04 mm pixels, where th
 pixel's area changes a ring's value by more than 0.1%."""
 CORE_INNER_PX = 3.0
 """Within this radius of the entry point the profile's samples are the core model's
-values at points, every :data:`CORE_STEP_PX` (rings of a few pixels hold no
+means over rings every :data:`CORE_STEP_PX` wide (rings of a few pixels hold no
 statistics); beyond it, ring medians corrected by the model for the pixel's area."""
 CORE_STEP_PX = 0.25
 CORE_SIGMA_RATIO = 1.15
@@ -183,6 +183,17 @@ class CoreModel:
     def at_points(self, radius_px: NDArray[np.float64]) -> NDArray[np.float64]:
         """The model at radii (px) from its centre: (n, C)."""
         return _point_basis(radius_px, self.sigmas_px) @ self.weights
+
+    def ring_means(self, inner_px: NDArray[np.float64], outer_px: NDArray[np.float64]
+                   ) -> NDArray[np.float64]:
+        """The model's mean over the rings between ``inner_px`` and ``outer_px``: (n, C).
+        A normalised 2D Gaussian puts exp(-a^2 / 2s^2) - exp(-b^2 / 2s^2) of its light
+        between radii a and b."""
+        a = np.asarray(inner_px, dtype=np.float64).reshape(-1, 1)
+        b = np.asarray(outer_px, dtype=np.float64).reshape(-1, 1)
+        s2 = 2.0 * self.sigmas_px**2
+        share = np.exp(-a * a / s2) - np.exp(-b * b / s2)
+        return (share / (math.pi * (b * b - a * a))) @ self.weights
 
     def std_at_points(self, radius_px: NDArray[np.float64]) -> NDArray[np.float64]:
         """Standard deviation of :meth:`at_points` from the weights' covariance."""
@@ -403,8 +414,14 @@ def radial_profile(
     if core is not None:
         inner = np.arange(0.0, CORE_INNER_PX - 1e-9, CORE_STEP_PX)
         inner = inner[inner < (radii[0] if radii.size else CORE_INNER_PX)]
+        # each a ring mean, as every sample of a profile is read (the fit's energy, the
+        # edge): the point values of a sharp spike summed as rings miscount its light
+        edges = np.concatenate([[0.0], 0.5 * (inner[1:] + inner[:-1]),
+                                [0.5 * (inner[-1] + (radii[0] if radii.size
+                                                     else inner[-1] + CORE_STEP_PX))]])
+        means = core.ring_means(edges[:-1], edges[1:])
         radii = np.concatenate([inner, radii])
-        values = np.concatenate([core.at_points(inner), values])
+        values = np.concatenate([means, values])
         stderr = np.concatenate([core.std_at_points(inner), stderr])
     if var is not None:
         return MeasuredProfile(radii * mm_per_pixel, values, stderr)
@@ -439,6 +456,10 @@ light."""
 HAIR_CORE_PX = 3.0
 HAIR_CORE_LIMIT = 0.5
 HAIR_ENTRY_PX = 1.0
+SPIKE_REACH_PX = 3.0
+"""How far from the centre a sharp entry spike (light within a pixel) leaves its
+neighbours off any smooth radial model: a dark patch confined within it is no strand
+(strands are 1.5-3 px wide lines across the spot)."""
 """A capture with hair within HAIR_ENTRY_PX of its entry point (a strand over it), or
 whose core (within HAIR_CORE_PX of it) is more than HAIR_CORE_LIMIT hair, is refused:
 the paper re-shot such spots. A strand whose edge passes 3 px or more from the entry
@@ -460,7 +481,10 @@ def hair_mask(hdr: FloatImage, centre_px: tuple[float, float], profile_px: Measu
     sigmas above zero (or, without a noise model, above 1% of its peak): the pixel's own
     ratio where the model stands HAIR_RAW_SIGMAS above zero (no noise model: 5% of its
     peak), the 3 x 3 median of the ratio elsewhere; grown by one pixel for the strands'
-    edges. ``profile_px``: radii in px."""
+    edges. ``profile_px``: radii in px. Strands are lines: dark pixels that reach no
+    farther than :data:`SPIKE_REACH_PX` from the centre are not hair but a sharp entry
+    spike's neighbours (single scattering puts much of the light inside the centre
+    pixels, and no smooth radial model stands right beside it)."""
     h, w, _ = hdr.shape
     yy, xx = np.mgrid[0:h, 0:w]
     r = np.hypot(xx - centre_px[0], yy - centre_px[1])
@@ -474,6 +498,11 @@ def hair_mask(hdr: FloatImage, centre_px: tuple[float, float], profile_px: Measu
     else:
         trusted, bright = model > 0.01 * np.nanmax(model), model > 0.05 * np.nanmax(model)
     dark = trusted & (np.where(bright, raw, smooth) < HAIR_RATIO)
+    labels, count = label(dark, structure=np.ones((3, 3)))
+    if count:
+        reach = np.zeros(count + 1)
+        np.maximum.at(reach, labels[dark], r[dark])
+        dark &= reach[labels] > SPIKE_REACH_PX
     grown = dark.copy()
     grown[1:] |= dark[:-1]
     grown[:-1] |= dark[1:]

@@ -84,19 +84,45 @@ class RegionTruth:
 
     ``kind="gaussians"``: per-channel weights (each channel sums to 1) on
     ``variances_mm2``, scaled by ``albedo``. ``kind="dipole"``: Jensen et al.'s dipole
-    for ``coefficients`` (its own total reflectance is the albedo). The observed
-    profile is R convolved with the projector's footprint, a Gaussian of standard
-    deviation ``footprint_sigma_mm`` (0: a point).
+    for ``coefficients`` (its own total reflectance is the albedo). ``kind="rings"``:
+    a measured profile as ring means (``ring_radius_mm``, ``ring_values``, mm^-2, in
+    ACEScg as ``skinpipe fit`` reads a CSV), constant over each ring (edges halfway
+    between centres): a ring of a light tracer's profile keeps the single scattering's
+    spike whole. The observed profile is R convolved with the projector's footprint, a
+    Gaussian of standard deviation ``footprint_sigma_mm`` (0: a point).
     """
 
     name: str
-    kind: Literal["gaussians", "dipole"]
+    kind: Literal["gaussians", "dipole", "rings"]
     variances_mm2: tuple[float, ...] = ()
     weights: tuple[tuple[float, float, float], ...] = ()
     albedo: tuple[float, float, float] = (1.0, 1.0, 1.0)
     coefficients: ScatteringCoefficients | None = None
     note: str = ""
     footprint_sigma_mm: float = 0.0
+    ring_radius_mm: tuple[float, ...] = ()
+    ring_values: tuple[tuple[float, float, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.kind == "rings":
+            r = np.asarray(self.ring_radius_mm, dtype=np.float64)
+            v = np.asarray(self.ring_values, dtype=np.float64)
+            if r.ndim != 1 or r.size < 2 or v.shape != (r.size, 3) or not (
+                    np.all(np.isfinite(r)) and np.all(np.isfinite(v))):
+                raise InputError(f"region {self.name!r}: a ring profile needs two or more "
+                                 "finite rings of three channels")
+            if r[0] < 0 or np.any(np.diff(r) <= 0) or np.any(v < 0):
+                raise InputError(f"region {self.name!r}: ring radii must rise from 0 or "
+                                 "more and ring values must not be negative")
+
+    def _ring_edges_mm(self) -> NDArray[np.float64]:
+        r = np.asarray(self.ring_radius_mm, dtype=np.float64)
+        mid = 0.5 * (r[1:] + r[:-1])
+        return np.concatenate([[0.0], mid, [r[-1] + (r[-1] - mid[-1])]])
+
+    def _rings_rec709(self) -> NDArray[np.float64]:
+        return np.asarray(self.ring_values, np.float64) @ colorspace_matrix(
+            ACESCG, TRUTH_LINEAR).T
 
     def scattering_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
         """R(r): exitant light per unit incident flux, mm^-2, Rec.709 RGB, for a pencil
@@ -104,17 +130,30 @@ class RegionTruth:
         if self.kind == "gaussians":
             return sum_of_gaussians(self.variances_mm2, np.array(self.weights), radius_mm) \
                 * np.asarray(self.albedo)
+        if self.kind == "rings":
+            edges = self._ring_edges_mm()
+            r = np.asarray(radius_mm, dtype=np.float64).reshape(-1)
+            ring = np.searchsorted(edges, r, side="right") - 1
+            inside = (ring >= 0) & (ring < edges.size - 1)
+            out = np.zeros((r.size, 3))
+            out[inside] = self._rings_rec709()[ring[inside]]
+            return out
         assert self.coefficients is not None
         return dipole_profile(radius_mm, self.coefficients)
 
     def observed_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
         """R convolved with the footprint (Rec.709, mm^-2): what a camera sees. For a sum
-        of Gaussians the footprint's variance adds to every term exactly."""
+        of Gaussians the footprint's variance adds to every term exactly; for rings too,
+        each ring's share of the footprint centred at r being a difference of two
+        non-central chi-square CDFs (the Marcum Q function)."""
         s = self.footprint_sigma_mm
         if self.kind == "gaussians":
             v = np.asarray(self.variances_mm2) + s * s
             return sum_of_gaussians(v, np.array(self.weights), radius_mm) \
                 * np.asarray(self.albedo)
+        if self.kind == "rings" and s > 0:
+            return _rings_blurred(self._ring_edges_mm(), self._rings_rec709(),
+                                  np.asarray(radius_mm, dtype=np.float64).reshape(-1), s)
         return gaussian_blurred_radial(self.scattering_profile, radius_mm, s)
 
     def acescg_profile(self, radius_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -168,6 +207,9 @@ class RegionTruth:
         """Total diffuse reflectance per channel (Rec.709): the profile's integral."""
         if self.kind == "gaussians":
             return np.asarray(self.albedo, dtype=np.float64)
+        if self.kind == "rings":
+            area = np.pi * np.diff(self._ring_edges_mm() ** 2)
+            return area @ self._rings_rec709()
         assert self.coefficients is not None
         return dipole_total_reflectance(self.coefficients)
 
@@ -175,7 +217,46 @@ class RegionTruth:
         doc = asdict(self)
         if self.coefficients is None:
             doc.pop("coefficients")
+        if self.kind != "rings":
+            doc.pop("ring_radius_mm")
+            doc.pop("ring_values")
         return doc
+
+
+def ring_truth(path: str | Path) -> RegionTruth:
+    """The region a measured PROFILE.csv describes (``kind="rings"``, named by the file's
+    stem): its rows are ring means in ACEScg, mm^-2, as :func:`read_profile_csv` reads
+    them. The capture's settings give it their footprint."""
+    from ..fileio import check_path_name
+    from ..profile.io import read_profile_csv
+
+    profile = read_profile_csv(path)
+    name = check_path_name(Path(path).stem, "profile name (the file's stem)")
+    if not np.all(profile.values >= 0):
+        raise InputError("a profile to simulate must not be negative anywhere", path)
+    return RegionTruth(name, "rings", ring_radius_mm=tuple(map(float, profile.radius_mm)),
+                       ring_values=tuple(tuple(map(float, v)) for v in profile.values),
+                       note=f"rings of {Path(path).name}")
+
+
+def _rings_blurred(edges_mm: NDArray[np.float64], values: NDArray[np.float64],
+                   radius_mm: NDArray[np.float64], sigma_mm: float) -> NDArray[np.float64]:
+    """Rings of constant ``values`` (n, C) between ``edges_mm`` (n + 1) convolved with a
+    2D Gaussian of ``sigma_mm``, at ``radius_mm``: sum_i v_i P(e_i < |X| < e_i+1) with X
+    ~ N((r, 0), s^2 I), P(|X| < e) = ncx2.cdf(e^2 / s^2, 2, r^2 / s^2) exactly. Edges
+    more than 8 sigma from r are 0 or 1 (below 1e-14)."""
+    from scipy.stats import ncx2
+
+    out = np.zeros((radius_mm.size, values.shape[1]))
+    for i, r in enumerate(radius_mm):
+        lo, hi = np.searchsorted(edges_mm, [r - 8 * sigma_mm, r + 8 * sigma_mm])
+        e = edges_mm[max(lo - 1, 0):hi + 1]
+        cdf = ncx2.cdf((e / sigma_mm) ** 2, 2, (r / sigma_mm) ** 2)
+        cdf[e > r + 8 * sigma_mm] = 1.0
+        cdf[e < r - 8 * sigma_mm] = 0.0
+        first = max(lo - 1, 0)
+        out[i] = np.diff(cdf) @ values[first:first + e.size - 1]
+    return out
 
 
 MAX_SIZE_PX = 8192
@@ -440,6 +521,8 @@ def read_truth(path: str | Path) -> dict[str, RegionTruth]:
         t["variances_mm2"] = tuple(t.get("variances_mm2", ()))
         t["weights"] = tuple(tuple(w) for w in t.get("weights", ()))
         t["albedo"] = tuple(t.get("albedo", (1.0, 1.0, 1.0)))
+        t["ring_radius_mm"] = tuple(t.get("ring_radius_mm", ()))
+        t["ring_values"] = tuple(tuple(v) for v in t.get("ring_values", ()))
         out[name] = RegionTruth(**t)
     return out
 

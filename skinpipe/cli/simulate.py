@@ -52,6 +52,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-colorspace", default=argparse.SUPPRESS,
                    help="OCIO linear colour space of 16-bit files (default: the preset's)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--profile", type=Path, nargs="+", default=None, metavar="PROFILE.csv",
+                   help="simulate these measured profiles (PROFILE.csv as 'skinpipe fit' "
+                        "reads it: radius_mm and ACEScg values in mm^-2, each row the mean "
+                        "over a ring reaching halfway to its neighbours) instead of the "
+                        "sample subject, one region each, named by the file's stem; "
+                        "--camera-colorspace lin_ap1_scene keeps its colours exact")
     add_force_option(p)
     p.set_defaults(handler=cmd_simulate)
 
@@ -67,7 +73,12 @@ def _float_pair(text: str) -> tuple[float, float]:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from ..capture.simulate import PRESETS, sample_subject_truths, simulate_capture_set
+    from ..capture.simulate import (
+        PRESETS,
+        ring_truth,
+        sample_subject_truths,
+        simulate_capture_set,
+    )
     from ..fileio import staged_output_directory
 
     if not 1 <= args.brackets <= 9:
@@ -80,9 +91,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     settings = replace(preset, bits=args.bits, hair_strands=args.hair,
                        exposures_s=tuple(1 / 500 * 4.0**i for i in range(args.brackets)),
                        image_format="tif" if args.bits == 16 else "png", **overrides)
-    with staged_output_directory(args.output, "simulate", (), args.force,
+    truths = sample_subject_truths() if args.profile is None else \
+        [ring_truth(path) for path in args.profile]
+    with staged_output_directory(args.output, "simulate", args.profile or (), args.force,
                                  ["capture.json", "truth.json"]) as out:
-        simulate_capture_set(sample_subject_truths(), out.path, settings, seed=args.seed,
-                             progress=_eprint)
+        simulate_capture_set(truths, out.path, settings, seed=args.seed, progress=_eprint)
     print(f"wrote {args.output / 'capture.json'} and {args.output / 'truth.json'}")
     return EXIT_OK

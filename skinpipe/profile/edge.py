@@ -42,7 +42,8 @@ def disc_share_below(radius_mm: ArrayLike, t_mm: ArrayLike) -> FloatArray:
     """Area of the disc |u| <= R with u_x <= t (mm^2), broadcast over R and t."""
     r = np.asarray(radius_mm, dtype=np.float64)
     t = np.asarray(t_mm, dtype=np.float64)
-    c = np.clip(t / np.maximum(r, 1e-300), -1.0, 1.0)
+    # t clipped to the disc first: t / R may not overflow where R is (next to) zero
+    c = np.clip(t, -r, r) / np.maximum(r, 1e-300)
     return r**2 * (math.pi - np.arccos(c)) + np.clip(t, -r, r) * r * np.sqrt(1.0 - c**2)
 
 

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..fileio import atomic_path
+from ..profile.edge import edge_report
 from ..profile.models import sum_of_gaussians
 from ..profile.types import FitResult, MeasuredProfile
 from .author import read_profiles
@@ -36,6 +37,15 @@ def describe_profile(path: str, fit: FitResult, measured: MeasuredProfile | None
     if measured is not None:
         lines.append(f"  measured: {measured.radius_mm.size} samples, "
                      f"{measured.radius_mm.min():.3f}-{measured.radius_mm.max():.3f} mm")
+        edge = edge_report(measured.radius_mm, measured.values, fit.variances_mm2,
+                           fit.weights)
+        lines.append("  shadow edge: spread error " + " ".join(
+            f"{c}={e:.2%}" for c, e in zip("RGB", edge["edge_error"], strict=True)))
+        lines.append("  10-90% edge width mm (fit/measured): " + " ".join(
+            f"{c}={a:.3g}/{b:.3g}" for c, a, b in zip(
+                "RGB", edge["edge_width_mm"], edge["edge_width_measured_mm"], strict=True)))
+        lines.append("  light in the shadow (fit/measured): " + " ".join(
+            f"{c}={x:.3f}" for c, x in zip("RGB", edge["shadow_light_ratio"], strict=True)))
     return "\n".join(lines)
 
 
@@ -67,8 +77,15 @@ def plot_profile(fit: FitResult, measured: MeasuredProfile | None, out_png: str 
                     color=CHANNEL_COLOURS[c], alpha=0.6, label=f"measured {'RGB'[c]}")
     ax.set_yscale("log")
     ax.set_ylabel("R(r)  [mm^-2]")
-    ax.set_title(title or f"{fit.name}: eq. 2c error " +
-                 " ".join(f"{e:.2e}" for e in fit.error))
+    heading = f"{fit.name}: eq. 2c error " + " ".join(f"{e:.2e}" for e in fit.error)
+    if measured is not None:
+        edge = edge_report(measured.radius_mm, measured.values, fit.variances_mm2,
+                           fit.weights)
+        heading += "\nshadow edge: spread error " + " ".join(
+            f"{e:.2%}" for e in edge["edge_error"]) + "; 10-90% width fit/measured\n" + \
+            " ".join(f"{a:.3g}/{b:.3g}" for a, b in zip(
+                edge["edge_width_mm"], edge["edge_width_measured_mm"], strict=True)) + " mm"
+    ax.set_title(title or heading, fontsize=9)
     ax.legend(fontsize=7, ncol=2)
     ax.grid(True, which="both", alpha=0.3)
     if measured is not None:

@@ -45,6 +45,12 @@ class TradeoffRow:
     error: list[float]
     objective: float
     status: str
+    edge_error: list[float] | None = None
+    """What a hard shadow edge shows (:func:`~..profile.edge.edge_report`): the largest
+    difference as a share of the plateau, per channel."""
+    edge_width_ratio: list[float] | None = None
+    """10-90% edge width, fitted over measured, per channel."""
+    shadow_light_ratio: list[float] | None = None
 
 
 def fit_tradeoff(
@@ -62,8 +68,15 @@ def fit_tradeoff(
                 start = time.perf_counter()
                 fit = fit_sum_of_gaussians(prof, FitOptions(k=k, seed=seed, **FIT_METHODS[method]))
                 seconds = time.perf_counter() - start
-                rows.append(TradeoffRow(prof.name, method, k, seconds, float(fit.error.max()),
-                                        [float(e) for e in fit.error], fit.objective, fit.status))
+                edge = fit.edge or {}
+                width = None if not edge else (edge["edge_width_mm"]
+                                               / edge["edge_width_measured_mm"])
+                rows.append(TradeoffRow(
+                    prof.name, method, k, seconds, float(fit.error.max()),
+                    [float(e) for e in fit.error], fit.objective, fit.status,
+                    None if not edge else [float(e) for e in edge["edge_error"]],
+                    None if width is None else [float(w) for w in width],
+                    None if not edge else [float(s) for s in edge["shadow_light_ratio"]]))
                 if progress is not None:
                     progress(f"{prof.name} {method} k={k}: error {fit.error.max():.2e}, "
                              f"{seconds:.2f} s")
@@ -451,9 +464,23 @@ def write_report_page(out_dir: Path) -> Path:
         lines += ["## Fit", "", f"Error: {doc['error_measure']}. Seconds: wall time per fit.",
                   "", "![fit](fit_tradeoff.png)", "",
                   _default_sentence(doc, f"{d['method']}, k = {d['k']}"), ""]
-        lines += _table(["profile", "method", "k", "seconds", "error", ""],
+        lines += ["Edge: what a hard shadow edge shows against the measured profile, the "
+                  "worst channel: the largest difference of the edge (share of the plateau), "
+                  "the 10-90% width and the light in the shadow, fitted over measured.", ""]
+
+        def worst(values: list[float] | None, ratio: bool = False) -> str:
+            if not values:
+                return "-"
+            v = max(values, key=lambda x: abs(x - 1)) if ratio else max(values)
+            return f"{v:.3f}" if ratio else f"{v:.2%}"
+
+        lines += _table(["profile", "method", "k", "seconds", "eq. 2c", "edge", "width",
+                         "shadow light", ""],
                         [(r["profile"], r["method"], r["k"], f"{r['seconds']:.2f}",
-                          f"{r['error_max']:.2e}", "*" if r["pareto"] else "")
+                          f"{r['error_max']:.2e}", worst(r.get("edge_error")),
+                          worst(r.get("edge_width_ratio"), True),
+                          worst(r.get("shadow_light_ratio"), True),
+                          "*" if r["pareto"] else "")
                          for r in doc["rows"]])
         lines.append("")
     ingest_path = out_dir / "ingest_tradeoff.json"

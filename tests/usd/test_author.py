@@ -195,3 +195,18 @@ def test_usdview_plugin_info_names_a_real_container() -> None:
     (name,) = types
     assert name == "skinpipe.usdview_plugin.SkinPluginContainer"
     assert hasattr(plugin, "SkinPluginContainer") and hasattr(plugin, "plot_selected_profiles")
+
+
+def test_inspect_shows_what_a_shadow_edge_shows(demo_run: tuple[Path, str, str],
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """Beside eq. 2c, the edge figures against the measured samples the asset carries:
+    the spread error, the 10-90% widths fitted and measured, the light in the shadow."""
+    asset = demo_run[0] / "asset" / "asset.usda"
+    assert main(["inspect", str(asset), "--prim", "/Face/Looks/Profiles/cheek"]) == 0
+    out = capsys.readouterr().out
+    assert "shadow edge: spread error R=" in out
+    widths = out.split("10-90% edge width mm (fit/measured): ")[1].splitlines()[0].split()
+    for item in widths:  # R=4.06/4.06 ...
+        fitted, measured = (float(x) for x in item.split("=")[1].split("/"))
+        assert abs(fitted / measured - 1) < 0.05, out
+    assert "light in the shadow (fit/measured): R=" in out

@@ -140,6 +140,9 @@ def test_report_cli_fit_writes_the_page(tmp_path: Path, capsys) -> None:
     assert main(["report", "fit", str(csv), "--k", "2:3", "-o", str(out)]) == 0
     text = (out / "report.md").read_text()
     assert "## Fit" in text and "fit_tradeoff.png" in text
+    assert "| eq. 2c | edge | width | shadow light |" in text
+    rows = json.loads((out / "fit_tradeoff.json").read_text())["rows"]
+    assert all(len(r["edge_error"]) == 3 and len(r["shadow_light_ratio"]) == 3 for r in rows)
     assert "ga+ipopt, k = 6" in text  # default not measured: the page says so
     assert "not among the measured rows" in text
     assert main(["report", "render", "-o", str(out)]) == 2  # no scene given
