@@ -116,7 +116,7 @@ class SkinTextures:
         triangle = self.maps.triangle
         out = np.empty(filled.shape, np.float32)
 
-        def band(rows: slice) -> None:  # in bands on the cores: 0.30 -> 0.14 s at 4096
+        def band(rows: slice) -> None:  # in bands on the cores: half the time
             np.copyto(out[rows], np.where((triangle[rows] >= 0)[..., None], filled[rows],
                                           np.float32(0.0)))
 

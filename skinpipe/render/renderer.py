@@ -252,12 +252,10 @@ class Renderer:
                    rays: RayScene, dome_textures: dict[str, NDArray[np.float32]],
                    release: _BothArrived | None = None,
                    after_rays: Callable[[], None] | None = None) -> None:
-        """``tex``'s irradiance and visibility maps. In a render's last frame
-        (``release``) the position and normal maps go once the texels' rows are taken
-        and the seam layout beside needs them no more (:meth:`_release_maps`): 0.4 GB
-        at texture 4096 that the rays' peak held; the filter reads a normal map made
-        again from the rows (:func:`normal_map`). ``after_rays`` is called once the
-        shadow rays are cast (not at all where the maps come from the cache)."""
+        """``tex``'s irradiance and visibility maps. In a last frame (``release``) the
+        position and normal maps go once the rows are taken and the seam layout needs
+        them no more (0.4 GB at texture 4096); the filter makes a normal map again from
+        the rows. ``after_rays``: called once the shadow rays are cast."""
         opts = self.options
         maps = tex.maps
         covered = maps.triangle >= 0
@@ -276,10 +274,7 @@ class Renderer:
             if release is not None:
                 maps = maps.without_surface(*self._keeps())
                 release.arrive("irradiance")
-            boundary = SkinBoundary.from_albedo(mean_albedo(tex.mesh, scene.working_colorspace),
-                                                opts.ior)
-            log.measures["boundary"] = {"ior": boundary.eta,
-                                        "reduced_albedo": list(boundary.reduced_albedo)}
+            boundary = _skin_boundary(log, scene, tex, opts.ior)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, boundary,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
@@ -314,45 +309,24 @@ class Renderer:
             # the per-light sums go before the planes and their push-pull (0.3 GB at
             # texture 4096)
             del interleave, res
-            # one push-pull fills the irradiance and the visibility the specular lobe
-            # looks up (dome lights light it unshadowed: theirs is not needed)
-            kinds = {lt.path: lt.kind for lt in scene.lights}
-            spec = [p for p in visibility if kinds.get(p) != "dome"]
-            planes = np.zeros((*covered.shape, 3 + len(spec)), np.float32)
-            flat = planes.reshape(-1, planes.shape[-1])
-            columns = [visibility[path] for path in spec]
-
-            def scatter(rows: slice) -> None:  # on the cores: 0.3 s of one -> 0.12 of two
-                at = texel[rows]
-                flat[at, :3] = entering[rows]  # by flat index: a strided mask's took 5x
-                for i, column in enumerate(columns):
-                    flat[at, 3 + i] = column[rows]
-
-            in_bands(scatter, texel.size)
-            pulled = push_pull(planes, maps.coverage, in_place=True)
-            gutter.result()
-            filled = dilate_charts(pulled, maps.coverage)
-            vis = {path: filled[..., 3 + i] for i, path in enumerate(spec)}
+            filled, vis = _filled_planes(scene, maps, covered, texel, entering, visibility,
+                                         gutter)
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB);
             # the irradiance itself is the filled one on the charts (SkinTextures)
             return filled[..., :3], vis, notes
 
         filled, vis, (skipped, rays_cast, seconds, penumbra) = self._cached(
             log, "irradiance", key, compute)
-        if opts.interleave_period and period != opts.interleave_period and \
-                opts.shadow_sampling != "full":
-            skipped = [*skipped, f"interleave period {opts.interleave_period}: "
-                       f"{opts.light_samples} light samples cannot give each of its "
-                       f"{opts.interleave_period ** 2} classes one; period {period}"]
+        skipped = [*skipped, *_period_notes(opts, period)]
         tex.irradiance_filled, tex.visibility = filled, vis
         log.skipped += [s for s in skipped if s not in log.skipped]
-        log.measures["irradiance"] = {"rays": rays_cast, "seconds": seconds,
-                                      "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
-                                      "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
-                                      "penumbra_texels": penumbra,
-                                      "interleave_period": period if opts.shadow_sampling
-                                      != "full" else None,
-                                      "texels_per_pixel": round(tex.texels_per_pixel, 3)}
+        log.measures["irradiance"] = {
+            "rays": rays_cast, "seconds": seconds,
+            "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
+            "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
+            "penumbra_texels": penumbra,
+            "interleave_period": period if opts.shadow_sampling != "full" else None,
+            "texels_per_pixel": round(tex.texels_per_pixel, 3)}
 
     @staticmethod
     def _hit_uvs(scene: SceneData, tex: SkinTextures, cam: CameraHits,
@@ -471,9 +445,8 @@ class Renderer:
         """The diffusion layout's task for a recursive blur, started on a thread to run
         beside the irradiance (None for other blurs): it reads only the texture maps and
         the ray scene, and each leaves the cores idle part of the time (single-threaded
-        numpy steps, waits for the device) that the other fills. The demo scene's render,
-        old and new in turns: texture 2048 19.5-20.8 -> 18.6-19.0 s, 4096 61.9-69.2 ->
-        53.4-61.7 s (peak RSS 6.40-6.56 -> 6.48-7.03 GB); 1024 unchanged.
+        numpy steps, waits for the device) that the other fills: 5-14% of the demo
+        scene's render at texture 2048 and 4096.
 
         The layout depends on the UV layout and the geometry only: it is made once for
         every frame, light and set of terms (a task of its own, cached); the charts'
@@ -893,6 +866,50 @@ class Renderer:
         out["diffuse"][sel] = albedo * e / math.pi
         out["albedo"][sel] = albedo
         out["irradiance"][sel] = e
+
+
+def _skin_boundary(log: TaskLog, scene: SceneData, tex: SkinTextures,
+                   ior: float) -> SkinBoundary:
+    """The skin's dielectric boundary for its mean albedo, recorded in the log."""
+    boundary = SkinBoundary.from_albedo(mean_albedo(tex.mesh, scene.working_colorspace), ior)
+    log.measures["boundary"] = {"ior": boundary.eta,
+                                "reduced_albedo": list(boundary.reduced_albedo)}
+    return boundary
+
+
+def _period_notes(opts: RenderOptions, period: int) -> list[str]:
+    """Why the interleaving period asked for was not used, if it was not."""
+    if opts.interleave_period and period != opts.interleave_period and \
+            opts.shadow_sampling != "full":
+        return [f"interleave period {opts.interleave_period}: {opts.light_samples} light "
+                f"samples cannot give each of its {opts.interleave_period ** 2} classes "
+                f"one; period {period}"]
+    return []
+
+
+def _filled_planes(scene: SceneData, maps: Any, covered: NDArray[Any], texel: NDArray[Any],
+                   entering: NDArray[Any], visibility: dict[str, NDArray[Any]],
+                   gutter: Any) -> tuple[NDArray[np.float32], dict[str, NDArray[Any]]]:
+    """The irradiance and the visibility the specular lobe looks up, from the covered
+    texels' rows to full maps by one push-pull and the charts' dilation (dome lights
+    light the lobe unshadowed: theirs is not needed)."""
+    kinds = {lt.path: lt.kind for lt in scene.lights}
+    spec = [p for p in visibility if kinds.get(p) != "dome"]
+    planes = np.zeros((*covered.shape, 3 + len(spec)), np.float32)
+    flat = planes.reshape(-1, planes.shape[-1])
+    columns = [visibility[path] for path in spec]
+
+    def scatter(rows: slice) -> None:  # in bands on the cores: a third of the time
+        at = texel[rows]
+        flat[at, :3] = entering[rows]  # by flat index: a strided mask's took 5x
+        for i, column in enumerate(columns):
+            flat[at, 3 + i] = column[rows]
+
+    in_bands(scatter, texel.size)
+    pulled = push_pull(planes, maps.coverage, in_place=True)
+    gutter.result()
+    filled = dilate_charts(pulled, maps.coverage)
+    return filled, {path: filled[..., 3 + i] for i, path in enumerate(spec)}
 
 
 def scene_geometry_key(scene: SceneData) -> str:

@@ -20,8 +20,8 @@ from .huge_pages import huge_pages_choice
 STREAM_MIN_BYTES = 16 << 20
 """Blurs of images this large write their output with streaming (non-temporal) stores:
 a normal store first reads the line it writes, so a texture that will not stay in the
-cache anyway is read twice (measured at 2048^2 RGBA float32, 64 MiB: the one-sigma
-recursive blur 45-47 -> 34-36 ms, the direct blur at sigma 1 17 -> 10 ms). Smaller
+cache anyway is read twice (at 2048^2 RGBA float32, 64 MiB, a quarter to 40% of a
+blur's time). Smaller
 images are left in the cache for the kernel that reads them next."""
 
 

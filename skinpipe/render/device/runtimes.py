@@ -16,9 +16,8 @@ The folder is written at the first platform query (:func:`register_vendors`, cal
 :func:`~.opencl.candidates`), not at import: Intel's runtime is loaded only where it may
 be used. Once PoCL has passed skinpipe's probe on this CPU (a record in the cache folder,
 :func:`pocl_passed_here`), a render asking for ``auto``, ``cpu``, ``gpu`` or PoCL leaves
-it out: loaded, its library and LLVM are 85 MiB of the process's memory (a texture 4096
-render's peak 1826-1864 -> 1769-1776 MiB) and 25 ms of its start, for a device that
-PoCL ranks ahead of.
+it out: loaded, its library and LLVM are 85 MiB of the process's memory and 25 ms of its
+start, for a device that PoCL ranks ahead of.
 
 Intel's runtime needs a TBB newer than the one pymeshlab ships (2021.5): whichever
 ``libtbb.so.12`` is loaded first serves the process, and with pymeshlab's the runtime

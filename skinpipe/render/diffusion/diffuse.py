@@ -240,9 +240,51 @@ def diffuse_prepared(
     iir = layout.iir
     queue = iir.queue
 
-    # one job per distinct (variance, level): equal variances share a blur, and their
-    # weights add (accumulation is linear in them); sub-texel terms share the unblurred
-    # irradiance (variance 0)
+    jobs, job_weights = _blur_jobs(layout, v, tw, used, stats)
+    # each level's tile atlas, its margin as wide as its widest blur reaches, filled
+    # with this irradiance (host memory, read in place on a CPU device)
+    grids = {k: layout.grid(k, margin)
+             for k, margin in sorted(layout.level_margins(v[used]).items())}
+    e_buf = host_buffer(e)
+    stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
+    nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
+    tmp = layout.buffer("tmp", nbytes)
+    # one level's atlas at a time, filled before its first job: the jobs come level by
+    # level (a wider term never on a finer level), and the in-order queue fills the
+    # next level only after this one's blurs (every level's at once held 0.47 GB at
+    # texture 4096, one 0.32 GB)
+    source_buf = layout.buffer("source", nbytes)
+    sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
+             for var, k in jobs]
+    batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
+                                       max(TERM_BUFFER_MAX_BYTES, nbytes)))
+    tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
+    tw4[..., :3] = np.stack(job_weights)
+    mf = cl.mem_flags
+    tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
+    levels = sorted(grids)
+    shift = np.concatenate([grids[k].tiles.shift for k in levels] or
+                           [np.zeros((1, 2), np.float32)]).astype(np.float32)
+    shift_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shift)
+    shift_at = {k: n * layout.charts.n_charts for n, k in enumerate(levels)}
+    into = _alone_into(layout, grids, jobs, batches)
+    terms, terms_at = _term_buffer(layout, grids, jobs, batches, into, tmp, nbytes)
+    out = np.empty((h, w, 3), np.float32)
+    out_buf = host_output(out)  # every batch adds its terms there
+    blurred_texels = _blur_and_add(layout, grids, jobs, batches, into, terms, terms_at,
+                                   e_buf, tmp, source_buf, shift_at, tw_buf, shift_buf,
+                                   out_buf, stats)
+    read_output(queue, out_buf, out)
+    stats.full_blurs = blurred_texels / (h * w)
+    return out, stats
+
+
+def _blur_jobs(layout: DiffusionLayout, v: NDArray[Any], tw: NDArray[Any],
+               used: NDArray[Any], stats: BlurStats
+               ) -> tuple[list[tuple[float, int]], list[NDArray[np.float32]]]:
+    """One job per distinct (variance, level) and its weights: equal variances share a
+    blur, and their weights add (accumulation is linear in them); sub-texel terms share
+    the unblurred irradiance (variance 0)."""
     jobs: list[tuple[float, int]] = []
     job_weights: list[NDArray[np.float32]] = []
     for i in range(v.size):
@@ -261,39 +303,20 @@ def diffuse_prepared(
         else:
             jobs.append(job)
             job_weights.append(tw[:, i].copy())
-    # each level's tile atlas, its margin as wide as its widest blur reaches, filled
-    # with this irradiance (host memory, read in place on a CPU device)
-    grids = {k: layout.grid(k, margin)
-             for k, margin in sorted(layout.level_margins(v[used]).items())}
-    e_buf = host_buffer(e)
-    stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
-    nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
-    tmp = layout.buffer("tmp", nbytes)
-    # one level's atlas at a time, filled before its first job: the jobs come level by
-    # level (a wider term never on a finer level), and the in-order queue fills the
-    # next level only after this one's blurs (every level's at once held 0.47 GB at
-    # texture 4096, one 0.32 GB)
-    source_buf = layout.buffer("source", nbytes)
-    source, source_level = None, -1
-    sizes = [0 if var == 0.0 else grids[k].shape[0] * grids[k].shape[1] * 16
-             for var, k in jobs]
-    batches = _term_batches(sizes, min(TERM_BUFFER_TEXTURES * max(nbytes, h * w * 16),
-                                       max(TERM_BUFFER_MAX_BYTES, nbytes)))
-    kernels = pyramid_kernels(layout.n_regions, layout.by_triangle)
-    tw4 = np.zeros((len(jobs), tw.shape[0], 4), np.float32)
-    tw4[..., :3] = np.stack(job_weights)
-    mf = cl.mem_flags
-    tw_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tw4)
-    levels = sorted(grids)
-    shift = np.concatenate([grids[k].tiles.shift for k in levels] or
-                           [np.zeros((1, 2), np.float32)]).astype(np.float32)
-    shift_buf = cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=shift)
-    shift_at = {k: n * layout.charts.n_charts for n, k in enumerate(levels)}
-    into = _alone_into(layout, grids, jobs, batches)
-    terms, terms_at = _term_buffer(layout, grids, jobs, batches, into, tmp, nbytes)
-    out = np.empty((h, w, 3), np.float32)
-    out_buf = host_output(out)  # every batch adds its terms there
+    return jobs, job_weights
 
+
+def _blur_and_add(layout: DiffusionLayout, grids: dict[int, Any], jobs: list[tuple[float, int]],
+                  batches: list[dict[int, tuple[int, int]]], into: dict[int, str], terms: Any,
+                  terms_at: int, e_buf: Any, tmp: Any, source_buf: Any,
+                  shift_at: dict[int, int], tw_buf: Any, shift_buf: Any, out_buf: Any,
+                  stats: BlurStats) -> float:
+    """Blur every batch's jobs (filling each level's atlas before its first) and add the
+    batch's terms into ``out_buf``; the texels blurred, for the stats."""
+    h, w = layout.height, layout.width
+    queue, ctx, mf = layout.iir.queue, layout.iir.ctx, cl.mem_flags
+    kernels = pyramid_kernels(layout.n_regions, layout.by_triangle)
+    source, source_level = None, -1
     blurred_texels = 0.0
     for b, batch in enumerate(batches):
         table = np.zeros((len(batch), 6), np.int32)
@@ -320,9 +343,7 @@ def diffuse_prepared(
             blurred_texels += lh * lw
         kernels["accumulate_terms"](
             queue, (w, h), None, batch_terms, e_buf,
-            cl.Buffer(iir.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
+            cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=table.reshape(-1)),
             out_buf, layout.cover_buf, *layout.region_args, tw_buf, layout.chart_buf, shift_buf,
             np.int32(w), np.int32(h), np.int32(len(batch)), np.int32(b > 0))
-    read_output(queue, out_buf, out)
-    stats.full_blurs = blurred_texels / (h * w)
-    return out, stats
+    return blurred_texels

@@ -530,8 +530,8 @@ class DiffusionLayout:
                                f"tiles (levels, margins {wanted}) can be made")
         if wanted:
             # two levels at once: each level's single-threaded parts (splats, distance
-            # transforms, read taps) run beside the other's ray casts (the layout alone
-            # at texture 2048: 13.6 -> 10.3 s; the render's peak RSS 2.56 -> 2.80 GB)
+            # transforms, read taps) run beside the other's ray casts (a quarter off the
+            # layout's time, for 0.24 GB more peak memory at texture 2048)
             c = self.charts
             boxes = chart_boxes(c.chart, c.n_charts)
 

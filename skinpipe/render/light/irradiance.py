@@ -287,6 +287,18 @@ def ray_origins(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np.float
     return out
 
 
+def _in_morton_order(pos: NDArray[Any], nrm: NDArray[Any], classes: NDArray[Any] | None
+                     ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any] | None, NDArray[Any]]:
+    """Points, normals and classes along a Morton curve, and the order back. Rows are
+    gathered by np.take (fancy indexing of (N, 3) rows takes 5x as long) and put back by
+    the inverse order's take, not a scatter."""
+    order = morton_order(pos)
+    back_order = np.empty_like(order)
+    back_order[order] = np.arange(order.size)
+    return (np.take(pos, order, axis=0), np.take(nrm, order, axis=0),
+            None if classes is None else classes[order], back_order)
+
+
 def irradiance_texture(
     positions: NDArray[Any], normals: NDArray[Any], lights: list[Light], rays: RayScene,
     samples: int = 16, boundary: SkinBoundary | None = None,
@@ -318,14 +330,7 @@ def irradiance_texture(
     classes = None if interleave is None else np.asarray(interleave)
     back_order = None
     if not coherent:
-        order = morton_order(pos)
-        # rows gathered by np.take (fancy indexing of (N, 3) rows took 5x as long: 19
-        # ms against 4 at texture 1024), and back by the inverse order's take, not a
-        # scatter
-        pos, nrm = np.take(pos, order, axis=0), np.take(nrm, order, axis=0)
-        back_order = np.empty_like(order)
-        back_order[order] = np.arange(order.size)
-        classes = None if classes is None else classes[order]
+        pos, nrm, classes, back_order = _in_morton_order(pos, nrm, classes)
 
     def back(a: NDArray[Any]) -> NDArray[Any]:
         """``a`` (per sorted point) in the points' own order."""
@@ -544,6 +549,15 @@ def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
     return out.view(np.bool_)
 
 
+def _penumbra(result: IrradianceResult, path: str, shape: tuple[int, int],
+              texel32: NDArray[Any], period: int) -> NDArray[np.int64]:
+    """The points (indices of ``result``'s) in a light's penumbra after the interleaved
+    pass (:func:`penumbra_at`)."""
+    vis1, traced = np.zeros(shape, np.float32), np.zeros(shape, bool)
+    light_planes(result.visibility[path], result.carries_light(path), texel32, vis1, traced)
+    return np.flatnonzero(penumbra_at(vis1, traced, texel32, period))
+
+
 def refine_penumbrae(
     result: IrradianceResult, covered: NDArray[np.bool_], positions: NDArray[Any],
     normals: NDArray[Any], interleave: NDArray[Any], lights: list[Light], rays: RayScene,
@@ -558,9 +572,8 @@ def refine_penumbrae(
     order), the texels of :func:`penumbra_texels` trace the other classes' strata (the
     same strata: :func:`light_rng`), so that their visibility is their own estimate from
     all ``samples``. Every other texel's neighbourhood agreed, so the interleaved
-    reconstruction there is its own value: nothing is filtered. The error target is
-    full sampling's (each texel's visibility from all ``samples`` strata) at a fraction
-    of its rays (cast as :func:`irradiance_texture` casts them, ``coherent`` or not).
+    reconstruction there is its own value. The error target is full sampling's at a
+    fraction of its rays (cast as :func:`irradiance_texture` casts them).
     Returns the result (visibility final, ``interleaved`` empty) and the refined points
     (indices into ``positions``) per light."""
     start = time.perf_counter()
@@ -579,19 +592,16 @@ def refine_penumbrae(
     samplers: list[LightSampler] = []
     cast_at: dict[str, NDArray[np.int64]] = {}
     for light in lights:
-        path = light.path
-        if path not in result.interleaved:
+        if light.path not in result.interleaved:
             continue
-        vis1, traced = np.zeros(covered.shape, np.float32), np.zeros(covered.shape, bool)
-        light_planes(result.visibility[path], result.carries_light(path), texel32, vis1,
-                     traced)
-        where = refined[path] = np.flatnonzero(penumbra_at(vis1, traced, texel32, period))
+        where = refined[light.path] = _penumbra(result, light.path, covered.shape, texel32,
+                                                period)
         if not where.size:
             continue
         # each point's result does not depend on the order: the rays go along a
         # Morton curve of the points unless they are coherent already
-        at = cast_at[path] = where if coherent else where[morton_order(pos[where])]
-        nrm_at = np.take(nrm, at, axis=0)  # fancy indexing of (N, 3) rows took 5x as long
+        at = cast_at[light.path] = where if coherent else where[morton_order(pos[where])]
+        nrm_at = np.take(nrm, at, axis=0)  # fancy indexing of (N, 3) rows: 5x as long
         # each penumbra texel the strata of the interleaved classes it has not traced
         # (the other p^2 - 1 shares of them, once each)
         samplers.append(LightSampler(light, ray_origins(np.take(pos, at, axis=0), nrm_at),

@@ -6,7 +6,7 @@ and shadow rays then leak light; every mesh is validated before it enters the sc
 chunks on a few threads. Callers cast them in a coherent order, origins along a Morton
 curve (:func:`morton_order`) or a texture's texels block by block
 (:func:`~.texture_maps.texels_in_blocks`): neighbouring rays share BVH nodes in cache
-(measured on the face scan: 1.7 -> 7.7 Mrays/s).
+(4.5x the rays a second of a random order on the face scan).
 """
 
 from __future__ import annotations

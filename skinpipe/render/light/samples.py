@@ -140,10 +140,9 @@ def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
     (``qmc.Sobol(2, scramble=True, seed=rng).random(m)``: linear matrix scrambling and a
     digital shift, Matousek 1998), ``rng`` left in the state scipy leaves it in. Kept in
     skinpipe's cache folder by scipy's version, ``m`` and ``rng``'s state: importing
-    scipy.stats for them took 0.6-0.9 s of CPU with the GIL held in every render, on the
-    prewarm's thread beside the texture maps (0.76 -> 0.48 s at texture 4096 without
-    it). A kept file that does not read back is made again; one that cannot be written
-    is not kept."""
+    scipy.stats for them takes 0.6-0.9 s of CPU with the GIL held, which slowed the
+    texture maps beside it by half again. A kept file that does not read back is made
+    again; one that cannot be written is not kept."""
     import scipy
 
     def read(doc: dict[str, Any]) -> NDArray[np.float64]:
@@ -382,9 +381,8 @@ class LightSampler:
 
         if "origin" not in points:
             # the arrays themselves on a CPU device (the callers keep them, unchanged,
-            # until the samplers close), not copies. With the classes: the two samplers of
-            # the demo scene at texture 4096 0.41-0.50 -> 0.17-0.24 s, the irradiance
-            # task's peak memory 0.16 GB lower
+            # until the samplers close), not copies: half the samplers' time and 0.16 GB
+            # of the irradiance task's peak at texture 4096
             points.update(origin=host_buffer(np.asarray(self.origins, np.float32)),
                           normal=host_buffer(np.asarray(self.normals, np.float32)))
         if self.classes is not None and "classes" not in points:

@@ -31,7 +31,7 @@ def resample_bilinear(image: NDArray[Any], size: int) -> NDArray[np.float32]:
     y0, fy = _axis_weights(h, size)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     # np.take and products in place: the same sums as fancy indexing and new arrays,
-    # 3x faster (a 1024 albedo to texture 4096: 1.1-1.3 -> 0.34-0.38 s)
+    # 3x faster
     rows = np.take(img, x0, axis=1)
     rows *= (1 - fx)[None, :, None]
     right = np.take(img, x1, axis=1)
