@@ -37,7 +37,6 @@ from .schema import (
     REGION_INDEX_PRIMVAR,
     REGION_WEIGHTS_PRIMVAR,
     REGIONS_API,
-    SHADOW_ONLY_PRIMVARS,
     SUBSET_FAMILY,
     WORKING_COLORSPACE,
     require_schema,
@@ -257,18 +256,19 @@ def _extents_hint(meshes: Sequence[MeshData], origin: NDArray[Any]) -> Any:
     return Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)]))
 
 
+SEAL_GREY = 0.18
+"""The seal's colour (linear, a neutral mid grey): it shows where the scan is open."""
+
+
 def _author_seal(stage: Any, path: str, seal: MeshData, origin: NDArray[Any]) -> None:
+    # Seen by the camera: hidden, it let the background show through the scan's cracks
+    # (along the demo face's jaws and ear); shown, the cracks read as a neutral surface.
     umesh = _define_mesh(stage, path, seal, origin)
-    umesh.CreateDisplayColorAttr([Gf.Vec3f(0.2, 0.2, 0.2)])
-    primvars = UsdGeom.PrimvarsAPI(umesh)
-    for name, (type_name, value) in SHADOW_ONLY_PRIMVARS.items():
-        primvars.CreatePrimvar(name, getattr(Sdf.ValueTypeNames, type_name),
-                               UsdGeom.Tokens.constant).Set(value)
+    umesh.CreateDisplayColorAttr([Gf.Vec3f(SEAL_GREY, SEAL_GREY, SEAL_GREY)])
     umesh.GetPrim().SetDocumentation(
         "Closes the scan's open rim (surface the scanner never saw) so that no light "
-        "passes through the face; it casts shadows but is hidden from camera rays "
-        "(primvars:skinpipe:cameraVisibility and the RenderMan, Arnold and Karma "
-        "equivalents); not skin, no texture space.")
+        "passes through the face and no camera sees through its cracks: a neutral grey "
+        "surface, not skin, no texture space.")
 
 
 def author_asset(
