@@ -602,3 +602,22 @@ def test_demo_never_writes_over_a_users_file_in_its_output(
         ws: Path, demo_run: tuple[Path, str, str]) -> None:
     written = json.loads((demo_run[0] / ".skinpipe-outputs.json").read_text())["files"]
     _users_files_survive(ws, ["demo"], sorted(written))
+
+
+def test_a_clean_error_is_never_followed_by_a_crash(ws: Path) -> None:
+    """An albedo the render refuses (16 channels) ends in exit 2 and one line every
+    time: threads and native workers are done before the process ends ("terminate
+    called without an active exception" had turned 2 of 5 runs into exit 134)."""
+    import OpenImageIO as oiio
+
+    assert skinpipe(ws, "paint-albedo", "asset/asset.usda", "--size", "64").returncode == 0
+    texture = ws / "asset" / "albedo.exr"
+    out = oiio.ImageOutput.create(str(texture))
+    assert out.open(str(texture), oiio.ImageSpec(64, 64, 16, oiio.FLOAT))
+    out.write_image(np.ones((64, 64, 16), np.float32))
+    out.close()
+    before, dirs = _snapshot(ws), _dirs(ws)
+    for _ in range(4):
+        proc = skinpipe(ws, "render", "scene.usda", "-o", "out", "--resolution", "32x32")
+        assert "terminate called" not in proc.stderr
+        assert_refused(ws, proc, "albedo.exr", "16 channels", before=before, dirs=dirs)
