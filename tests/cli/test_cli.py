@@ -164,6 +164,17 @@ def test_the_demo_head_has_no_holes(demo_run: tuple[Path, str, str]) -> None:
     assert int((outline & (alpha < 0.01)).sum()) == 0
 
 
+def test_the_demo_has_no_negative_light(demo_run: tuple[Path, str, str]) -> None:
+    """No AOV of the demo render holds light below zero (the recursive blur's ringing
+    left the diffuse at -1.4e-4 on unlit skin)."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(demo_run[0] / "render" / "Face.exr"))
+    pixels = np.asarray(buf.get_pixels(oiio.FLOAT))
+    lowest = pixels.reshape(-1, pixels.shape[-1]).min(axis=0)
+    assert float(lowest.min()) >= 0.0, dict(zip(buf.spec().channelnames, lowest, strict=True))
+
+
 def test_ingest_then_fit_through_the_cli(tmp_path: Path) -> None:
     captures = Path(__file__).parents[2] / "skinpipe" / "samples" / "captures"
     assert main(["ingest", str(captures), "--regions", "cheek", "-o", str(tmp_path)]) == 0
