@@ -235,11 +235,14 @@ class StagedOutput:
         return relocate_paths(doc, str(self.path), str(self.target))
 
 
+def _host_tag() -> str:
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
+
+
 def _stage_prefix(target: Path) -> str:
     """A stage's name says which host and process made it, so that a later run can tell
     one a killed process left (and only such one) from one still being written."""
-    host = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
-    return f".{target.name}.tmp-{host}-{os.getpid()}-"
+    return f".{target.name}.tmp-{_host_tag()}-{os.getpid()}-"
 
 
 def remove_abandoned_stages(target: Path) -> list[Path]:
@@ -248,7 +251,7 @@ def remove_abandoned_stages(target: Path) -> list[Path]:
     running. Stages of other hosts (a farm's shared folder) and of live processes stay."""
     pattern = re.compile(re.escape(f".{target.name}.tmp-") + r"(?P<host>[A-Za-z0-9_-]+)-"
                          r"(?P<pid>\d+)-[A-Za-z0-9_]+$")
-    host = _stage_prefix(target).split(".tmp-", 1)[1].rsplit("-", 2)[0]
+    host = _host_tag()
     removed = []
     for path in target.parent.iterdir() if target.parent.is_dir() else []:
         match = pattern.match(path.name)

@@ -33,9 +33,9 @@ def install() -> Any:
     previous = signal.getsignal(signal.SIGINT)
     if previous is signal.default_int_handler:
         signal.signal(signal.SIGINT, _on_sigint)
-        # Restart interrupted system calls (SA_RESTART): a native compiler or reader on
-        # any thread otherwise fails its read. Python's own waits still wake for the
-        # handler (PEP 475; sem_wait and select are never restarted).
+        # Restart interrupted system calls (SA_RESTART) in native code on every thread
+        # (a compiler's reads); Python's own waits still wake for the handler (PEP 475;
+        # sem_wait and select are never restarted).
         signal.siginterrupt(signal.SIGINT, False)
     return previous
 
@@ -53,14 +53,6 @@ def ignore() -> None:
     code says what it did."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def block_in_this_thread() -> None:
-    """Keep SIGINT off the calling (non-main) thread: the kernel may deliver a signal to
-    any thread, and a native compiler working there (PoCL's clang) would see its system
-    calls interrupted. The main thread still gets it and raises KeyboardInterrupt."""
-    if threading.current_thread() is not threading.main_thread():
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
 
 
 def raise_if_interrupted() -> None:

@@ -84,6 +84,36 @@ def top_camera(stage: Any, height: float = 100.0, aperture: float = 45.0) -> Non
     UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, height))
 
 
+def ortho_camera_down(stage: Any, width_mm: float, height_mm: float,
+                      z: float = 100.0) -> Any:
+    """An orthographic camera at height ``z`` looking down -Z over ``width_mm`` x
+    ``height_mm`` (apertures in USD's tenths of a scene unit)."""
+    from pxr import Gf, UsdGeom
+
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
+    cam.CreateHorizontalApertureAttr(10.0 * width_mm)
+    cam.CreateVerticalApertureAttr(10.0 * height_mm)
+    UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, z))
+    return cam
+
+
+def hidden_blocker(stage: Any, corners: list[tuple[float, float]], z: float = 10.0) -> Any:
+    """A quad over ``corners`` (x, y) at height ``z`` that casts shadows and that the
+    camera does not see."""
+    from pxr import Gf, Sdf, UsdGeom
+
+    from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
+
+    blocker = UsdGeom.Mesh.Define(stage, "/Blocker")
+    blocker.CreatePointsAttr([Gf.Vec3f(float(x), float(y), z) for x, y in corners])
+    blocker.CreateFaceVertexCountsAttr([4])
+    blocker.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    UsdGeom.PrimvarsAPI(blocker).CreatePrimvar(
+        CAMERA_VISIBILITY_PRIMVAR, Sdf.ValueTypeNames.Bool, UsdGeom.Tokens.constant).Set(False)
+    return blocker
+
+
 def distant_down(stage: Any, path: str = "/Sun", intensity: float = 1.0,
                  angle: float = 0.0) -> Any:
     from pxr import UsdLux

@@ -41,6 +41,8 @@ from ..profile.models import (
     disk_flux,
     disk_radius_mm,
     fit_error_eq2c,
+    ring_areas_mm2,
+    ring_edges_mm,
     sum_of_gaussians,
 )
 from ..profile.reference_data import (
@@ -116,9 +118,8 @@ class RegionTruth:
                                  "more and ring values must not be negative")
 
     def _ring_edges_mm(self) -> NDArray[np.float64]:
-        r = np.asarray(self.ring_radius_mm, dtype=np.float64)
-        mid = 0.5 * (r[1:] + r[:-1])
-        return np.concatenate([[0.0], mid, [r[-1] + (r[-1] - mid[-1])]])
+        """Every ring's edges, 0 first (as :func:`ring_edges_mm` reads ring samples)."""
+        return np.concatenate([[0.0], ring_edges_mm(self.ring_radius_mm)])
 
     def _rings_rec709(self) -> NDArray[np.float64]:
         return np.asarray(self.ring_values, np.float64) @ colorspace_matrix(
@@ -208,8 +209,7 @@ class RegionTruth:
         if self.kind == "gaussians":
             return np.asarray(self.albedo, dtype=np.float64)
         if self.kind == "rings":
-            area = np.pi * np.diff(self._ring_edges_mm() ** 2)
-            return area @ self._rings_rec709()
+            return ring_areas_mm2(self.ring_radius_mm) @ self._rings_rec709()
         assert self.coefficients is not None
         return dipole_total_reflectance(self.coefficients)
 

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import erfc
 
-from .models import disk_radius_mm
+from .models import ring_edges_mm
 
 FloatArray = NDArray[np.float64]
 
@@ -45,14 +45,6 @@ def disc_share_below(radius_mm: ArrayLike, t_mm: ArrayLike) -> FloatArray:
     # t clipped to the disc first: t / R may not overflow where R is (next to) zero
     c = np.clip(t, -r, r) / np.maximum(r, 1e-300)
     return r**2 * (math.pi - np.arccos(c)) + np.clip(t, -r, r) * r * np.sqrt(1.0 - c**2)
-
-
-def ring_edges_mm(radius_mm: ArrayLike) -> FloatArray:
-    """The outer edge of each sample's ring (edges midway between samples)."""
-    r = np.asarray(radius_mm, dtype=np.float64)
-    if r.size == 1:
-        return np.array([disk_radius_mm(np.array([0.0, r[0]]))])
-    return np.concatenate([0.5 * (r[1:] + r[:-1]), [disk_radius_mm(r)]])
 
 
 def spread_beyond_rings(radius_mm: ArrayLike, values: ArrayLike, t_mm: ArrayLike,

@@ -37,8 +37,8 @@ from numpy.typing import ArrayLike
 
 from ..errors import FitError, InputError
 from ..interrupts import raise_if_interrupted
-from .edge import edge_report, ring_edges_mm
-from .models import fit_error_eq2c, ring_areas_mm2, ring_widths_mm
+from .edge import edge_report
+from .models import fit_error_eq2c, ring_areas_mm2, ring_edges_mm, ring_widths_mm
 from .types import CHANNELS, FitResult, FloatArray, MeasuredProfile
 
 Share = Literal["channels", "none", "profiles"]

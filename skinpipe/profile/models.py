@@ -62,12 +62,19 @@ def disk_radius_mm(radius_mm: ArrayLike) -> float:
     return float(r[-1] + 0.5 * (r[-1] - r[-2]))
 
 
-def ring_areas_mm2(radius_mm: ArrayLike) -> FloatArray:
-    """The area of the ring each sample stands for: edges midway between samples, from
-    0 to :func:`disk_radius_mm` (their sum is the measured disk)."""
+def ring_edges_mm(radius_mm: ArrayLike) -> FloatArray:
+    """The outer edge of each sample's ring (edges midway between samples, the last
+    :func:`disk_radius_mm`)."""
     r = np.asarray(radius_mm, dtype=np.float64)
-    edges = np.concatenate([[0.0], 0.5 * (r[1:] + r[:-1]), [disk_radius_mm(r)]])
-    return np.pi * np.diff(edges**2)
+    if r.size == 1:
+        return np.array([disk_radius_mm(np.array([0.0, r[0]]))])
+    return np.concatenate([0.5 * (r[1:] + r[:-1]), [disk_radius_mm(r)]])
+
+
+def ring_areas_mm2(radius_mm: ArrayLike) -> FloatArray:
+    """The area of the ring each sample stands for, from 0 to :func:`disk_radius_mm`
+    (:func:`ring_edges_mm`; their sum is the measured disk)."""
+    return np.pi * np.diff(np.concatenate([[0.0], ring_edges_mm(radius_mm)]) ** 2)
 
 
 def disk_flux(radius_mm: ArrayLike, values: ArrayLike) -> FloatArray:

@@ -9,7 +9,9 @@ more from 512^2 to 2048^2 pixels), over 0.5 GB for the interpreter and its libra
 
 from __future__ import annotations
 
+import contextlib
 import os
+from pathlib import Path
 
 from ..errors import InputError
 
@@ -26,22 +28,17 @@ def render_bytes(texture_size: int, resolution: tuple[int, int]) -> int:
 
 def available_bytes() -> int | None:
     """Memory the kernel says a new allocation can get without swapping (MemAvailable),
-    bounded by a cgroup limit where one is set; None where neither can be read."""
+    bounded by a cgroup v2 limit where one is set; None where neither can be read."""
     figures = []
-    try:
-        with open("/proc/meminfo") as handle:
-            for line in handle:
-                if line.startswith("MemAvailable:"):
-                    figures.append(int(line.split()[1]) * 1024)
-    except OSError:
-        pass
-    for path, used_path in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),):
-        try:
-            limit = open(path).read().strip()
-            if limit != "max":
-                figures.append(int(limit) - int(open(used_path).read().strip()))
-        except (OSError, ValueError):
-            pass
+    with contextlib.suppress(OSError, ValueError, IndexError, StopIteration):
+        meminfo = Path("/proc/meminfo").read_text().splitlines()
+        line = next(x for x in meminfo if x.startswith("MemAvailable:"))
+        figures.append(int(line.split()[1]) * 1024)
+    with contextlib.suppress(OSError, ValueError):
+        cgroup = Path("/sys/fs/cgroup")
+        limit = (cgroup / "memory.max").read_text().strip()
+        if limit != "max":
+            figures.append(int(limit) - int((cgroup / "memory.current").read_text()))
     return min(figures) if figures else None
 
 

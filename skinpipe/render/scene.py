@@ -153,7 +153,7 @@ class SceneMesh:
     """The mesh's path in ``points_layer``."""
     camera_visible: bool = True
     """False for an occluder that only casts shadows (``primvars:skinpipe:cameraVisibility``
-    = false, see :data:`CAMERA_VISIBILITY_PRIMVARS`)."""
+    = false, :data:`~skinpipe.usd.schema.CAMERA_VISIBILITY_PRIMVAR`)."""
 
     @property
     def is_skin(self) -> bool:

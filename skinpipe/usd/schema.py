@@ -25,16 +25,10 @@ PROFILES_REL = "skin:profiles"
 SUBSET_FAMILY = "skinRegion"
 WORKING_COLORSPACE = "lin_ap1_scene"
 CAMERA_VISIBILITY_PRIMVAR = "skinpipe:cameraVisibility"
-"""Constant bool primvar: false on an occluder the camera must not see (it still casts
-shadows). USD has no renderer-neutral attribute for it; :data:`SHADOW_ONLY_PRIMVARS`
-adds what RenderMan, Arnold and Karma read."""
-SHADOW_ONLY_PRIMVARS: dict[str, tuple[str, object]] = {
-    CAMERA_VISIBILITY_PRIMVAR: ("Bool", False),
-    "ri:attributes:visibility:camera": ("Int", 0),  # RenderMan
-    "arnold:visibility:camera": ("Bool", False),  # Arnold
-    "karma:object:rendervisibility": ("String", "-primary"),  # Karma
-}
-"""Constant primvars that keep a mesh out of camera rays but in shadow rays."""
+"""Constant bool primvar: false on an occluder skinpipe's camera must not see (it still
+casts shadows). USD has no renderer-neutral attribute for it; other renderers read their
+own (RenderMan ``ri:attributes:visibility:camera``, Arnold ``arnold:visibility:camera``,
+Karma ``karma:object:rendervisibility``)."""
 
 
 def schema_dir() -> Path:

@@ -427,7 +427,7 @@ def test_a_sharp_entry_spike_is_light_not_hair(tmp_path: Path) -> None:
     is still refused."""
     from skinpipe.capture.simulate import ring_truth
     from skinpipe.errors import SkinpipeError
-    from skinpipe.profile.edge import ring_edges_mm
+    from skinpipe.profile.models import ring_edges_mm
 
     truth = ring_truth(Path(__file__).parents[1] / "fixtures" / "physics" / "skin1.csv")
     caps = tmp_path / "caps"

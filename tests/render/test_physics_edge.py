@@ -20,13 +20,11 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from pxr import Gf, Sdf, UsdGeom
 
 from skinpipe.cli import main
 from skinpipe.profile.edge import edge_width_mm, spread_beyond_rings
-from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
-from ..render_scenes import distant_down, scene_over
+from ..render_scenes import distant_down, hidden_blocker, ortho_camera_down, scene_over
 
 PHYSICS = Path(__file__).parents[1] / "fixtures" / "physics"
 SLAB_MM = {"skin1": 60.0, "skin1_eta1.4": 60.0, "forward": 60.0, "marble": 200.0}
@@ -58,21 +56,10 @@ def _scene(tmp: Path, asset: Path, size_mm: float) -> Path:
     orthographic camera looking down over a strip across the edge."""
 
     def build(stage) -> None:
-        cam = UsdGeom.Camera.Define(stage, "/Cam")
-        cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
-        cam.CreateHorizontalApertureAttr(10.0 * size_mm)  # tenths of a scene unit
-        cam.CreateVerticalApertureAttr(10.0 * size_mm * ROWS / PIXELS)
-        UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+        ortho_camera_down(stage, size_mm, size_mm * ROWS / PIXELS)
         distant_down(stage, intensity=1.0, angle=0.0)
         big = 10.0 * size_mm
-        blocker = UsdGeom.Mesh.Define(stage, "/Blocker")
-        blocker.CreatePointsAttr([Gf.Vec3f(x, y, 10) for x, y in
-                                  [(-big, -big), (0, -big), (0, big), (-big, big)]])
-        blocker.CreateFaceVertexCountsAttr([4])
-        blocker.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-        UsdGeom.PrimvarsAPI(blocker).CreatePrimvar(
-            CAMERA_VISIBILITY_PRIMVAR, Sdf.ValueTypeNames.Bool,
-            UsdGeom.Tokens.constant).Set(False)
+        hidden_blocker(stage, [(-big, -big), (0, -big), (0, big), (-big, big)])
 
     return scene_over(asset, tmp / "scene.usda", build)
 

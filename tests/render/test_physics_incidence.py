@@ -21,7 +21,7 @@ from pxr import Gf, Sdf, UsdGeom, UsdLux
 
 from skinpipe.cli import main
 
-from ..render_scenes import deon_fit, patch_asset, scene_over
+from ..render_scenes import deon_fit, ortho_camera_down, patch_asset, scene_over
 
 PHYSICS = Path(__file__).parents[1] / "fixtures" / "physics"
 ANGLES = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
@@ -29,11 +29,7 @@ ANGLES = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
 
 def _scene(tmp: Path, asset: Path, angle_deg: float, albedo: list[float]) -> Path:
     def build(stage) -> None:
-        cam = UsdGeom.Camera.Define(stage, "/Cam")
-        cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
-        cam.CreateHorizontalApertureAttr(200.0)
-        cam.CreateVerticalApertureAttr(200.0)
-        UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+        ortho_camera_down(stage, 20.0, 20.0)
         light = UsdLux.DistantLight.Define(stage, "/Sun")
         light.CreateIntensityAttr(1.0)
         light.CreateAngleAttr(0.0)

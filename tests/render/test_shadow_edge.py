@@ -17,15 +17,14 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from pxr import Gf, Sdf, UsdGeom
+from pxr import Gf, UsdGeom
 from scipy.special import ndtr
 
 from skinpipe.cli import main
 from skinpipe.usd.author import RegionAssignment, author_asset
 from skinpipe.usd.mesh import MeshData
-from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
-from ..render_scenes import distant_down, exact_fit, scene_over
+from ..render_scenes import distant_down, exact_fit, hidden_blocker, ortho_camera_down, scene_over
 
 VARIANCES_MM2 = (0.05, 0.5, 4.0)
 WEIGHTS = (0.3, 0.4, 0.3)
@@ -57,22 +56,11 @@ def _scene(tmp: Path, asset: Path, across: str, far_object: bool = False) -> Pat
     (across v), hidden from the camera; an orthographic camera looking down."""
 
     def build(stage) -> None:
-        cam = UsdGeom.Camera.Define(stage, "/Cam")
-        cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
-        cam.CreateHorizontalApertureAttr(1500.0)  # tenths of a mm: 150 mm wide
-        cam.CreateVerticalApertureAttr(1500.0)
-        UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+        ortho_camera_down(stage, 150.0, 150.0)
         distant_down(stage, intensity=1.0, angle=0.0)
         big = 500.0
-        quad = ([(-big, -big), (0, -big), (0, big), (-big, big)] if across == "u" else
-                [(-big, -big), (big, -big), (big, 0), (-big, 0)])
-        blocker = UsdGeom.Mesh.Define(stage, "/Blocker")
-        blocker.CreatePointsAttr([Gf.Vec3f(x, y, 10) for x, y in quad])
-        blocker.CreateFaceVertexCountsAttr([4])
-        blocker.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-        UsdGeom.PrimvarsAPI(blocker).CreatePrimvar(
-            CAMERA_VISIBILITY_PRIMVAR, Sdf.ValueTypeNames.Bool,
-            UsdGeom.Tokens.constant).Set(False)
+        hidden_blocker(stage, [(-big, -big), (0, -big), (0, big), (-big, big)] if across == "u"
+                       else [(-big, -big), (big, -big), (big, 0), (-big, 0)])
         if far_object:  # a 10 m box far away: it must move no shadow
             far = UsdGeom.Cube.Define(stage, "/Far")
             far.CreateSizeAttr(10000.0)

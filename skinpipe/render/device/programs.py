@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from ...interrupts import block_in_this_thread
 from .choice import (
     cl_context,
     device_cache,
@@ -218,7 +217,6 @@ class Prewarm:
         self._thread.start()
 
     def _run(self, steps: list[Callable[[], Any]]) -> None:
-        block_in_this_thread()
         start = time.perf_counter()
         try:
             ctx, _ = cl_context()

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from pxr import Gf, Sdf, UsdGeom
 from scipy.special import ndtr
 
 from skinpipe.cli import main
@@ -29,9 +28,8 @@ from skinpipe.render.light.raytrace import RayScene
 from skinpipe.render.surface.texture_maps import rasterize
 from skinpipe.usd.author import RegionAssignment, author_asset
 from skinpipe.usd.mesh import MeshData
-from skinpipe.usd.schema import CAMERA_VISIBILITY_PRIMVAR
 
-from ...render_scenes import distant_down, exact_fit, scene_over
+from ...render_scenes import distant_down, exact_fit, hidden_blocker, ortho_camera_down, scene_over
 from .splat_reference import fill
 
 pytestmark = pytest.mark.usefixtures("cl_device")
@@ -240,23 +238,12 @@ def _scene(tmp: Path, asset: Path, angle_deg: float, edge_mm: float) -> Path:
     a = np.radians(angle_deg)
 
     def build(stage) -> None:
-        cam = UsdGeom.Camera.Define(stage, "/Cam")
-        cam.CreateProjectionAttr(UsdGeom.Tokens.orthographic)
-        cam.CreateHorizontalApertureAttr(600.0)
-        cam.CreateVerticalApertureAttr(600.0)
-        UsdGeom.Xformable(cam).AddTranslateOp().Set(Gf.Vec3d(0, 0, 100))
+        ortho_camera_down(stage, 60.0, 60.0)
         distant_down(stage, intensity=1.0, angle=0.0)
         big = 500.0
         quad = [(edge_mm, -big), (big, -big), (big, big), (edge_mm, big)]  # (t, s)
-        blocker = UsdGeom.Mesh.Define(stage, "/Blocker")
-        blocker.CreatePointsAttr([Gf.Vec3f(t * np.cos(a) - s * np.sin(a),
-                                           t * np.sin(a) + s * np.cos(a), 10)
-                                  for t, s in quad])
-        blocker.CreateFaceVertexCountsAttr([4])
-        blocker.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-        UsdGeom.PrimvarsAPI(blocker).CreatePrimvar(
-            CAMERA_VISIBILITY_PRIMVAR, Sdf.ValueTypeNames.Bool,
-            UsdGeom.Tokens.constant).Set(False)
+        hidden_blocker(stage, [(t * np.cos(a) - s * np.sin(a), t * np.sin(a) + s * np.cos(a))
+                               for t, s in quad])
 
     return scene_over(asset, tmp / "scene.usda", build)
 
