@@ -6,7 +6,8 @@ ASSET_DIR/asset.usda   defaultPrim /<Name> (kind component), metersPerUnit, upAx
                        look.usda, payload geo.usdc (a set dresser can leave it unloaded)
 ASSET_DIR/geo.usdc     the mesh about the asset's origin (its bounds' bottom centre), st,
                        region primvars, GeomSubsets, SkinProfileRegionsAPI
-ASSET_DIR/look.usda    /<Name>/Looks: SkinDiffusionProfile prims, the Material
+ASSET_DIR/look.usda    /<Name>/Looks: SkinDiffusionProfile prims (with their media), the
+                       mesh's Material and one per region (Looks/Regions)
 ```
 Every layer is exported to a temporary sibling, fsynced and renamed; input layers are
 only read.
@@ -27,10 +28,18 @@ from numpy.typing import NDArray
 from pxr import Gf, Kind, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
 
 from ..errors import InputError
+from ..profile.medium import MediumEstimate
 from ..profile.types import FitResult, MeasuredProfile
 from .io import export_layer_atomic
 from .materialx import author_usd_network, write_mtlx
 from .mesh import MeshData
+from .openpbr import (
+    SPECULAR_IOR,
+    SPECULAR_ROUGHNESS,
+    face_weighted_medium,
+    openpbr_values,
+    region_medium,
+)
 from .schema import (
     PROFILE_TYPE,
     PROFILES_REL,
@@ -167,15 +176,10 @@ def _f32(values: Any) -> list[float]:
     return [float(np.float32(x)) for x in np.asarray(values, dtype=np.float64).reshape(-1)]
 
 
-def subsurface_radius_mm(fit: FitResult) -> NDArray[np.float64]:
-    """RMS exit radius of the profile per channel, sqrt(2 sum_i w_i v_i) mm (for a 2D
-    Gaussian E[r^2] = 2 v): the length the OpenPBR approximation is given."""
-    return np.sqrt(2.0 * (fit.weights * fit.variances_mm2[:, None]).sum(axis=0))
-
-
 def _author_profile(stage: Any, path: str, fit: FitResult,
-                    measured: MeasuredProfile | None) -> None:
+                    measured: MeasuredProfile | None, medium: MediumEstimate) -> None:
     prim = stage.DefinePrim(path, PROFILE_TYPE)
+    _author_medium(prim, medium)
     # Author every value, fallbacks included: without the plugin they would vanish.
     prim.CreateAttribute("region", Sdf.ValueTypeNames.Token).Set(fit.name)
     prim.CreateAttribute("variances", Sdf.ValueTypeNames.FloatArray).Set(
@@ -200,31 +204,42 @@ def _author_profile(stage: Any, path: str, fit: FitResult,
                 Vt.Vec3fArray.FromNumpy(np.asarray(measured.stddev, dtype=np.float32)))
 
 
-def openpbr_values(fits: Sequence[FitResult], mpu: float,
-                   albedo: tuple[float, float, float]) -> dict[str, Any]:
-    """OpenPBR's inputs for renderers without skinpipe's profiles. Its subsurface lobe
-    wants one radius with a per-channel scale: the face's mean RMS exit radius
-    sqrt(2 sum w v) (an approximation: its profile shape is not ours), in scene units."""
-    radii_mm = np.mean([subsurface_radius_mm(f) for f in fits], axis=0)
-    return {"base_color": albedo, "subsurface_weight": 1.0, "subsurface_color": albedo,
-            "subsurface_radius": float(radii_mm.max() / (mpu * 1000.0)),
-            "subsurface_radius_scale": _f32(radii_mm / radii_mm.max()),
-            "specular_roughness": 0.35}
+def _author_medium(prim: Any, medium: MediumEstimate) -> None:
+    """The region's medium (:mod:`skinpipe.profile.medium`) on its profile prim."""
+    for name, kind, value in (
+            ("singleScatteringAlbedo", Sdf.ValueTypeNames.Color3f,
+             medium.single_scattering_albedo),
+            ("meanFreePathMm", Sdf.ValueTypeNames.Color3f, medium.mean_free_path_mm),
+            ("totalReflectance", Sdf.ValueTypeNames.Color3f, medium.total_reflectance),
+            ("subsurfaceColor", Sdf.ValueTypeNames.Color3f, medium.subsurface_colour),
+            ("error", Sdf.ValueTypeNames.Float3, medium.error_eq2c),
+            ("edgeError", Sdf.ValueTypeNames.Float3, medium.edge_error)):
+        prim.CreateAttribute(f"medium:{name}", kind).Set(Gf.Vec3f(*_f32(value)))
+    prim.CreateAttribute("medium:anisotropy", Sdf.ValueTypeNames.Float).Set(0.0)
+    prim.CreateAttribute("medium:model", Sdf.ValueTypeNames.Token,
+                         variability=Sdf.VariabilityUniform).Set(medium.model)
 
 
-def _author_material(stage: Any, root: str, fits: Sequence[FitResult], mpu: float,
-                     albedo: tuple[float, float, float]) -> str:
-    path = f"{root}/Looks/SkinMaterial"
+def _author_material(stage: Any, path: str, values: dict[str, Any]) -> str:
+    """A Material at ``path``: a UsdPreviewSurface (usdview, Storm, USD's universal
+    context) and the OpenPBR network of ``values`` in the ``mtlx`` context."""
     material = UsdShade.Material.Define(stage, path)
     preview = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
     preview.CreateIdAttr("UsdPreviewSurface")
-    preview.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
-    preview.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.35)
-    preview.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(1.4)
+    preview.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(
+        Gf.Vec3f(*values["base_color"]))
+    preview.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(SPECULAR_ROUGHNESS)
+    preview.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(SPECULAR_IOR)
     material.CreateSurfaceOutput().ConnectToSource(
         preview.CreateOutput("surface", Sdf.ValueTypeNames.Token))
-    author_usd_network(stage, path, openpbr_values(fits, mpu, albedo))
+    author_usd_network(stage, path, values)
     return path
+
+
+REGION_LOOKS = "Looks/Regions"
+"""Where each region's material lives under the asset's root."""
+BIND_SUBSET_PREFIX = "look_"
+"""Name prefix of the materialBind GeomSubsets that bind region materials."""
 
 
 def asset_origin(points: NDArray[Any], up_axis: str) -> NDArray[np.float64]:
@@ -316,9 +331,20 @@ def author_asset(
     look.OverridePrim(root)
     UsdGeom.Scope.Define(look, f"{root}/Looks")
     UsdGeom.Scope.Define(look, f"{root}/Looks/Profiles")
-    for fit, ppath in zip(ordered, profile_paths, strict=True):
-        _author_profile(look, ppath, fit, (measured or {}).get(fit.name))
-    material_path = _author_material(look, root, ordered, mpu, albedo)
+    media = [region_medium(fit, (measured or {}).get(fit.name), albedo) for fit in ordered]
+    for fit, ppath, medium in zip(ordered, profile_paths, media, strict=True):
+        _author_profile(look, ppath, fit, (measured or {}).get(fit.name), medium)
+    materials = {"SkinMaterial": openpbr_values(
+        face_weighted_medium(media, regions.face_region), mpu, albedo)}
+    material_path = _author_material(look, f"{root}/Looks/SkinMaterial",
+                                     materials["SkinMaterial"])
+    UsdGeom.Scope.Define(look, f"{root}/{REGION_LOOKS}")
+    region_materials = []
+    for region, medium in zip(regions.names, media, strict=True):
+        key = Tf.MakeValidIdentifier(region)
+        materials[key] = openpbr_values(medium, mpu, albedo)
+        region_materials.append(_author_material(look, f"{root}/{REGION_LOOKS}/{key}",
+                                                 materials[key]))
 
     # geo.usdc: mesh, regions
     geo = _layer_stage(mpu, up_axis, name)
@@ -344,8 +370,16 @@ def author_asset(
         UsdGeom.Subset.CreateGeomSubset(umesh, Tf.MakeValidIdentifier(region),
                                         UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
                                         SUBSET_FAMILY, UsdGeom.Tokens.partition)
-    UsdShade.MaterialBindingAPI.Apply(prim).GetDirectBindingRel().SetTargets(
-        [Sdf.Path(material_path)])
+    binding = UsdShade.MaterialBindingAPI.Apply(prim)
+    binding.GetDirectBindingRel().SetTargets([Sdf.Path(material_path)])
+    # each region's own material, for renderers that follow GeomSubset bindings (USD's
+    # materialBind family); the mesh's binding stays for those that do not
+    for i, (region, mpath) in enumerate(zip(regions.names, region_materials, strict=True)):
+        faces = np.flatnonzero(regions.face_region == i).astype(np.int32)
+        subset = binding.CreateMaterialBindSubset(
+            BIND_SUBSET_PREFIX + Tf.MakeValidIdentifier(region), Vt.IntArray.FromNumpy(faces))
+        UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).GetDirectBindingRel().SetTargets(
+            [Sdf.Path(mpath)])
     if seal is not None:
         _author_seal(geo, f"{root}/Geom/Seal", seal, origin)
 
@@ -372,7 +406,7 @@ def author_asset(
     }
 
     export_layer_atomic(geo.GetRootLayer(), paths.geo)
-    write_mtlx(out / MTLX_NAME, openpbr_values(ordered, mpu, albedo))
+    write_mtlx(out / MTLX_NAME, materials)
     export_layer_atomic(look.GetRootLayer(), paths.look)
     export_layer_atomic(asset_layer, paths.asset)
     return AssetPaths(paths.asset, paths.geo, paths.look, time.perf_counter() - start)

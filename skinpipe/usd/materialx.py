@@ -32,6 +32,7 @@ MX_TO_SDF = {"color3": "color3f", "color4": "color4f", "float": "float", "vector
 OPENPBR = "ND_open_pbr_surface_surfaceshader"
 IMAGE = "ND_image_color3"
 TEXCOORD = "ND_texcoord_vector2"
+MULTIPLY = "ND_multiply_color3"
 
 
 @lru_cache(maxsize=1)
@@ -110,10 +111,20 @@ def usd_network_values(shader: Any) -> dict[str, Any]:
     return out
 
 
+def subsurface_factor(values: Mapping[str, Any]) -> tuple[float, float, float]:
+    """subsurface_color / base_color of a material's values: what turns an albedo
+    texture (which replaces base_color) into the subsurface colour about the albedo the
+    medium was inverted at, so that painted detail reaches the subsurface too."""
+    base = np.maximum(np.asarray(values["base_color"], dtype=np.float64), 1e-6)
+    ratio = np.asarray(values["subsurface_color"], dtype=np.float64) / base
+    return (float(ratio[0]), float(ratio[1]), float(ratio[2]))
+
+
 def author_usd_texture(stage: Any, material_path: str, texture: str,
                        colorspace: str) -> None:
     """A MaterialX image (color3) reading ``texture`` by the default texture coordinates,
-    feeding OpenPBR's base and subsurface colour."""
+    feeding OpenPBR's base colour, and through a multiply by :func:`subsurface_factor`
+    its subsurface colour."""
     coords = UsdShade.Shader.Define(stage, f"{material_path}/MtlxTexcoord")
     coords.CreateIdAttr(TEXCOORD)
     image = UsdShade.Shader.Define(stage, f"{material_path}/MtlxAlbedo")
@@ -125,28 +136,28 @@ def author_usd_texture(stage: Any, material_path: str, texture: str,
         coords.CreateOutput("out", _sdf("vector2")))
     color = image.CreateOutput("out", _sdf("color3"))
     openpbr = UsdShade.Shader(stage.GetPrimAtPath(f"{material_path}/OpenPBR"))
-    for name in ("base_color", "subsurface_color"):
-        openpbr.GetInput(name).ConnectToSource(color)
+    factor = subsurface_factor(usd_network_values(openpbr))
+    scale = UsdShade.Shader.Define(stage, f"{material_path}/MtlxSubsurfaceColor")
+    scale.CreateIdAttr(MULTIPLY)
+    scale.CreateInput("in1", _sdf("color3")).ConnectToSource(color)
+    scale.CreateInput("in2", _sdf("color3")).Set(Gf.Vec3f(*factor))
+    openpbr.GetInput("base_color").ConnectToSource(color)
+    openpbr.GetInput("subsurface_color").ConnectToSource(
+        scale.CreateOutput("out", _sdf("color3")))
 
 
-def mtlx_document(values: Mapping[str, Any], texture: str | None = None,
-                  name: str = "SkinMaterial") -> Any:
-    """The material as a MaterialX document: a surfacematerial over an open_pbr_surface
-    (``values`` as in :func:`author_usd_network`), with an image node for ``texture``;
-    raises :class:`SkinpipeError` unless MaterialX's ``validate()`` accepts each of its
-    elements."""
+def mtlx_document(materials: Mapping[str, Mapping[str, Any]], texture: str | None = None
+                  ) -> Any:
+    """The materials as a MaterialX document: per name a surfacematerial over an
+    open_pbr_surface (``values`` as in :func:`author_usd_network`; the shader of
+    ``SkinMaterial`` is named ``OpenPBR``, others ``OpenPBR_<name>``), with one image node
+    for ``texture`` feeding each base colour and, scaled, each subsurface colour; raises
+    :class:`SkinpipeError` unless MaterialX's ``validate()`` accepts each element."""
     doc = mx.createDocument()
     doc.importLibrary(library())
     doc.setColorSpace(MTLX_COLORSPACE)
     nodedef = library().getNodeDef(OPENPBR)
-    shader = doc.addNode("open_pbr_surface", "OpenPBR", "surfaceshader")
-    for key, value in values.items():
-        kind = nodedef.getActiveInput(key).getType()
-        port = shader.addInput(key, kind)
-        if kind == "color3":
-            port.setValue(mx.Color3(*(float(x) for x in value)))
-        else:
-            port.setValue(float(value))
+    image = None
     if texture is not None:
         coords = doc.addNode("texcoord", "MtlxTexcoord", "vector2")
         image = doc.addNode("image", "MtlxAlbedo", "color3")
@@ -154,10 +165,24 @@ def mtlx_document(values: Mapping[str, Any], texture: str | None = None,
         file_input.setValueString(texture)
         file_input.setColorSpace(MTLX_COLORSPACE)
         image.addInput("texcoord", "vector2").setConnectedNode(coords)
-        for key in ("base_color", "subsurface_color"):
-            shader.getInput(key).setConnectedNode(image)
-    material = doc.addMaterialNode(name, shader)
-    assert material is not None
+    for name, values in materials.items():
+        shader_name = "OpenPBR" if name == "SkinMaterial" else f"OpenPBR_{name}"
+        shader = doc.addNode("open_pbr_surface", shader_name, "surfaceshader")
+        for key, value in values.items():
+            kind = nodedef.getActiveInput(key).getType()
+            port = shader.addInput(key, kind)
+            if kind == "color3":
+                port.setValue(mx.Color3(*(float(x) for x in value)))
+            else:
+                port.setValue(float(value))
+        if image is not None:
+            scale = doc.addNode("multiply", f"SubsurfaceColor_{name}", "color3")
+            scale.addInput("in1", "color3").setConnectedNode(image)
+            scale.addInput("in2", "color3").setValue(mx.Color3(*subsurface_factor(values)))
+            shader.getInput("base_color").setConnectedNode(image)
+            shader.getInput("subsurface_color").setConnectedNode(scale)
+        material = doc.addMaterialNode(name, shader)
+        assert material is not None
     problems = document_problems(doc)
     if problems:
         raise SkinpipeError(f"the MaterialX document is not valid: {' '.join(problems)}")
@@ -173,9 +198,10 @@ def document_problems(doc: Any) -> list[str]:
             for ok, message in [element.validate()] if not ok]
 
 
-def write_mtlx(path: Path, values: Mapping[str, Any], texture: str | None = None) -> Path:
+def write_mtlx(path: Path, materials: Mapping[str, Mapping[str, Any]],
+               texture: str | None = None) -> Path:
     """Write :func:`mtlx_document` to ``path`` (atomically), without the libraries."""
-    return write_mtlx_document(path, mtlx_document(values, texture))
+    return write_mtlx_document(path, mtlx_document(materials, texture))
 
 
 def write_mtlx_document(path: Path, doc: Any) -> Path:
@@ -188,12 +214,12 @@ def write_mtlx_document(path: Path, doc: Any) -> Path:
     return path
 
 
-def read_openpbr_inputs(path: Path) -> dict[str, Any]:
+def read_openpbr_inputs(path: Path, shader_name: str = "OpenPBR") -> dict[str, Any]:
     """The OpenPBR inputs of a ``.mtlx`` file written by :func:`write_mtlx` (values as
     floats or RGB arrays; connected inputs by the name of their node)."""
     doc = mx.createDocument()
     mx.readFromXmlFile(doc, str(path))
-    shader = doc.getNode("OpenPBR")
+    shader = doc.getNode(shader_name)
     out: dict[str, Any] = {}
     for port in shader.getInputs():
         if port.getNodeName():

@@ -9,6 +9,7 @@ them with USD's validation registry as named validators with docs (keyword
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -253,6 +254,39 @@ def _measured(prim: Any) -> list[tuple[str, str]]:
     r = _array(prim, "measured:radiusMm")
     if r is not None and np.any(r < 0):
         out.append(("negative radius", f"{prim.GetPath()}.measured:radiusMm"))
+    return out
+
+
+MEDIUM_RANGES = {
+    "medium:singleScatteringAlbedo": (0.0, 1.0, True),
+    "medium:subsurfaceColor": (0.0, 1.0, True),
+    "medium:meanFreePathMm": (0.0, math.inf, False),
+    "medium:totalReflectance": (0.0, math.inf, False),
+    "medium:anisotropy": (-1.0, 1.0, True),
+    "medium:error": (0.0, math.inf, True),
+    "medium:edgeError": (0.0, math.inf, True),
+}
+"""Each medium attribute's (low, high, low allowed): what OpenPBR and a volumetric
+renderer accept (a mean free path of 0 would be an opaque surface, not this medium)."""
+
+
+@rule("ProfileMediumValid", "prim")
+def _medium(prim: Any) -> list[tuple[str, str]]:
+    """The medium on a profile, where authored, is one a renderer can build: albedo and
+    subsurfaceColor in [0, 1], meanFreePathMm and totalReflectance finite and > 0,
+    anisotropy in [-1, 1], the errors finite and >= 0."""
+    if not _is_profile(prim):
+        return []
+    out = []
+    for name, (low, high, closed) in MEDIUM_RANGES.items():
+        value = _array(prim, name)
+        if value is None:
+            continue
+        inside = (value >= low) if closed else (value > low)
+        if not (np.all(np.isfinite(value)) and np.all(inside) and np.all(value <= high)):
+            bound = "[" if closed else "("
+            out.append((f"{name} must be finite and in {bound}{low:g}, {high:g}], got "
+                        f"{value.tolist()}", f"{prim.GetPath()}.{name}"))
     return out
 
 

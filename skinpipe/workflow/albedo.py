@@ -151,31 +151,19 @@ def _spotted(base: NDArray[Any], pos: NDArray[Any], maps: TextureMaps,
     return base
 
 
-def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
-                          before_save: Callable[[], Any] | None = None) -> str:
-    """Bind ``texture`` (an ACEScg EXR beside the look layer) to the mesh's material's
-    diffuseColor through a UsdUVTexture reading ``st``; saves the material's layer
-    atomically and returns its path. ``before_save`` runs (and may raise) before
-    anything is written: e.g. waiting for the texture itself."""
-    prim = stage.GetPrimAtPath(mesh_path)
-    material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
-    if not material:
-        raise InputError(f"{mesh_path} has no bound material to carry an albedo texture")
-    layer = material.GetPrim().GetPrimStack()[0].layer
-    if not layer.realPath:
-        raise InputError(f"material {material.GetPath()} lives in an anonymous layer")
-    edit = Usd.Stage.Open(layer)
-    mat = UsdShade.Material(edit.GetPrimAtPath(material.GetPath()))
+def _wire_texture(edit: Any, material_path: str, rel: str) -> dict[str, Any] | None:
+    """``rel`` (relative to the material's layer) into the material's preview surface's
+    diffuseColor through a UsdUVTexture reading ``st``, and into its OpenPBR network
+    through MaterialX's image node; returns the OpenPBR values (None without one)."""
+    mat = UsdShade.Material(edit.GetPrimAtPath(material_path))
     surface = mat.ComputeSurfaceSource()[0]
-    base = str(mat.GetPath())
-    reader = UsdShade.Shader.Define(edit, f"{base}/StReader")
+    reader = UsdShade.Shader.Define(edit, f"{material_path}/StReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    tex = UsdShade.Shader.Define(edit, f"{base}/AlbedoTexture")
+    tex = UsdShade.Shader.Define(edit, f"{material_path}/AlbedoTexture")
     tex.CreateIdAttr("UsdUVTexture")
-    rel = Path(texture).resolve().relative_to(Path(layer.realPath).resolve().parent)
     file_input = tex.CreateInput("file", Sdf.ValueTypeNames.Asset)
-    file_input.Set(Sdf.AssetPath(f"./{rel.as_posix()}"))
+    file_input.Set(Sdf.AssetPath(f"./{rel}"))
     file_input.GetAttr().SetColorSpace(WORKING_COLORSPACE)
     # "raw": no transfer function. UsdPreviewSurface's "auto" means the same for a float
     # EXR, but importers that guess (Blender 5.0) read "auto" as sRGB; the primaries are
@@ -185,11 +173,42 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
         reader.CreateOutput("result", Sdf.ValueTypeNames.Float2))
     rgb = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surface.GetInput("diffuseColor").ConnectToSource(rgb)
-    openpbr = edit.GetPrimAtPath(f"{base}/OpenPBR")
-    document = None
-    if openpbr:  # the MaterialX network reads it with MaterialX's own image node
-        author_usd_texture(edit, base, f"./{rel.as_posix()}", MTLX_COLORSPACE)
-        document = mtlx_document(usd_network_values(UsdShade.Shader(openpbr)), rel.as_posix())
+    openpbr = edit.GetPrimAtPath(f"{material_path}/OpenPBR")
+    if not openpbr:
+        return None
+    values = usd_network_values(UsdShade.Shader(openpbr))
+    author_usd_texture(edit, material_path, f"./{rel}", MTLX_COLORSPACE)
+    return values
+
+
+def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
+                          before_save: Callable[[], Any] | None = None) -> str:
+    """Bind ``texture`` (an ACEScg EXR beside the look layer) to the mesh's material and
+    its regions' materials (:func:`_wire_texture`), rewrite look.mtlx to match; saves the
+    materials' layer atomically and returns its path. ``before_save`` runs (and may
+    raise) before anything is written: e.g. waiting for the texture itself."""
+    prim = stage.GetPrimAtPath(mesh_path)
+    binding = UsdShade.MaterialBindingAPI(prim)
+    material, _ = binding.ComputeBoundMaterial()
+    if not material:
+        raise InputError(f"{mesh_path} has no bound material to carry an albedo texture")
+    layer = material.GetPrim().GetPrimStack()[0].layer
+    if not layer.realPath:
+        raise InputError(f"material {material.GetPath()} lives in an anonymous layer")
+    paths = [material.GetPath()]
+    for subset in binding.GetMaterialBindSubsets():
+        bound, _ = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()
+        if bound and bound.GetPrim().GetPrimStack()[0].layer == layer \
+                and bound.GetPath() not in paths:
+            paths.append(bound.GetPath())
+    edit = Usd.Stage.Open(layer)
+    rel = Path(texture).resolve().relative_to(Path(layer.realPath).resolve().parent)
+    networks = {}
+    for path in paths:
+        values = _wire_texture(edit, str(path), rel.as_posix())
+        if values is not None:
+            networks[path.name] = values
+    document = mtlx_document(networks, rel.as_posix()) if networks else None
     if before_save is not None:
         before_save()
     if document is not None:

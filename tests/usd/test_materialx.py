@@ -14,7 +14,7 @@ import pytest
 from pxr import Sdf, Usd, UsdShade
 
 from skinpipe.profile.io import read_fit_json
-from skinpipe.usd.author import MTLX_NAME, RegionAssignment, author_asset, subsurface_radius_mm
+from skinpipe.usd.author import MTLX_NAME, RegionAssignment, author_asset
 from skinpipe.usd.materialx import (
     document_problems,
     mtlx_document,
@@ -53,17 +53,46 @@ def test_mtlx_document_passes_materialx_validate(asset: tuple[Path, list]) -> No
     assert shader.getCategory() == "open_pbr_surface"
 
 
-def test_openpbr_subsurface_follows_the_fits(asset: tuple[Path, list]) -> None:
-    path, fits = asset
-    inputs = read_openpbr_inputs(path.parent / MTLX_NAME)
-    radii_mm = np.mean([subsurface_radius_mm(f) for f in fits], axis=0)
-    # metersPerUnit 0.001: scene units are mm
-    assert inputs["subsurface_radius"] == pytest.approx(radii_mm.max(), rel=1e-5)
-    np.testing.assert_allclose(inputs["subsurface_radius_scale"], radii_mm / radii_mm.max(),
-                               rtol=1e-5)
-    assert inputs["subsurface_weight"] == 1.0
-    # red scatters farthest in skin: the scale falls from R to B
-    assert inputs["subsurface_radius_scale"][0] == 1.0 > inputs["subsurface_radius_scale"][2]
+def test_openpbr_subsurface_is_each_region_medium(asset: tuple[Path, list]) -> None:
+    """Each region's OpenPBR: its medium's mean free path as radius times scale (scene
+    units: mm here), its subsurface colour, and the two regions differ."""
+    path, _ = asset
+    stage = Usd.Stage.Open(str(path))
+    seen = []
+    for region in ("forehead", "cheek"):
+        inputs = read_openpbr_inputs(path.parent / MTLX_NAME, f"OpenPBR_{region}")
+        prim = stage.GetPrimAtPath(f"/Face/Looks/Profiles/{region}")
+        mfp = np.array(prim.GetAttribute("medium:meanFreePathMm").Get())
+        assert inputs["subsurface_radius"] == pytest.approx(mfp.max(), rel=1e-5)
+        np.testing.assert_allclose(inputs["subsurface_radius_scale"] * inputs[
+            "subsurface_radius"], mfp, rtol=1e-5)
+        np.testing.assert_allclose(inputs["subsurface_color"],
+                                   prim.GetAttribute("medium:subsurfaceColor").Get(), rtol=1e-5)
+        assert inputs["subsurface_weight"] == 1.0
+        seen.append(inputs["subsurface_radius"])
+    assert seen[0] != pytest.approx(seen[1], rel=1e-3)
+
+
+@pytest.mark.parametrize("generator", ["Glsl", "Osl", "Mdl"])
+def test_every_material_of_the_document_generates_a_shader(asset: tuple[Path, list],
+                                                           generator: str) -> None:
+    """MaterialX's own shader generators (GLSL, OSL, MDL) take every material of
+    look.mtlx, textured as the albedo bake writes it."""
+    import importlib
+
+    gen_shader = importlib.import_module("MaterialX.PyMaterialXGenShader")
+    module = importlib.import_module(f"MaterialX.PyMaterialXGen{generator}")
+    values = {name: read_openpbr_inputs(asset[0].parent / MTLX_NAME, shader) for name, shader
+              in (("SkinMaterial", "OpenPBR"), ("forehead", "OpenPBR_forehead"),
+                  ("cheek", "OpenPBR_cheek"))}
+    doc = mtlx_document(values, "albedo.exr")
+    gen = getattr(module, f"{generator}ShaderGenerator").create()
+    context = gen_shader.GenContext(gen)
+    context.registerSourceCodeSearchPath(mx.getDefaultDataSearchPath())
+    for name in values:
+        shader = doc.getNode(name).getInput("surfaceshader").getConnectedNode()
+        code = gen.generate(name, shader, context).getSourceCode(gen_shader.PIXEL_STAGE)
+        assert len(code) > 1000
 
 
 def test_usd_network_matches_materialx_definitions(asset: tuple[Path, list]) -> None:
@@ -86,7 +115,7 @@ def test_textured_document_and_its_element_check_agree_with_validate(
         asset: tuple[Path, list], tmp_path: Path) -> None:
     """mtlx_document checks each of its own elements, not the library again: what it
     writes passes the whole document's validate(), and a wrong connection it refuses."""
-    values = read_openpbr_inputs(asset[0].parent / MTLX_NAME)
+    values = {"SkinMaterial": read_openpbr_inputs(asset[0].parent / MTLX_NAME)}
     path = write_mtlx_document(tmp_path / "textured.mtlx", mtlx_document(values, "albedo.exr"))
     ok, message = _document_with_library(path).validate()
     assert ok, message

@@ -42,10 +42,53 @@ def test_demo_albedo_is_bound_as_linear_data(demo_run: tuple[Path, str, str]) ->
     from pxr import Usd, UsdShade
 
     stage = Usd.Stage.Open(str(demo_run[0] / "asset" / "asset.usda"))
-    (texture,) = [UsdShade.Shader(p) for p in stage.Traverse()
-                  if UsdShade.Shader(p) and UsdShade.Shader(p).GetShaderId() == "UsdUVTexture"]
-    assert texture.GetInput("sourceColorSpace").Get() == "raw"
-    assert texture.GetInput("file").GetAttr().GetColorSpace() == "lin_ap1_scene"
+    textures = [UsdShade.Shader(p) for p in stage.Traverse()
+                if UsdShade.Shader(p) and UsdShade.Shader(p).GetShaderId() == "UsdUVTexture"]
+    assert len(textures) == 7  # the mesh's material and each region's
+    for texture in textures:
+        assert texture.GetInput("sourceColorSpace").Get() == "raw"
+        assert texture.GetInput("file").GetAttr().GetColorSpace() == "lin_ap1_scene"
+
+
+def test_demo_openpbr_differs_by_region_at_each_landmark(
+        demo_run: tuple[Path, str, str]) -> None:
+    """At each region's landmark, the face nearest it is bound (through its materialBind
+    GeomSubset) to an OpenPBR network whose subsurface is that region's medium, textured
+    by the albedo, and no two regions share a mean free path."""
+    from pxr import Usd, UsdGeom, UsdShade
+
+    from skinpipe.package_data import package_folder
+    from skinpipe.usd.author import read_landmarks
+
+    stage = Usd.Stage.Open(str(demo_run[0] / "asset" / "asset.usda"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Geom/Mesh"))
+    points = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    centres = np.array([points[indices[a:a + n]].mean(axis=0)
+                        for a, n in zip(starts, counts, strict=True)])
+    to_local = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(0)
+                          .GetInverse())
+    subsets = UsdShade.MaterialBindingAPI(mesh.GetPrim()).GetMaterialBindSubsets()
+    radii = {}
+    landmarks = read_landmarks(package_folder("samples", "face") / "landmarks.json")
+    for region, where in landmarks.items():
+        first = np.asarray(where, np.float64).reshape(-1, 3)[0]
+        local = (np.append(first, 1.0) @ to_local)[:3]
+        face = int(np.argmin(np.linalg.norm(centres - local, axis=1)))
+        (subset,) = [s for s in subsets if face in set(s.GetIndicesAttr().Get())]
+        material, _ = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()
+        openpbr = UsdShade.Shader(stage.GetPrimAtPath(f"{material.GetPath()}/OpenPBR"))
+        mfp = np.array(stage.GetPrimAtPath(f"/Face/Looks/Profiles/{region}")
+                       .GetAttribute("medium:meanFreePathMm").Get())
+        radius = openpbr.GetInput("subsurface_radius").Get()
+        scale = np.array(openpbr.GetInput("subsurface_radius_scale").Get())
+        np.testing.assert_allclose(radius * scale * 1000 * UsdGeom.GetStageMetersPerUnit(
+            stage), mfp, rtol=1e-5)
+        assert openpbr.GetInput("subsurface_color").HasConnectedSource()
+        radii[region] = round(radius, 4)
+    assert len(radii) == 6 and len(set(radii.values())) == 6, radii
 
 
 def test_demo_albedo_agrees_across_seams_and_has_freckles(
