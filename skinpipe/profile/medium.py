@@ -2,26 +2,32 @@
 
 Production renderers (and OpenPBR, §"Subsurface" of its specification) describe skin as a
 semi-infinite homogeneous medium: per channel an extinction mu_t = 1 / l (l the mean free
-path) and a single-scattering albedo alpha, isotropic here (g = 0), behind an
-index-matched boundary (the assumption of the albedo formula the specification quotes).
-This module inverts a measured pencil-beam profile to (alpha, l), per channel:
+path) and a single-scattering albedo alpha, with one Henyey-Greenstein anisotropy g,
+behind an index-matched boundary (the assumption of the albedo formula the specification
+quotes). This module inverts a measured pencil-beam profile to (alpha, l, g):
 
 1. **alpha from the total reflectance.** The paper measures the exit radiance seen from
    straight above under a normal pencil; times pi, summed over the surface, that is the
-   total reflectance R the albedo texture carries. For an index-matched isotropic half
-   space it is exactly R(alpha) = alpha H(alpha, 1)^2 / 8 (Chandrasekhar 1960, eq. IV.14
-   at mu = mu0 = 1; H his function, eq. V.41), inverted by bisection.
-2. **l from the profile's shape.** Of R, the single scattering of the pencil is
-   alpha / 8 (all of it at the entry point: the pencil goes straight down), a share
-   1 / H(alpha, 1)^2 of the profile; the rest is multiply scattered, shaped as
-   Christensen & Burley 2015 (eq. 3) fitted to Monte Carlo: (e^{-r/d} + e^{-r/3d}) / r
-   with d = l / s(A) (their eq. 6, searchlight). l is fitted so that the model's
-   edge-spread function (:mod:`.edge`) matches the measured one in least squares.
+   total reflectance R the albedo texture carries. For an isotropic half space it is
+   exactly R(alpha) = alpha H(alpha, 1)^2 / 8 (Chandrasekhar 1960, eq. IV.14 at
+   mu = mu0 = 1; H his function, eq. V.41); for g > 0 it is tabulated by adding-doubling
+   (pencil_reflectance_table.py, from tools/tabulate_pencil_reflectance.py). Each is
+   inverted by bisection.
+2. **l and g from the profile's shape.** Of R, the single scattering of the pencil is
+   alpha p_g(-1) pi / 2, all of it at the entry point (the pencil goes straight down): a
+   share of 1 / H(alpha, 1)^2 at g = 0, a few per cent at 0.7. The rest is multiply
+   scattered, shaped as Christensen & Burley 2015 (eq. 3, fitted to Monte Carlo:
+   (e^{-r/d} + e^{-r/3d}) / r, d = l' / s(A), their eq. 6) or as the diffusion dipole,
+   at the similarity relation's reduced albedo and mean free path l' = l / (1 - alpha g).
+   l is fitted per channel so that the model's edge-spread function (:mod:`.edge`)
+   matches the measured one in least squares; g and the model are those whose largest
+   difference is least. The measured entry spike is what fixes g: skin1's (a fifth to a
+   half of its light) gives g = 0, a diffusion-shaped capture with none g = 0.5-0.7.
 3. **OpenPBR's colour.** The specification's alpha(C) is the inverse of van de Hulst's
-   C(alpha) = (1 - s)(1 - 0.139 s) / (1 + 1.17 s), s = sqrt(1 - alpha) (Kulla & Conty
-   2017); a renderer following it recovers alpha from C = C(alpha). That C is the
-   albedo under uniform light (bi-hemispherical), not the pencil's R: 0.625 against
-   0.545 for skin1's red.
+   C(alpha) = (1 - s)(1 - 0.139 s) / (1 + 1.17 s), s = sqrt((1 - alpha) / (1 - alpha g))
+   (Kulla & Conty 2017); a renderer following it recovers alpha from C = C(alpha). That C
+   is the albedo under uniform light (bi-hemispherical), not the pencil's R: 0.625
+   against 0.545 for skin1's red.
 
 Residuals are reported as any fit's: eq. 2c of the model's ring means against the
 measured samples and the edge-spread error (largest difference of the edge functions
@@ -32,7 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,7 +46,8 @@ from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq, minimize_scalar
 
 from ..errors import InputError
-from .edge import edge_positions_mm, spread_beyond_rings
+from . import pencil_reflectance_table as TABLE
+from .edge import spread_beyond_rings
 from .models import (
     burley_scaling_searchlight,
     fit_error_eq2c,
@@ -55,7 +62,7 @@ _MU, _W = 0.5 * (_NODES + 1.0), 0.5 * _WEIGHTS
 PENCIL_REFLECTANCE_MAX = 1.0568
 """R(alpha -> 1) = H(1, 1)^2 / 8 (H(1, 1) = 2.9078): a conservative medium's pencil seen
 from above looks brighter than a Lambertian white, as its exit peaks at the normal."""
-EDGE_POSITIONS = 200
+EDGE_POSITIONS = 100
 """Edge positions the shape fit compares, log-spaced (the reported error uses all)."""
 
 
@@ -120,6 +127,8 @@ class MediumEstimate:
 
     single_scattering_albedo: FloatArray
     mean_free_path_mm: FloatArray
+    anisotropy: float
+    """g of the Henyey-Greenstein phase function, one for all channels."""
     total_reflectance: FloatArray
     """R the medium was made to reflect (the pencil's, as the capture measures it)."""
     subsurface_colour: FloatArray
@@ -143,34 +152,50 @@ def _burley_ring_means(outer: FloatArray, d_mm: float) -> FloatArray:
 
 @dataclass(frozen=True)
 class _Shape:
-    """What fixes a medium's profile shape but its length: its albedo, the single
-    scattering's share of R and Burley's scaling s."""
+    """What fixes a medium's profile shape but its length: albedo alpha, anisotropy g,
+    the single scattering's share of R and Burley's scaling s."""
 
     albedo: float
+    anisotropy: float
     single_share: float
     burley_s: float
 
+    @property
+    def reduced_albedo(self) -> float:
+        """alpha' = alpha (1 - g) / (1 - alpha g) (similarity relation)."""
+        a, g = self.albedo, self.anisotropy
+        return a * (1.0 - g) / (1.0 - a * g)
 
-@lru_cache(maxsize=1)
-def _pencil_reflectance_table() -> PchipInterpolator:
-    """:func:`pencil_reflectance` against s = sqrt(1 - alpha) on 257 points (interpolated
-    to 1e-8): the inversion asks for it hundreds of times a region."""
-    s = np.linspace(0.0, 1.0, 257)
-    return PchipInterpolator(s, [pencil_reflectance(1.0 - x * x) for x in s])
+    @property
+    def reduced_length(self) -> float:
+        """l' / l = 1 / (1 - alpha g): the transport mean free path's."""
+        return 1.0 / (1.0 - self.albedo * self.anisotropy)
 
 
-def _shape(reflectance: float) -> _Shape:
-    """The isotropic medium reflecting ``reflectance``; its single scattering is alpha / 8
-    (the pencil's first collisions, all on the axis: alpha p(-1) pi / 2, p = 1 / 4 pi)."""
-    if not 0.0 < reflectance < PENCIL_REFLECTANCE_MAX:
-        raise InputError(f"total reflectance {reflectance:g} is outside (0, "
-                         f"{PENCIL_REFLECTANCE_MAX}): no index-matched isotropic medium "
-                         "reflects that")
-    table = _pencil_reflectance_table()
-    root = float(brentq(lambda x: float(table(x)) - reflectance, 0.0, 1.0, xtol=1e-13))
-    a = 1.0 - root * root
-    return _Shape(a, a / 8.0 / reflectance,
-                  float(burley_scaling_searchlight(van_de_hulst_colour(a))))
+@cache
+def _reflectance_over_s(g: float) -> PchipInterpolator:
+    """R against s = sqrt((1 - alpha) / (1 - alpha g)): Chandrasekhar's exact form at
+    g = 0 (257 points, interpolated to 1e-8), the adding-doubling table beyond."""
+    if g == 0.0:
+        s = np.linspace(0.0, 1.0, 257)
+        return PchipInterpolator(s, [pencil_reflectance(1.0 - x * x) for x in s])
+    k = TABLE.ANISOTROPIES.index(g)
+    return PchipInterpolator(TABLE.S_GRID, TABLE.REFLECTANCE[k])
+
+
+def _shape(reflectance: float, g: float = 0.0) -> _Shape | None:
+    """The medium of anisotropy ``g`` reflecting ``reflectance``, None if none does. Its
+    single scattering is alpha p_g(-1) pi / 2 (the pencil's first collisions, all on the
+    axis), the rest multiply scattered."""
+    curve = _reflectance_over_s(g)
+    low, high = float(curve.x[0]), float(curve.x[-1])
+    if not float(curve(high)) < reflectance < float(curve(low)):
+        return None
+    root = float(brentq(lambda x: float(curve(x)) - reflectance, low, high, xtol=1e-13))
+    a = (1.0 - root * root) / (1.0 - g * root * root)
+    back = (1.0 - g * g) / (4.0 * math.pi * (1.0 + g) ** 3)  # p_HG(cos = -1)
+    return _Shape(a, g, a * back * math.pi / 2.0 / reflectance,
+                  float(burley_scaling_searchlight(van_de_hulst_colour(a, g))))
 
 
 def _dipole_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: float
@@ -196,77 +221,89 @@ def _dipole_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: floa
 MULTIPLE_SCATTERING_MODELS = ("burley", "dipole")
 """Shapes of the multiply scattered light the inversion tries: Christensen & Burley 2015
 (fitted to Monte Carlo; holds near the entry point) and the diffusion dipole (Jensen et
-al. 2001; holds in the far field). Each region keeps the medium whose model matches its
+al. 2001; holds in the far field), both at the similarity relation's reduced albedo and
+mean free path. Each region keeps the medium whose model matches its
 edge best; the medium, not the model, is what is written."""
 
 
 def _ring_means(outer: FloatArray, shape: _Shape, mean_free_path_mm: float,
                 model: str = "burley") -> FloatArray:
+    reduced = mean_free_path_mm * shape.reduced_length
     if model == "dipole":
-        ms = _dipole_ring_means(outer, shape.albedo, mean_free_path_mm)
+        ms = _dipole_ring_means(outer, shape.reduced_albedo, reduced)
     else:
-        ms = _burley_ring_means(outer, mean_free_path_mm / shape.burley_s)
+        ms = _burley_ring_means(outer, reduced / shape.burley_s)
     out = (1.0 - shape.single_share) * ms
     out[0] += shape.single_share / (math.pi * outer[0] ** 2)
     return out
 
 
-def medium_ring_means(radius_mm: ArrayLike, reflectance: float, mean_free_path_mm: float,
-                      model: str = "burley") -> FloatArray:
-    """The model's profile (normalised to 1 over the plane) as ring means: the single
-    scattering's share in the central ring, the rest as ``model``'s."""
-    return _ring_means(ring_edges_mm(radius_mm), _shape(reflectance), mean_free_path_mm,
-                       model)
+ANISOTROPIES = TABLE.ANISOTROPIES
+"""The phase-function anisotropies g tried: g sets how much of the light the pencil's
+single scattering sends straight back (its entry spike), from 1 / H(alpha, 1)^2 of R at
+g = 0 to a few per cent at 0.7."""
 
 
 def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: ArrayLike
                     ) -> MediumEstimate:
     """Invert a measured profile (``values`` (n, 3) at ``radius_mm``, any scale: only its
-    shape is used) reflecting ``total_reflectance`` (3,) to an isotropic medium (see the
-    module): per channel the mean free path under each of
-    :data:`MULTIPLE_SCATTERING_MODELS`, keeping the model whose edge matches best."""
+    shape is used) reflecting ``total_reflectance`` (3,) to a medium (see the module):
+    per channel the mean free path for each g of :data:`ANISOTROPIES` and each of
+    :data:`MULTIPLE_SCATTERING_MODELS`, keeping the g (one for all channels, as OpenPBR
+    has one) and the model whose edges match best."""
     r = np.asarray(radius_mm, dtype=np.float64).reshape(-1)
     p = np.asarray(values, dtype=np.float64).reshape(r.size, -1)
     refl = np.broadcast_to(np.asarray(total_reflectance, dtype=np.float64), (p.shape[1],))
     if r.size < 3 or not np.all(np.isfinite(p)) or not np.all(np.diff(r) > 0):
         raise InputError("a medium needs at least 3 finite samples at increasing radii")
     outer = ring_edges_mm(r)
-    t_all = edge_positions_mm(r)
+    area = ring_areas_mm2(r)
     central = outer[min(1, r.size - 1)] - 1e-12
-    # positions spaced evenly in log |t|: the entry's structure is within a few rings
-    want = np.geomspace(max(central, 1e-6), outer[-1], EDGE_POSITIONS // 2)
-    near = np.unique(np.clip(np.searchsorted(outer, want), 0, outer.size - 1))
-    t = np.concatenate([-outer[near][::-1], outer[near]])
-    beyond = spread_beyond_rings(r, np.eye(r.size), t)[np.abs(t) >= central]
+    # E(t) + E(-t) is the total: the light beyond t >= 0, over the total, says it all.
+    # The fit compares positions spaced evenly in log t (the entry's structure is within
+    # a few rings); the reported error takes every ring edge.
+    every = outer[outer >= central]
+    want = np.geomspace(every[0], every[-1], EDGE_POSITIONS)
+    beyond = spread_beyond_rings(r, np.eye(r.size), np.unique(
+        every[np.clip(np.searchsorted(every, want), 0, every.size - 1)]))
+    beyond_every = spread_beyond_rings(r, np.eye(r.size), every)
     mean = p.clip(0).mean(axis=1)
     rms_mm = max(float(np.sqrt(np.sum(mean * r**3) / max(np.sum(mean * r), 1e-300))), 1e-3)
     bounds = (math.log(rms_mm / 100), math.log(rms_mm * 100))
-    measured = beyond @ p
-    measured /= measured.max(axis=0)
+    totals = np.maximum(area @ p, 1e-300)
+    measured = beyond @ p / totals
 
-    def fit(c: int, model: str) -> tuple[float, float, _Shape]:
+    def fit(c: int, g: float, model: str) -> tuple[float, float, _Shape] | None:
         """(largest edge difference, mean free path, shape) of channel c's best fit."""
-        shape = _shape(float(refl[c]))
+        shape = _shape(float(refl[c]), g)
+        if shape is None:
+            return None
 
         def spread(log_l: float) -> FloatArray:
-            e = beyond @ _ring_means(outer, shape, math.exp(log_l), model)
-            return e / e.max() - measured[:, c]
+            ring_means = _ring_means(outer, shape, math.exp(log_l), model)
+            return beyond @ ring_means / max(float(area @ ring_means), 1e-300) \
+                - measured[:, c]
 
         best = minimize_scalar(lambda x: float(np.sum(spread(x) ** 2)), bounds=bounds,
                                method="bounded", options={"xatol": 1e-4})
         return float(np.abs(spread(best.x)).max()), math.exp(best.x), shape
 
-    fits = {m: [fit(c, m) for c in range(p.shape[1])] for m in MULTIPLE_SCATTERING_MODELS}
-    model_best = min(fits, key=lambda k: max(f[0] for f in fits[k]))
+    if not all(_shape(float(x)) for x in refl):
+        raise InputError(f"total reflectance {refl.tolist()} is outside (0, "
+                         f"{PENCIL_REFLECTANCE_MAX}): no index-matched medium reflects that")
+    fits = {}
+    for g in ANISOTROPIES:
+        for m in MULTIPLE_SCATTERING_MODELS:
+            found = [fit(c, g, m) for c in range(p.shape[1])]
+            if all(f is not None for f in found):
+                fits[g, m] = found
+    g_best, model_best = min(fits, key=lambda k: max(f[0] for f in fits[k]))
     albedo, mfp, err2c, edge = (np.empty(p.shape[1]) for _ in range(4))
-    keep_all = np.abs(t_all) >= central
-    for c, (_, length, shape) in enumerate(fits[model_best]):
+    for c, (_, length, shape) in enumerate(fits[g_best, model_best]):
         albedo[c], mfp[c] = shape.albedo, length
         model = _ring_means(outer, shape, length, model_best)
-        err2c[c] = float(fit_error_eq2c(r, p[:, c] / (p[:, c] @ ring_areas_mm2(r)), model))
-        e_meas = spread_beyond_rings(r, p[:, c], t_all)
-        e_model = spread_beyond_rings(r, model, t_all)
-        e_model *= e_meas[0] / e_model[0]
-        edge[c] = float(np.abs(e_model - e_meas)[keep_all].max() / e_meas[0])
-    return MediumEstimate(albedo, mfp, refl.copy(), van_de_hulst_colour(albedo), err2c, edge,
-                          model_best)
+        err2c[c] = float(fit_error_eq2c(r, p[:, c] / totals[c], model))
+        edge[c] = float(np.abs(beyond_every @ model / (area @ model)
+                               - beyond_every @ p[:, c] / totals[c]).max())
+    return MediumEstimate(albedo, mfp, g_best, refl.copy(),
+                          van_de_hulst_colour(albedo, g_best), err2c, edge, model_best)

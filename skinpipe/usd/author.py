@@ -215,7 +215,8 @@ def _author_medium(prim: Any, medium: MediumEstimate) -> None:
             ("error", Sdf.ValueTypeNames.Float3, medium.error_eq2c),
             ("edgeError", Sdf.ValueTypeNames.Float3, medium.edge_error)):
         prim.CreateAttribute(f"medium:{name}", kind).Set(Gf.Vec3f(*_f32(value)))
-    prim.CreateAttribute("medium:anisotropy", Sdf.ValueTypeNames.Float).Set(0.0)
+    prim.CreateAttribute("medium:anisotropy", Sdf.ValueTypeNames.Float).Set(
+        float(medium.anisotropy))
     prim.CreateAttribute("medium:model", Sdf.ValueTypeNames.Token,
                          variability=Sdf.VariabilityUniform).Set(medium.model)
 

@@ -6,7 +6,7 @@ subsurface (§"Subsurface" of the specification): ``subsurface_radius`` times
 ``subsurface_radius_scale`` is the mean free path 1 / mu_t per channel, in scene units;
 ``subsurface_color`` the multiple-scattering albedo whose van de Hulst inversion (the
 formula the specification gives) returns the medium's single-scattering albedo;
-``subsurface_scatter_anisotropy`` 0 (the inversion's medium scatters isotropically).
+``subsurface_scatter_anisotropy`` the medium's Henyey-Greenstein g.
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..profile.edge import ring_means_of_gaussians
-from ..profile.medium import MediumEstimate, estimate_medium
+from ..profile.medium import MediumEstimate, estimate_medium, van_de_hulst_colour
 from ..profile.types import FitResult, MeasuredProfile
 
 RING_MM = 0.025
 """Ring width of the profile a fit without measured samples is inverted on."""
-MAX_RINGS = 2000
+MAX_RINGS = 600
 SPECULAR_ROUGHNESS = 0.35
 SPECULAR_IOR = 1.4
 """Skin's refractive index (OpenPBR's specular_ior; the preview surface's ior)."""
@@ -54,22 +54,25 @@ def openpbr_values(medium: MediumEstimate, meters_per_unit: float,
             "subsurface_color": _f32(medium.subsurface_colour),
             "subsurface_radius": radius,
             "subsurface_radius_scale": _f32(mfp_units / radius),
-            "subsurface_scatter_anisotropy": 0.0,
+            "subsurface_scatter_anisotropy": float(medium.anisotropy),
             "specular_roughness": SPECULAR_ROUGHNESS, "specular_ior": SPECULAR_IOR}
 
 
 def face_weighted_medium(media: list[MediumEstimate], faces: NDArray[Any]) -> MediumEstimate:
     """One medium for a whole mesh (renderers that ignore GeomSubset bindings): the
-    regions' albedos and mean free paths averaged by their numbers of faces."""
+    regions' albedos, mean free paths and anisotropies averaged by their numbers of
+    faces."""
     w = np.bincount(np.asarray(faces), minlength=len(media))[:len(media)].astype(np.float64)
     w = w / w.sum() if w.sum() > 0 else np.full(len(media), 1.0 / len(media))
 
     def mean(name: str) -> NDArray[np.float64]:
         return np.einsum("r,rc->c", w, np.array([getattr(m, name) for m in media]))
 
-    return MediumEstimate(mean("single_scattering_albedo"), mean("mean_free_path_mm"),
-                          mean("total_reflectance"), mean("subsurface_colour"),
-                          mean("error_eq2c"), mean("edge_error"), media[0].model)
+    g = float(w @ np.array([m.anisotropy for m in media]))
+    albedo = mean("single_scattering_albedo")
+    return MediumEstimate(albedo, mean("mean_free_path_mm"), g, mean("total_reflectance"),
+                          van_de_hulst_colour(albedo, g), mean("error_eq2c"),
+                          mean("edge_error"), media[0].model)
 
 
 def _f32(values: Any) -> tuple[float, ...]:
