@@ -17,8 +17,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "For an asset without colour (like the sample face scan): unwrap the skin mesh "
             "if it has no usable UVs (written back into its geo layer), paint a tone per "
             "region with freckles and moles (sizes in mm on the surface), write "
-            "albedo.exr (ACEScg) beside the asset and bind it to the material's "
-            "diffuseColor. Changes the asset's geo and look layers in place (atomically)."
+            "albedo.exr (ACEScg) beside the asset and bind it to every material's "
+            "diffuseColor and OpenPBR base colour; where the profiles carry their media, "
+            "also subsurface_color.exr and subsurface_radius_scale.exr, the regions' "
+            "OpenPBR subsurface blended by their soft weights (the skinLook variant "
+            "'blended' shows them). Changes the asset's geo and look layers in place "
+            "(atomically)."
         ),
         formatter_class=HelpFormatter,
     )
@@ -31,11 +35,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def cmd_paint_albedo(args: argparse.Namespace) -> int:
     from ..fileio import check_output_file, record_outputs
-    from ..workflow.albedo import ALBEDO_NAME, bake_sample_albedo
+    from ..workflow.albedo import (
+        ALBEDO_NAME,
+        SUBSURFACE_COLOUR_NAME,
+        SUBSURFACE_SCALE_NAME,
+        bake_sample_albedo,
+    )
 
     if not 16 <= args.size <= 16384:
         raise InputError(f"--size must be 16-16384 texels, got {args.size}")
-    texture = check_output_file(args.asset.absolute().parent / ALBEDO_NAME, (), args.force)
+    names = (ALBEDO_NAME, SUBSURFACE_COLOUR_NAME, SUBSURFACE_SCALE_NAME)
+    texture, *_ = [check_output_file(args.asset.absolute().parent / name, (), args.force)
+                   for name in names]
     print(f"wrote {bake_sample_albedo(args.asset, args.size, args.seed, _eprint)}")
-    record_outputs(texture.parent, [texture.name], "paint-albedo")
+    record_outputs(texture.parent, [n for n in names if (texture.parent / n).exists()],
+                   "paint-albedo")
     return EXIT_OK

@@ -237,6 +237,28 @@ def _author_material(stage: Any, path: str, values: dict[str, Any]) -> str:
     return path
 
 
+def _author_look_variants(look: Any, root: str, subset_paths: Sequence[Any],
+                          region_materials: Sequence[str]) -> None:
+    """The variant set skinLook on the root: ``perRegion`` (the default) binds each
+    region's subset to its own material, a hard change at region borders; ``blended``
+    binds none, so the mesh's SkinMaterial shows, whose subsurface follows the soft
+    region weights once the albedo is painted (:mod:`skinpipe.workflow.albedo`)."""
+    variants = look.GetPrimAtPath(root).GetVariantSets().AddVariantSet(LOOK_VARIANT_SET)
+    for name in LOOK_VARIANTS:
+        variants.AddVariant(name)
+    variants.SetVariantSelection("perRegion")
+    with variants.GetVariantEditContext():
+        for path, material in zip(subset_paths, region_materials, strict=True):
+            subset = look.OverridePrim(path)
+            UsdShade.MaterialBindingAPI.Apply(subset).GetDirectBindingRel().SetTargets(
+                [Sdf.Path(material)])
+    variants.SetVariantSelection("perRegion")
+
+
+LOOK_VARIANT_SET = "skinLook"
+LOOK_VARIANTS = ("perRegion", "blended")
+"""How other renderers get the regions: a material per region (default) or one material
+whose subsurface maps blend them."""
 REGION_LOOKS = "Looks/Regions"
 """Where each region's material lives under the asset's root."""
 BIND_SUBSET_PREFIX = "look_"
@@ -373,14 +395,15 @@ def author_asset(
                                         SUBSET_FAMILY, UsdGeom.Tokens.partition)
     binding = UsdShade.MaterialBindingAPI.Apply(prim)
     binding.GetDirectBindingRel().SetTargets([Sdf.Path(material_path)])
-    # each region's own material, for renderers that follow GeomSubset bindings (USD's
-    # materialBind family); the mesh's binding stays for those that do not
-    for i, (region, mpath) in enumerate(zip(regions.names, region_materials, strict=True)):
+    # a materialBind GeomSubset per region; which material each binds is the look's
+    # choice (the skinLook variant set in look.usda)
+    subset_paths = []
+    for i, region in enumerate(regions.names):
         faces = np.flatnonzero(regions.face_region == i).astype(np.int32)
-        subset = binding.CreateMaterialBindSubset(
-            BIND_SUBSET_PREFIX + Tf.MakeValidIdentifier(region), Vt.IntArray.FromNumpy(faces))
-        UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).GetDirectBindingRel().SetTargets(
-            [Sdf.Path(mpath)])
+        subset_paths.append(binding.CreateMaterialBindSubset(
+            BIND_SUBSET_PREFIX + Tf.MakeValidIdentifier(region),
+            Vt.IntArray.FromNumpy(faces)).GetPath())
+    _author_look_variants(look, root, subset_paths, region_materials)
     if seal is not None:
         _author_seal(geo, f"{root}/Geom/Seal", seal, origin)
 

@@ -11,6 +11,7 @@ MaterialX's own definitions instead.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -120,39 +121,66 @@ def subsurface_factor(values: Mapping[str, Any]) -> tuple[float, float, float]:
     return (float(ratio[0]), float(ratio[1]), float(ratio[2]))
 
 
-def author_usd_texture(stage: Any, material_path: str, texture: str,
-                       colorspace: str) -> None:
-    """A MaterialX image (color3) reading ``texture`` by the default texture coordinates,
-    feeding OpenPBR's base colour, and through a multiply by :func:`subsurface_factor`
-    its subsurface colour."""
-    coords = UsdShade.Shader.Define(stage, f"{material_path}/MtlxTexcoord")
-    coords.CreateIdAttr(TEXCOORD)
-    image = UsdShade.Shader.Define(stage, f"{material_path}/MtlxAlbedo")
+@dataclass(frozen=True)
+class SubsurfaceMaps:
+    """Painted subsurface inputs: ``colour`` (ACEScg) and ``radius_scale`` (data) texture
+    paths, and the ``radius`` (scene units) the scale multiplies."""
+
+    colour: str
+    radius_scale: str
+    radius: float
+
+
+def _usd_image(stage: Any, path: str, texture: str, colorspace: str | None,
+               coords: Any) -> Any:
+    """A MaterialX image (color3) shader reading ``texture`` at ``coords``; its output."""
+    image = UsdShade.Shader.Define(stage, path)
     image.CreateIdAttr(IMAGE)
     file_input = image.CreateInput("file", _sdf("filename"))
     file_input.Set(Sdf.AssetPath(texture))
-    file_input.GetAttr().SetColorSpace(colorspace)
-    image.CreateInput("texcoord", _sdf("vector2")).ConnectToSource(
-        coords.CreateOutput("out", _sdf("vector2")))
-    color = image.CreateOutput("out", _sdf("color3"))
+    if colorspace is not None:
+        file_input.GetAttr().SetColorSpace(colorspace)
+    image.CreateInput("texcoord", _sdf("vector2")).ConnectToSource(coords)
+    return image.CreateOutput("out", _sdf("color3"))
+
+
+def author_usd_texture(stage: Any, material_path: str, texture: str, colorspace: str,
+                       maps: SubsurfaceMaps | None = None) -> None:
+    """A MaterialX image (color3) reading ``texture`` by the default texture coordinates,
+    feeding OpenPBR's base colour, and through a multiply by :func:`subsurface_factor`
+    its subsurface colour; with ``maps``, the subsurface colour and radius scale read
+    those instead."""
+    coords = UsdShade.Shader.Define(stage, f"{material_path}/MtlxTexcoord")
+    coords.CreateIdAttr(TEXCOORD)
+    uv = coords.CreateOutput("out", _sdf("vector2"))
+    color = _usd_image(stage, f"{material_path}/MtlxAlbedo", texture, colorspace, uv)
     openpbr = UsdShade.Shader(stage.GetPrimAtPath(f"{material_path}/OpenPBR"))
+    openpbr.GetInput("base_color").ConnectToSource(color)
+    if maps is not None:
+        openpbr.GetInput("subsurface_color").ConnectToSource(_usd_image(
+            stage, f"{material_path}/MtlxSubsurfaceColorMap", maps.colour, colorspace, uv))
+        openpbr.GetInput("subsurface_radius_scale").ConnectToSource(_usd_image(
+            stage, f"{material_path}/MtlxSubsurfaceRadiusScaleMap", maps.radius_scale, None,
+            uv))
+        openpbr.GetInput("subsurface_radius").Set(float(maps.radius))
+        return
     factor = subsurface_factor(usd_network_values(openpbr))
     scale = UsdShade.Shader.Define(stage, f"{material_path}/MtlxSubsurfaceColor")
     scale.CreateIdAttr(MULTIPLY)
     scale.CreateInput("in1", _sdf("color3")).ConnectToSource(color)
     scale.CreateInput("in2", _sdf("color3")).Set(Gf.Vec3f(*factor))
-    openpbr.GetInput("base_color").ConnectToSource(color)
     openpbr.GetInput("subsurface_color").ConnectToSource(
         scale.CreateOutput("out", _sdf("color3")))
 
 
-def mtlx_document(materials: Mapping[str, Mapping[str, Any]], texture: str | None = None
-                  ) -> Any:
+def mtlx_document(materials: Mapping[str, Mapping[str, Any]], texture: str | None = None,
+                  maps: Mapping[str, SubsurfaceMaps] | None = None) -> Any:
     """The materials as a MaterialX document: per name a surfacematerial over an
     open_pbr_surface (``values`` as in :func:`author_usd_network`; the shader of
     ``SkinMaterial`` is named ``OpenPBR``, others ``OpenPBR_<name>``), with one image node
-    for ``texture`` feeding each base colour and, scaled, each subsurface colour; raises
-    :class:`SkinpipeError` unless MaterialX's ``validate()`` accepts each element."""
+    for ``texture`` feeding each base colour and, scaled, each subsurface colour (or, for
+    a material in ``maps``, its painted subsurface maps); raises :class:`SkinpipeError`
+    unless MaterialX's ``validate()`` accepts each element."""
     doc = mx.createDocument()
     doc.importLibrary(library())
     doc.setColorSpace(MTLX_COLORSPACE)
@@ -175,7 +203,22 @@ def mtlx_document(materials: Mapping[str, Mapping[str, Any]], texture: str | Non
                 port.setValue(mx.Color3(*(float(x) for x in value)))
             else:
                 port.setValue(float(value))
-        if image is not None:
+        painted = (maps or {}).get(name)
+        if image is not None and painted is not None:
+            shader.getInput("base_color").setConnectedNode(image)
+            for key, file, node, space in (
+                    ("subsurface_color", painted.colour, "SubsurfaceColorMap", MTLX_COLORSPACE),
+                    ("subsurface_radius_scale", painted.radius_scale,
+                     "SubsurfaceRadiusScaleMap", None)):
+                reader = doc.addNode("image", f"{node}_{name}", "color3")
+                reader_file = reader.addInput("file", "filename")
+                reader_file.setValueString(file)
+                if space is not None:
+                    reader_file.setColorSpace(space)
+                reader.addInput("texcoord", "vector2").setConnectedNode(coords)
+                shader.getInput(key).setConnectedNode(reader)
+            shader.getInput("subsurface_radius").setValue(float(painted.radius))
+        elif image is not None:
             scale = doc.addNode("multiply", f"SubsurfaceColor_{name}", "color3")
             scale.addInput("in1", "color3").setConnectedNode(image)
             scale.addInput("in2", "color3").setValue(mx.Color3(*subsurface_factor(values)))

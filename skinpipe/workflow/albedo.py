@@ -31,12 +31,13 @@ from ..usd.author import MTLX_NAME
 from ..usd.io import export_layer_atomic
 from ..usd.materialx import (
     MTLX_COLORSPACE,
+    SubsurfaceMaps,
     author_usd_texture,
     mtlx_document,
     usd_network_values,
     write_mtlx_document,
 )
-from ..usd.schema import WORKING_COLORSPACE
+from ..usd.schema import PROFILES_REL, WORKING_COLORSPACE
 
 # Linear ACEScg tones; about sRGB (225, 170, 145) for the face, redder lips and nose.
 REGION_TONES: dict[str, tuple[float, float, float]] = {
@@ -151,7 +152,8 @@ def _spotted(base: NDArray[Any], pos: NDArray[Any], maps: TextureMaps,
     return base
 
 
-def _wire_texture(edit: Any, material_path: str, rel: str) -> dict[str, Any] | None:
+def _wire_texture(edit: Any, material_path: str, rel: str,
+                  maps: SubsurfaceMaps | None = None) -> dict[str, Any] | None:
     """``rel`` (relative to the material's layer) into the material's preview surface's
     diffuseColor through a UsdUVTexture reading ``st``, and into its OpenPBR network
     through MaterialX's image node; returns the OpenPBR values (None without one)."""
@@ -176,17 +178,18 @@ def _wire_texture(edit: Any, material_path: str, rel: str) -> dict[str, Any] | N
     openpbr = edit.GetPrimAtPath(f"{material_path}/OpenPBR")
     if not openpbr:
         return None
-    values = usd_network_values(UsdShade.Shader(openpbr))
-    author_usd_texture(edit, material_path, f"./{rel}", MTLX_COLORSPACE)
-    return values
+    author_usd_texture(edit, material_path, f"./{rel}", MTLX_COLORSPACE, maps)
+    return usd_network_values(UsdShade.Shader(openpbr))
 
 
 def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
-                          before_save: Callable[[], Any] | None = None) -> str:
+                          before_save: Callable[[], Any] | None = None,
+                          maps: SubsurfaceMaps | None = None) -> str:
     """Bind ``texture`` (an ACEScg EXR beside the look layer) to the mesh's material and
-    its regions' materials (:func:`_wire_texture`), rewrite look.mtlx to match; saves the
+    its regions' materials (:func:`_wire_texture`; the mesh's reads ``maps``' painted
+    subsurface, paths beside the texture), rewrite look.mtlx to match; saves the
     materials' layer atomically and returns its path. ``before_save`` runs (and may
-    raise) before anything is written: e.g. waiting for the texture itself."""
+    raise) before anything is written: e.g. waiting for the textures themselves."""
     prim = stage.GetPrimAtPath(mesh_path)
     binding = UsdShade.MaterialBindingAPI(prim)
     material, _ = binding.ComputeBoundMaterial()
@@ -204,11 +207,16 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
     edit = Usd.Stage.Open(layer)
     rel = Path(texture).resolve().relative_to(Path(layer.realPath).resolve().parent)
     networks = {}
+    mesh_maps = None if maps is None else SubsurfaceMaps(
+        f"./{Path(maps.colour).name}", f"./{Path(maps.radius_scale).name}", maps.radius)
     for path in paths:
-        values = _wire_texture(edit, str(path), rel.as_posix())
+        values = _wire_texture(edit, str(path), rel.as_posix(),
+                               mesh_maps if path == material.GetPath() else None)
         if values is not None:
             networks[path.name] = values
-    document = mtlx_document(networks, rel.as_posix()) if networks else None
+    mtlx_maps = None if maps is None else {material.GetPath().name: SubsurfaceMaps(
+        Path(maps.colour).name, Path(maps.radius_scale).name, maps.radius)}
+    document = mtlx_document(networks, rel.as_posix(), mtlx_maps) if networks else None
     if before_save is not None:
         before_save()
     if document is not None:
@@ -233,11 +241,79 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
     image = dilate_charts(push_pull(albedo, maps.coverage, in_place=True),
                           maps.coverage)[::-1]  # row 0: v = 1
-    texture = Path(asset).resolve().parent / ALBEDO_NAME
-    # OpenImageIO makes the MIP-mapped texture without the GIL while MaterialX builds and
+    folder = Path(asset).resolve().parent
+    texture = folder / ALBEDO_NAME
+    media = region_media(stage, mesh.path)
+    painted = None
+    if media is not None and maps.region_weights is not None:
+        colour, scale, radius = paint_subsurface_maps(maps, albedo, media,
+                                                      scene.meters_per_unit)
+        painted = SubsurfaceMaps(str(folder / SUBSURFACE_COLOUR_NAME),
+                                 str(folder / SUBSURFACE_SCALE_NAME), radius)
+    # OpenImageIO makes the MIP-mapped textures without the GIL while MaterialX builds and
     # validates the material document (0.34 and 0.3 s at 1024); nothing is saved until
-    # the texture is written
+    # the textures are written
     with ThreadPoolExecutor(1) as pool:
-        written = pool.submit(write_texture, texture, image, WORKING_COLORSPACE)
-        author_albedo_texture(stage, mesh.path, texture, before_save=written.result)
+        def write_all() -> None:
+            write_texture(texture, image, WORKING_COLORSPACE)
+            if painted is not None:
+                write_texture(painted.colour, _as_image(colour, maps), WORKING_COLORSPACE)
+                write_texture(painted.radius_scale, _as_image(scale, maps), DATA_COLORSPACE)
+
+        written = pool.submit(write_all)
+        author_albedo_texture(stage, mesh.path, texture, before_save=written.result,
+                              maps=painted)
     return texture
+
+
+SUBSURFACE_COLOUR_NAME = "subsurface_color.exr"
+SUBSURFACE_SCALE_NAME = "subsurface_radius_scale.exr"
+"""The blended subsurface maps :func:`bake_sample_albedo` writes beside the albedo."""
+DATA_COLORSPACE = "data"
+"""OCIO's name for values that are not colours (the radius scale)."""
+
+
+def region_media(stage: Any, mesh_path: str) -> list[tuple[Any, Any]] | None:
+    """Each region's (mean free path mm (3,), subsurface colour over total reflectance
+    (3,)) from the media on its profile prims, in region order; None where an asset's
+    profiles carry no media (authored before skinpipe wrote them)."""
+    targets = stage.GetPrimAtPath(mesh_path).GetRelationship(PROFILES_REL).GetTargets()
+    out = []
+    for target in targets:
+        prim = stage.GetPrimAtPath(target)
+        mfp = prim.GetAttribute("medium:meanFreePathMm").Get() if prim else None
+        colour = prim.GetAttribute("medium:subsurfaceColor").Get() if prim else None
+        total = prim.GetAttribute("medium:totalReflectance").Get() if prim else None
+        if mfp is None or colour is None or total is None:
+            return None
+        out.append((np.array(mfp, np.float64),
+                    np.array(colour, np.float64) / np.maximum(np.array(total), 1e-6)))
+    return out or None
+
+
+def paint_subsurface_maps(maps: TextureMaps, albedo: NDArray[np.float32],
+                          media: list[tuple[Any, Any]], meters_per_unit: float
+                          ) -> tuple[NDArray[np.float32], NDArray[np.float32], float]:
+    """OpenPBR's subsurface colour (the albedo times the regions' C / R, blended by the
+    region weights) and radius scale (the blended mean free path over its largest, the
+    radius, in scene units) for ``maps``' layout: (colour, scale, radius)."""
+    covered = np.flatnonzero(maps.triangle.ravel() >= 0)
+    assert maps.region_weights is not None
+    w = texel_rows(maps.region_weights, covered).astype(np.float64)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+    mfp_units = np.array([m for m, _ in media]) / (meters_per_unit * 1000.0)
+    radius = float(mfp_units.max())
+    colour = np.zeros((maps.size * maps.size, 3), np.float32)
+    scale = np.zeros_like(colour)
+    colour[covered] = np.clip(albedo.reshape(-1, 3)[covered] * (w @ np.array(
+        [f for _, f in media])), 0.0, 1.0)
+    scale[covered] = w @ mfp_units / radius
+    shape = (maps.size, maps.size, 3)
+    return colour.reshape(shape), scale.reshape(shape), radius
+
+
+def _as_image(texels: NDArray[np.float32], maps: TextureMaps) -> NDArray[np.float32]:
+    """A texture-space map as the texture is written: charts pushed and dilated beyond
+    their borders (MIP levels and filtering read there), row 0 at v = 1."""
+    return dilate_charts(push_pull(texels, maps.coverage, in_place=False),
+                         maps.coverage)[::-1]

@@ -123,3 +123,60 @@ def test_demo_albedo_agrees_across_seams_and_has_freckles(
     assert np.median(redder) == pytest.approx(1.0, abs=0.01)
     freckled = (redder > 1.08).mean()
     assert 0.001 < freckled < 0.1, freckled
+
+
+def test_demo_blended_look_paints_each_region_medium_at_its_landmark(
+        demo_run: tuple[Path, str, str]) -> None:
+    """In the skinLook variant ``blended`` every subset falls back to the mesh's
+    SkinMaterial, whose subsurface reads the painted maps: read back at each region's
+    landmark (its face's UV), radius x scale is the regions' mean free paths blended by
+    the mesh's region weights there (within 2%), and the six differ."""
+    from pxr import Usd, UsdGeom, UsdShade
+
+    from skinpipe.package_data import package_folder
+    from skinpipe.usd.author import read_landmarks
+    from skinpipe.workflow.albedo import SUBSURFACE_SCALE_NAME
+
+    folder = demo_run[0] / "asset"
+    stage = Usd.Stage.Open(str(folder / "asset.usda"))
+    stage.GetPrimAtPath("/Face").GetVariantSet("skinLook").SetVariantSelection("blended")
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Geom/Mesh"))
+    for subset in UsdShade.MaterialBindingAPI(mesh.GetPrim()).GetMaterialBindSubsets():
+        material, _ = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()
+        assert material.GetPath() == "/Face/Looks/SkinMaterial"
+    openpbr = UsdShade.Shader(stage.GetPrimAtPath("/Face/Looks/SkinMaterial/OpenPBR"))
+    assert openpbr.GetInput("subsurface_radius_scale").HasConnectedSource()
+    assert openpbr.GetInput("subsurface_color").HasConnectedSource()
+    radius = openpbr.GetInput("subsurface_radius").Get()
+    points = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    centres = np.array([points[indices[a:a + n]].mean(axis=0)
+                        for a, n in zip(starts, counts, strict=True)])
+    st = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st")
+    uv = np.asarray(st.ComputeFlattened(), np.float64)
+    per_corner = st.GetInterpolation() == UsdGeom.Tokens.faceVarying
+    scale_map = oiio.ImageBuf(str(folder / SUBSURFACE_SCALE_NAME)).get_pixels(oiio.FLOAT)
+    size = scale_map.shape[0]
+    to_local = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(0)
+                          .GetInverse())
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    targets = mesh.GetPrim().GetRelationship("skin:profiles").GetTargets()
+    media = np.array([stage.GetPrimAtPath(t).GetAttribute("medium:meanFreePathMm").Get()
+                      for t in targets], np.float64)
+    weights = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("skin:regionWeights")
+                         .ComputeFlattened(), np.float64).reshape(points.shape[0], -1)
+    seen = {}
+    landmarks = read_landmarks(package_folder("samples", "face") / "landmarks.json")
+    for region, where in landmarks.items():
+        first = np.asarray(where, np.float64).reshape(-1, 3)[0]
+        local = (np.append(first, 1.0) @ to_local)[:3]
+        face = int(np.argmin(np.linalg.norm(centres - local, axis=1)))
+        corners = np.arange(starts[face], starts[face] + counts[face])
+        u, v = uv[corners if per_corner else indices[corners]].mean(axis=0)
+        texel = scale_map[int((1 - v) * size), int(u * size)]
+        blend = weights[indices[corners]].mean(axis=0)
+        np.testing.assert_allclose(radius * texel * mpu * 1000, blend @ media, rtol=0.02)
+        seen[region] = round(float(texel[0]), 3)
+    assert len(set(seen.values())) == 6, seen
