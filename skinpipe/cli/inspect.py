@@ -33,7 +33,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     from pxr import Tf
 
     from ..fileio import check_output_file, record_outputs
-    from ..usd.inspection import describe_profile, plot_profile, profiles_on_stage
+    from ..usd.inspection import (
+        describe_medium,
+        describe_profile,
+        plot_profile,
+        profiles_on_stage,
+    )
     from ..usd.io import open_stage_guarded, usd_inputs
     from ..usd.schema import plugin_path_note
 
@@ -53,6 +58,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         check_output_file(target, reads, args.force)
     for path, (fit, measured) in found.items():
         print(describe_profile(path, fit, measured))
+        medium = describe_medium(stage.GetPrimAtPath(path))
+        if medium:
+            print(medium)
         if path in plots:
             plot_profile(fit, measured, plots[path], log_radius=args.log_radius)
             record_outputs(plots[path].parent, [plots[path].name], "inspect")

@@ -49,6 +49,33 @@ def describe_profile(path: str, fit: FitResult, measured: MeasuredProfile | None
     return "\n".join(lines)
 
 
+def describe_medium(prim: Any) -> str:
+    """The medium other renderers get for this profile (its medium:* attributes: see
+    docs/usd.md), as text; empty where none is authored."""
+    def rgb(name: str) -> Any:
+        attr = prim.GetAttribute(f"medium:{name}") if prim else None
+        return None if not attr or attr.Get() is None else np.asarray(attr.Get(), float)
+
+    mfp, albedo, colour, edge = (rgb(n) for n in (
+        "meanFreePathMm", "singleScatteringAlbedo", "subsurfaceColor", "edgeError"))
+    if mfp is None or albedo is None or colour is None:
+        return ""
+    g = prim.GetAttribute("medium:anisotropy").Get() or 0.0
+    model = prim.GetAttribute("medium:model").Get() or "?"
+
+    def three(values: Any, fmt: str) -> str:
+        return " ".join(f"{c}={format(float(x), fmt)}" for c, x in zip("RGB", values,
+                                                                      strict=True))
+
+    lines = [f"  medium (OpenPBR subsurface): g={float(g):.1f}  model={model}",
+             f"    mean free path mm: {three(mfp, '.4g')}",
+             f"    single-scattering albedo: {three(albedo, '.5f')}",
+             f"    subsurface colour: {three(colour, '.4f')}"]
+    if edge is not None:
+        lines.append(f"    model's edge-spread error: {three(edge, '.2%')}")
+    return "\n".join(lines)
+
+
 def plot_profile(fit: FitResult, measured: MeasuredProfile | None, out_png: str | Path,
                  log_radius: bool = False, title: str | None = None) -> Path:
     """Measured (points) and fitted (lines) profiles per channel, with residuals below."""

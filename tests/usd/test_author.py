@@ -182,6 +182,12 @@ def test_inspect_prints_and_plots(fit_files: Path, tmp_path: Path,
     assert main(["inspect", str(paths.asset), "--plot", str(png), "--log-radius"]) == 0
     out = capsys.readouterr().out
     assert "region=forehead" in out and "eq. 2c error" in out
+    # the medium other renderers get, as authored on the profile prim
+    stage = Usd.Stage.Open(str(paths.asset))
+    mfp = stage.GetPrimAtPath("/Face/Looks/Profiles/forehead").GetAttribute(
+        "medium:meanFreePathMm").Get()
+    assert "medium (OpenPBR subsurface)" in out
+    assert f"mean free path mm: R={mfp[0]:.4g}" in out
     assert (tmp_path / "p_forehead.png").stat().st_size > 10000
     assert main(["inspect", str(paths.asset), "--prim", "/Nope"]) == 2
 
