@@ -44,7 +44,9 @@ from skinpipe.profile.io import read_profile_csv  # noqa: E402
 from skinpipe.profile.medium import albedo_from_van_de_hulst, estimate_medium  # noqa: E402
 from skinpipe.profile.models import ring_edges_mm  # noqa: E402
 from skinpipe.usd.author import DEFAULT_ALBEDO  # noqa: E402
-from tests.physics.light_tracer import Medium, trace  # noqa: E402
+from tests.profile.test_medium import (  # noqa: E402
+    traced_against_measured as traced_against,
+)
 
 PHOTONS = 200_000
 MITSUBA_SPP = 1024
@@ -96,8 +98,8 @@ def mitsuba_against_measured(variant: str, radius: np.ndarray, values: np.ndarra
     outer = ring_edges_mm(radius)
     edge, total, noise = [], [], []
     albedo = albedo_from_van_de_hulst(colour, g)
+    t = edge_positions_mm(radius)
     for c in range(3):
-        t = edge_positions_mm(radius)
         measured = spread_beyond_rings(radius, values[:, c], t)
         width = float(edge_width_mm(t, measured)[0])
         half = float(np.clip(4.0 * width, 2.0, 0.9 * outer[-1]))
@@ -121,19 +123,8 @@ def traced_against_measured(name: str, radius: np.ndarray, values: np.ndarray,
     start = time.perf_counter()
     medium = estimate_medium(radius, values, reflectance)
     seconds = time.perf_counter() - start
-    outer = ring_edges_mm(radius)
-    t = edge_positions_mm(radius)
-    keep = np.abs(t) >= outer[1] - 1e-12
-    edge, total = [], []
-    for c in range(3):
-        a, length = medium.single_scattering_albedo[c], medium.mean_free_path_mm[c]
-        tally = trace(Medium(a / length, (1 - a) / length, medium.anisotropy), PHOTONS,
-                      outer, seed=40 + c)
-        measured = spread_beyond_rings(radius, values[:, c], t)
-        traced = spread_beyond_rings(radius, tally.radiance(), t)
-        traced *= measured[0] / traced[0]
-        edge.append(round(float(np.abs(traced - measured)[keep].max() / measured[0]), 4))
-        total.append(round(math.pi * tally.total / float(reflectance[c]), 4))
+    edge, total = ([round(x, 4) for x in xs] for xs in traced_against(
+        radius, values, reflectance, medium, PHOTONS, 40))
     row = {"profile": name, "model": medium.model, "anisotropy": medium.anisotropy,
            "single_scattering_albedo": medium.single_scattering_albedo.round(5).tolist(),
            "mean_free_path_mm": medium.mean_free_path_mm.round(4).tolist(),

@@ -50,6 +50,7 @@ from . import pencil_reflectance_table as TABLE
 from .edge import spread_beyond_rings
 from .models import (
     burley_scaling_searchlight,
+    dipole_tail_flux,
     fit_error_eq2c,
     ring_areas_mm2,
     ring_edges_mm,
@@ -59,9 +60,6 @@ FloatArray = NDArray[np.float64]
 
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(64)
 _MU, _W = 0.5 * (_NODES + 1.0), 0.5 * _WEIGHTS
-PENCIL_REFLECTANCE_MAX = 1.0568
-"""R(alpha -> 1) = H(1, 1)^2 / 8 (H(1, 1) = 2.9078): a conservative medium's pencil seen
-from above looks brighter than a Lambertian white, as its exit peaks at the normal."""
 EDGE_POSITIONS = 100
 """Edge positions the shape fit compares, log-spaced (the reported error uses all)."""
 
@@ -95,14 +93,16 @@ def pencil_reflectance(albedo: float) -> float:
 
 
 def albedo_from_pencil_reflectance(reflectance: float) -> float:
-    """The single-scattering albedo whose :func:`pencil_reflectance` is ``reflectance``."""
-    r = float(reflectance)
-    if not 0.0 < r < PENCIL_REFLECTANCE_MAX:
-        raise InputError(f"total reflectance {r:g} is outside (0, {PENCIL_REFLECTANCE_MAX}): "
-                         "no index-matched isotropic medium reflects that")
-    if r >= pencil_reflectance(1.0 - 1e-12):
-        return 1.0 - 1e-12
-    return float(brentq(lambda a: pencil_reflectance(a) - r, 1e-9, 1.0 - 1e-12, xtol=1e-12))
+    """The single-scattering albedo of the isotropic medium whose
+    :func:`pencil_reflectance` is ``reflectance``. R reaches H(1, 1)^2 / 8 = 1.057 at
+    alpha = 1: a conservative medium's pencil seen from above looks brighter than a
+    Lambertian white, as its exit peaks at the normal."""
+    shape = _shape(float(reflectance))
+    if shape is None:
+        top = float(_reflectance_over_s(0.0)(0.0))
+        raise InputError(f"total reflectance {float(reflectance):g} is outside (0, "
+                         f"{top:.4f}): no index-matched medium reflects that")
+    return shape.albedo
 
 
 def van_de_hulst_colour(albedo: ArrayLike, anisotropy: float = 0.0) -> FloatArray:
@@ -131,12 +131,15 @@ class MediumEstimate:
     """g of the Henyey-Greenstein phase function, one for all channels."""
     total_reflectance: FloatArray
     """R the medium was made to reflect (the pencil's, as the capture measures it)."""
-    subsurface_colour: FloatArray
-    """OpenPBR's subsurface_color that makes a renderer derive this albedo."""
     error_eq2c: FloatArray
     edge_error: FloatArray
     model: str = "burley"
     """The multiple-scattering shape that matched best (:data:`MULTIPLE_SCATTERING_MODELS`)."""
+
+    @property
+    def subsurface_colour(self) -> FloatArray:
+        """OpenPBR's subsurface_color that makes a renderer derive this albedo."""
+        return van_de_hulst_colour(self.single_scattering_albedo, self.anisotropy)
 
 
 def _burley_ring_means(outer: FloatArray, d_mm: float) -> FloatArray:
@@ -201,21 +204,13 @@ def _shape(reflectance: float, g: float = 0.0) -> _Shape | None:
 def _dipole_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: float
                        ) -> FloatArray:
     """The index-matched diffusion dipole's normalised profile (Jensen et al. 2001, eq. 4,
-    A = 1) averaged over each ring: z (1 + s d) e^{-s d} / d^3 integrates over the disc of
-    radius x to e^{-s z} - z e^{-s d(x)} / d(x), d(x) = sqrt(x^2 + z^2)."""
-    sigma_t = 1.0 / mean_free_path_mm
-    sigma_tr = math.sqrt(3.0 * (1.0 - albedo)) * sigma_t
-    z_r = 1.0 / sigma_t
-    z_v = z_r + 4.0 / (3.0 * sigma_t)
-    inner = np.concatenate([[0.0], outer[:-1]])
-
-    def within(x: FloatArray) -> FloatArray:
-        d_r, d_v = np.sqrt(x * x + z_r * z_r), np.sqrt(x * x + z_v * z_v)
-        return (math.exp(-sigma_tr * z_r) - z_r * np.exp(-sigma_tr * d_r) / d_r
-                + math.exp(-sigma_tr * z_v) - z_v * np.exp(-sigma_tr * d_v) / d_v)
-
-    total = math.exp(-sigma_tr * z_r) + math.exp(-sigma_tr * z_v)
-    return (within(outer) - within(inner)) / total / (math.pi * (outer**2 - inner**2))
+    A = 1) averaged over each ring, from its light beyond each edge in closed form
+    (:func:`~.models.dipole_tail_flux`)."""
+    sigma_tr = math.sqrt(3.0 * (1.0 - albedo)) / mean_free_path_mm
+    sources = (sigma_tr, mean_free_path_mm, mean_free_path_mm * 7.0 / 3.0)  # z_v = z_r + 4D
+    beyond = dipole_tail_flux(np.concatenate([[0.0], outer]), *sources)
+    return -np.diff(beyond) / beyond[0] / (math.pi * np.diff(
+        np.concatenate([[0.0], outer]) ** 2))
 
 
 MULTIPLE_SCATTERING_MODELS = ("burley", "dipole")
@@ -288,9 +283,8 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
                                method="bounded", options={"xatol": 1e-4})
         return float(np.abs(spread(best.x)).max()), math.exp(best.x), shape
 
-    if not all(_shape(float(x)) for x in refl):
-        raise InputError(f"total reflectance {refl.tolist()} is outside (0, "
-                         f"{PENCIL_REFLECTANCE_MAX}): no index-matched medium reflects that")
+    for x in refl:
+        albedo_from_pencil_reflectance(x)  # refuses what no medium reflects
     fits = {}
     for g in ANISOTROPIES:
         for m in MULTIPLE_SCATTERING_MODELS:
@@ -305,5 +299,4 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
         err2c[c] = float(fit_error_eq2c(r, p[:, c] / totals[c], model))
         edge[c] = float(np.abs(beyond_every @ model / (area @ model)
                                - beyond_every @ p[:, c] / totals[c]).max())
-    return MediumEstimate(albedo, mfp, g_best, refl.copy(),
-                          van_de_hulst_colour(albedo, g_best), err2c, edge, model_best)
+    return MediumEstimate(albedo, mfp, g_best, refl.copy(), err2c, edge, model_best)

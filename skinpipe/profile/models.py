@@ -281,13 +281,14 @@ def dipole_tail_shape(radius_mm: ArrayLike, sigma_tr: float, z_r: float, z_v: fl
             + z_v * (1 + sigma_tr * d_v) * np.exp(-sigma_tr * d_v) / d_v**3)
 
 
-def dipole_tail_flux(edge_mm: float, sigma_tr: float, z_r: float, z_v: float) -> float:
-    """2 pi int_R^inf r (:func:`dipole_tail_shape`) dr in closed form: with r dr = d dd,
-    each source gives 2 pi z e^(-s d) / d at d = sqrt(R^2 + z^2) (the antiderivative of
-    (1 + s d) e^(-s d) / d^2 is -e^(-s d) / d)."""
-    d_r, d_v = math.hypot(edge_mm, z_r), math.hypot(edge_mm, z_v)
-    return 2 * math.pi * (z_r * math.exp(-sigma_tr * d_r) / d_r
-                          + z_v * math.exp(-sigma_tr * d_v) / d_v)
+def dipole_tail_flux(edge_mm: ArrayLike, sigma_tr: float, z_r: float, z_v: float
+                     ) -> FloatArray:
+    """2 pi int_R^inf r (:func:`dipole_tail_shape`) dr in closed form, for each edge R:
+    with r dr = d dd, each source gives 2 pi z e^(-s d) / d at d = sqrt(R^2 + z^2) (the
+    antiderivative of (1 + s d) e^(-s d) / d^2 is -e^(-s d) / d)."""
+    d_r, d_v = np.hypot(edge_mm, z_r), np.hypot(edge_mm, z_v)
+    return 2 * math.pi * (z_r * np.exp(-sigma_tr * d_r) / d_r
+                          + z_v * np.exp(-sigma_tr * d_v) / d_v)
 
 
 @dataclass(frozen=True)

@@ -204,8 +204,9 @@ def mtlx_document(materials: Mapping[str, Mapping[str, Any]], texture: str | Non
             else:
                 port.setValue(float(value))
         painted = (maps or {}).get(name)
-        if image is not None and painted is not None:
+        if image is not None:
             shader.getInput("base_color").setConnectedNode(image)
+        if image is not None and painted is not None:
             for key, file, node, space in (
                     ("subsurface_color", painted.colour, "SubsurfaceColorMap", MTLX_COLORSPACE),
                     ("subsurface_radius_scale", painted.radius_scale,
@@ -222,7 +223,6 @@ def mtlx_document(materials: Mapping[str, Mapping[str, Any]], texture: str | Non
             scale = doc.addNode("multiply", f"SubsurfaceColor_{name}", "color3")
             scale.addInput("in1", "color3").setConnectedNode(image)
             scale.addInput("in2", "color3").setValue(mx.Color3(*subsurface_factor(values)))
-            shader.getInput("base_color").setConnectedNode(image)
             shader.getInput("subsurface_color").setConnectedNode(scale)
         material = doc.addMaterialNode(name, shader)
         assert material is not None

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..profile.edge import ring_means_of_gaussians
-from ..profile.medium import MediumEstimate, estimate_medium, van_de_hulst_colour
+from ..profile.medium import MediumEstimate, estimate_medium
 from ..profile.types import FitResult, MeasuredProfile
 
 RING_MM = 0.025
@@ -68,11 +68,10 @@ def face_weighted_medium(media: list[MediumEstimate], faces: NDArray[Any]) -> Me
     def mean(name: str) -> NDArray[np.float64]:
         return np.einsum("r,rc->c", w, np.array([getattr(m, name) for m in media]))
 
-    g = float(w @ np.array([m.anisotropy for m in media]))
-    albedo = mean("single_scattering_albedo")
-    return MediumEstimate(albedo, mean("mean_free_path_mm"), g, mean("total_reflectance"),
-                          van_de_hulst_colour(albedo, g), mean("error_eq2c"),
-                          mean("edge_error"), media[0].model)
+    return MediumEstimate(mean("single_scattering_albedo"), mean("mean_free_path_mm"),
+                          float(w @ np.array([m.anisotropy for m in media])),
+                          mean("total_reflectance"), mean("error_eq2c"), mean("edge_error"),
+                          media[0].model)
 
 
 def _f32(values: Any) -> tuple[float, ...]:

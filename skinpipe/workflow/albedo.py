@@ -13,7 +13,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -156,7 +156,8 @@ def _wire_texture(edit: Any, material_path: str, rel: str,
                   maps: SubsurfaceMaps | None = None) -> dict[str, Any] | None:
     """``rel`` (relative to the material's layer) into the material's preview surface's
     diffuseColor through a UsdUVTexture reading ``st``, and into its OpenPBR network
-    through MaterialX's image node; returns the OpenPBR values (None without one)."""
+    through MaterialX's image node (with ``maps``, relative likewise, its subsurface);
+    returns the OpenPBR values (None without one)."""
     mat = UsdShade.Material(edit.GetPrimAtPath(material_path))
     surface = mat.ComputeSurfaceSource()[0]
     reader = UsdShade.Shader.Define(edit, f"{material_path}/StReader")
@@ -178,7 +179,9 @@ def _wire_texture(edit: Any, material_path: str, rel: str,
     openpbr = edit.GetPrimAtPath(f"{material_path}/OpenPBR")
     if not openpbr:
         return None
-    author_usd_texture(edit, material_path, f"./{rel}", MTLX_COLORSPACE, maps)
+    author_usd_texture(edit, material_path, f"./{rel}", MTLX_COLORSPACE, None if maps is None
+                       else replace(maps, colour=f"./{maps.colour}",
+                                    radius_scale=f"./{maps.radius_scale}"))
     return usd_network_values(UsdShade.Shader(openpbr))
 
 
@@ -205,18 +208,22 @@ def author_albedo_texture(stage: Any, mesh_path: str, texture: Path,
                 and bound.GetPath() not in paths:
             paths.append(bound.GetPath())
     edit = Usd.Stage.Open(layer)
-    rel = Path(texture).resolve().relative_to(Path(layer.realPath).resolve().parent)
+    folder = Path(layer.realPath).resolve().parent
+
+    def relative(path: str | Path) -> str:
+        return Path(path).resolve().relative_to(folder).as_posix()
+
+    rel = relative(texture)
+    own = None if maps is None else SubsurfaceMaps(
+        relative(maps.colour), relative(maps.radius_scale), maps.radius)
     networks = {}
-    mesh_maps = None if maps is None else SubsurfaceMaps(
-        f"./{Path(maps.colour).name}", f"./{Path(maps.radius_scale).name}", maps.radius)
     for path in paths:
-        values = _wire_texture(edit, str(path), rel.as_posix(),
-                               mesh_maps if path == material.GetPath() else None)
+        values = _wire_texture(edit, str(path), rel,
+                               own if path == material.GetPath() else None)
         if values is not None:
             networks[path.name] = values
-    mtlx_maps = None if maps is None else {material.GetPath().name: SubsurfaceMaps(
-        Path(maps.colour).name, Path(maps.radius_scale).name, maps.radius)}
-    document = mtlx_document(networks, rel.as_posix(), mtlx_maps) if networks else None
+    document = None if not networks else mtlx_document(
+        networks, rel, None if own is None else {material.GetPath().name: own})
     if before_save is not None:
         before_save()
     if document is not None:
@@ -239,8 +246,6 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
     if progress:
         progress(f"paint albedo {size}x{size}")
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
-    image = dilate_charts(push_pull(albedo, maps.coverage, in_place=True),
-                          maps.coverage)[::-1]  # row 0: v = 1
     folder = Path(asset).resolve().parent
     texture = folder / ALBEDO_NAME
     media = region_media(stage, mesh.path)
@@ -250,6 +255,7 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
                                                       scene.meters_per_unit)
         painted = SubsurfaceMaps(str(folder / SUBSURFACE_COLOUR_NAME),
                                  str(folder / SUBSURFACE_SCALE_NAME), radius)
+    image = _as_image(albedo, maps)
     # OpenImageIO makes the MIP-mapped textures without the GIL while MaterialX builds and
     # validates the material document (0.34 and 0.3 s at 1024); nothing is saved until
     # the textures are written
@@ -314,6 +320,7 @@ def paint_subsurface_maps(maps: TextureMaps, albedo: NDArray[np.float32],
 
 def _as_image(texels: NDArray[np.float32], maps: TextureMaps) -> NDArray[np.float32]:
     """A texture-space map as the texture is written: charts pushed and dilated beyond
-    their borders (MIP levels and filtering read there), row 0 at v = 1."""
-    return dilate_charts(push_pull(texels, maps.coverage, in_place=False),
+    their borders (MIP levels and filtering read there), row 0 at v = 1. ``texels`` is
+    filled in place (its covered texels keep their values)."""
+    return dilate_charts(push_pull(texels, maps.coverage, in_place=True),
                          maps.coverage)[::-1]

@@ -50,18 +50,15 @@ def test_demo_albedo_is_bound_as_linear_data(demo_run: tuple[Path, str, str]) ->
         assert texture.GetInput("file").GetAttr().GetColorSpace() == "lin_ap1_scene"
 
 
-def test_demo_openpbr_differs_by_region_at_each_landmark(
-        demo_run: tuple[Path, str, str]) -> None:
-    """At each region's landmark, the face nearest it is bound (through its materialBind
-    GeomSubset) to an OpenPBR network whose subsurface is that region's medium, textured
-    by the albedo, and no two regions share a mean free path."""
-    from pxr import Usd, UsdGeom, UsdShade
+def _landmark_faces(mesh: object) -> dict[str, tuple[int, np.ndarray]]:
+    """Per region of the sample landmarks: the face of ``mesh`` (a UsdGeom.Mesh) whose
+    centre is nearest the region's first landmark, and that face's corners (indices into
+    its face-vertex list)."""
+    from pxr import UsdGeom
 
     from skinpipe.package_data import package_folder
     from skinpipe.usd.author import read_landmarks
 
-    stage = Usd.Stage.Open(str(demo_run[0] / "asset" / "asset.usda"))
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Geom/Mesh"))
     points = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
     indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
@@ -70,13 +67,28 @@ def test_demo_openpbr_differs_by_region_at_each_landmark(
                         for a, n in zip(starts, counts, strict=True)])
     to_local = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(0)
                           .GetInverse())
-    subsets = UsdShade.MaterialBindingAPI(mesh.GetPrim()).GetMaterialBindSubsets()
-    radii = {}
+    out = {}
     landmarks = read_landmarks(package_folder("samples", "face") / "landmarks.json")
     for region, where in landmarks.items():
         first = np.asarray(where, np.float64).reshape(-1, 3)[0]
         local = (np.append(first, 1.0) @ to_local)[:3]
         face = int(np.argmin(np.linalg.norm(centres - local, axis=1)))
+        out[region] = (face, np.arange(starts[face], starts[face] + counts[face]))
+    return out
+
+
+def test_demo_openpbr_differs_by_region_at_each_landmark(
+        demo_run: tuple[Path, str, str]) -> None:
+    """At each region's landmark, the face nearest it is bound (through its materialBind
+    GeomSubset) to an OpenPBR network whose subsurface is that region's medium, textured
+    by the albedo, and no two regions share a mean free path."""
+    from pxr import Usd, UsdGeom, UsdShade
+
+    stage = Usd.Stage.Open(str(demo_run[0] / "asset" / "asset.usda"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Geom/Mesh"))
+    subsets = UsdShade.MaterialBindingAPI(mesh.GetPrim()).GetMaterialBindSubsets()
+    radii = {}
+    for region, (face, _) in _landmark_faces(mesh).items():
         (subset,) = [s for s in subsets if face in set(s.GetIndicesAttr().Get())]
         material, _ = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()
         openpbr = UsdShade.Shader(stage.GetPrimAtPath(f"{material.GetPath()}/OpenPBR"))
@@ -133,8 +145,6 @@ def test_demo_blended_look_paints_each_region_medium_at_its_landmark(
     the mesh's region weights there (within 2%), and the six differ."""
     from pxr import Usd, UsdGeom, UsdShade
 
-    from skinpipe.package_data import package_folder
-    from skinpipe.usd.author import read_landmarks
     from skinpipe.workflow.albedo import SUBSURFACE_SCALE_NAME
 
     folder = demo_run[0] / "asset"
@@ -149,18 +159,12 @@ def test_demo_blended_look_paints_each_region_medium_at_its_landmark(
     assert openpbr.GetInput("subsurface_color").HasConnectedSource()
     radius = openpbr.GetInput("subsurface_radius").Get()
     points = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
     indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    centres = np.array([points[indices[a:a + n]].mean(axis=0)
-                        for a, n in zip(starts, counts, strict=True)])
     st = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st")
     uv = np.asarray(st.ComputeFlattened(), np.float64)
     per_corner = st.GetInterpolation() == UsdGeom.Tokens.faceVarying
     scale_map = oiio.ImageBuf(str(folder / SUBSURFACE_SCALE_NAME)).get_pixels(oiio.FLOAT)
     size = scale_map.shape[0]
-    to_local = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(0)
-                          .GetInverse())
     mpu = UsdGeom.GetStageMetersPerUnit(stage)
     targets = mesh.GetPrim().GetRelationship("skin:profiles").GetTargets()
     media = np.array([stage.GetPrimAtPath(t).GetAttribute("medium:meanFreePathMm").Get()
@@ -168,12 +172,7 @@ def test_demo_blended_look_paints_each_region_medium_at_its_landmark(
     weights = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("skin:regionWeights")
                          .ComputeFlattened(), np.float64).reshape(points.shape[0], -1)
     seen = {}
-    landmarks = read_landmarks(package_folder("samples", "face") / "landmarks.json")
-    for region, where in landmarks.items():
-        first = np.asarray(where, np.float64).reshape(-1, 3)[0]
-        local = (np.append(first, 1.0) @ to_local)[:3]
-        face = int(np.argmin(np.linalg.norm(centres - local, axis=1)))
-        corners = np.arange(starts[face], starts[face] + counts[face])
+    for region, (_, corners) in _landmark_faces(mesh).items():
         u, v = uv[corners if per_corner else indices[corners]].mean(axis=0)
         texel = scale_map[int((1 - v) * size), int(u * size)]
         blend = weights[indices[corners]].mean(axis=0)
