@@ -201,7 +201,8 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
                    help="the skin's refractive index: light entering and leaving at an "
                         "angle loses a smooth dielectric's Fresnel share, relative to "
                         "normal incidence (where the profile was measured); 1 = "
-                        "index-matched")
+                        "index-matched, where the light leaving follows each region's "
+                        "medium by angle (its single scattering too)")
     p.add_argument("--no-write-uvs", action="store_true",
                    help="do not write xatlas UVs back into the asset's geo layer")
     p.add_argument("--ocio", default=None,

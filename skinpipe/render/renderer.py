@@ -23,6 +23,7 @@ from ..errors import InputError
 from ..imageio import (
     read_image,
 )
+from ..usd.openpbr import region_medium
 from .bands import beside, in_bands
 from .device.choice import set_device
 from .device.huge_pages import apply_to_numpy, huge_pages_choice
@@ -62,6 +63,7 @@ from .light.irradiance import (
     refine_penumbrae,
 )
 from .light.raytrace import RayScene, offset_ray_origin
+from .light.reflection_law import ReflectionLaw, angular_correction
 from .light.samples import interleave_period, light_direction, sobol_points
 from .light.specular import torrance_sparrow
 from .options import AOVS, DATA_AOVS, RenderOptions
@@ -357,7 +359,8 @@ class Renderer:
         from its image where the map was not made)."""
         wanted = set(self.options.aovs)
         got: dict[str, NDArray[np.float32]] = {}
-        if "albedo" in wanted:
+        law = self._angular_law and bool(wanted & {"beauty", "diffuse"})
+        if "albedo" in wanted or law:  # the angular law scales by the albedo
             assert tex.albedo_image is not None
             size = self.options.texture_size
             got["albedo"] = bilinear_of(albedo_texels(tex.albedo_image, size), (size, size),
@@ -365,7 +368,7 @@ class Renderer:
         if "irradiance" in wanted:
             assert tex.irradiance_filled is not None
             got["irradiance"] = bilinear(tex.irradiance_filled, uv)
-        if wanted & {"beauty", "specular"}:
+        if wanted & {"beauty", "specular"} or law:
             for path, plane in tex.visibility.items():
                 got[path] = bilinear(plane, uv)[:, 0]
         return got
@@ -801,26 +804,64 @@ class Renderer:
                 self._shade_plain(scene, mesh, pos, n, sel, rays, out)
                 continue
             uv = tex.hit_uv[part] if part in tex.hit_uv else hit_uvs(tex, tri_idx, b)
+            at = self._irradiance_lookups(tex, uv) if tex.at_hits is None else \
+                tex.at_hits[part]
+            weights = None if mesh.region_weights is None else \
+                (mesh.region_weights[tris[tri_idx]] * b).sum(axis=1)
             # only the AOVs asked for (the demo's comparison renders ask for beauty alone:
             # the albedo, irradiance and region lookups were 0.35 s of a 1.1 s shade)
             if wanted & {"beauty", "diffuse"}:
                 n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0, 1)
                 leave = transmission(n_dot_v, opts.ior)[:, None]
                 assert tex.radiance is not None
-                out["diffuse"][sel] = bilinear(tex.radiance, uv) * leave
-            at = self._irradiance_lookups(tex, uv) if tex.at_hits is None else \
-                tex.at_hits[part]
+                radiance = bilinear(tex.radiance, uv)
+                if self._angular_law:
+                    law, boundary = self._reflection_law(log, scene, tex)
+                    radiance += angular_correction(law, boundary, scene.lights, pos, n,
+                                                   view, at, at["albedo"], weights)
+                out["diffuse"][sel] = radiance * leave
             if "albedo" in wanted:
                 out["albedo"][sel] = at["albedo"]
             if "irradiance" in wanted:
                 out["irradiance"][sel] = at["irradiance"]
-            if "region" in wanted and mesh.region_weights is not None:
-                weights = (mesh.region_weights[tris[tri_idx]] * b).sum(axis=1)
+            if "region" in wanted and weights is not None:
                 out["region"][sel, 0] = np.argmax(weights, axis=1)
             if wanted & {"beauty", "specular"}:
                 out["specular"][sel] = self._specular(scene, pos, n, view, at)
         out["beauty"] = out["diffuse"] + out["specular"]
         return out, prim >= 0
+
+    @property
+    def _angular_law(self) -> bool:
+        """Whether the diffuse light follows :mod:`.light.reflection_law`: index-matched
+        skin (``--ior 1``). Behind a boundary the medium inverted from the profile (made
+        index-matched, as OpenPBR takes it) mistakes the boundary's smaller entry spike for
+        forward scattering, and the boundary's depth factor holds the truth closer
+        (docs/render.md)."""
+        return self.options.ior == 1.0
+
+    def _reflection_law(self, log: TaskLog, scene: SceneData, tex: SkinTextures
+                        ) -> tuple[ReflectionLaw, SkinBoundary]:
+        """The angular law of ``tex``'s skin (:mod:`.light.reflection_law`): each region's
+        medium (:func:`~skinpipe.usd.openpbr.region_medium`, the one OpenPBR is given) made
+        to reflect the mesh's mean albedo, and the boundary the irradiance used."""
+        mesh, ior = tex.mesh, self.options.ior
+
+        def compute() -> tuple[ReflectionLaw, SkinBoundary]:
+            boundary = _skin_boundary(log, scene, tex, ior)
+            albedo = tuple(float(x) for x in np.clip(
+                mean_albedo(mesh, scene.working_colorspace), 1e-4, 1.0))
+            media = [region_medium(fit, None, albedo) for fit in mesh.fits]  # type: ignore[arg-type]
+            law = ReflectionLaw(np.array([m.single_scattering_albedo for m in media]),
+                                np.array([m.anisotropy for m in media]), ior)
+            log.measures["reflection_law"] = {
+                "single_scattering_albedo": law.albedo.round(5).tolist(),
+                "anisotropy": law.anisotropy.tolist()}
+            return law, boundary
+
+        key = content_hash(tex.keys["albedo"], ior, *(f.variances_mm2 for f in mesh.fits),
+                           *(f.weights for f in mesh.fits))
+        return self._cached(log, f"reflection law:{mesh.path}", key, compute, report=False)
 
     def _specular(self, scene: SceneData, pos: NDArray[Any], n: NDArray[Any],
                   view: NDArray[Any], at: dict[str, NDArray[np.float32]]

@@ -23,9 +23,8 @@ normal incidence the diffuse light is therefore weighted by
     D(mu_t) = (1 + s) / (1 + s mu_t),
 
 with the reduced albedo alpha' found from the skin's albedo by inverting the dipole's
-total diffuse reflectance (Jensen et al. 2001, eq. 12 as given in pbrt). Single
-scattering's own angular dependence (Hanrahan & Krueger 1993) is left out:
-docs/render.md gives what that leaves against a light tracer.
+total diffuse reflectance (Jensen et al. 2001, eq. 12 as given in pbrt). Index-matched
+skin follows :mod:`.reflection_law` instead, which has single scattering's angles too.
 """
 
 from __future__ import annotations
