@@ -76,12 +76,31 @@ def _xatlas_in_child(points: NDArray[Any], tris: NDArray[Any], pieces: NDArray[A
             return {key: npz[key] for key in npz.files}
 
 
+CHART_SIGMAS = 4.0
+"""A chart's side, in standard deviations of the profile's widest term, below which
+xatlas's area cap may not cut (:func:`diffusion_chart_area`)."""
+
+
+def diffusion_chart_area(widest_variance_mm2: float, meters_per_unit: float) -> float:
+    """The least chart area (scene units squared) for a profile whose widest term has
+    ``widest_variance_mm2``: (CHART_SIGMAS sigma)^2. Light crosses a seam through the
+    chart tiles' margins, which each level of the blur pyramid fills from the
+    neighbouring charts' fully covered texels; a chart much narrower than the widest
+    term has none at that term's level, and its light steps at every seam (a sphere of
+    radius 10 mm cut into 200 charts of 3.5 mm under skin1's 4.7 mm term: whole charts
+    brighter or darker by 7-15% beyond the terminator)."""
+    side_mm = CHART_SIGMAS * float(np.sqrt(max(widest_variance_mm2, 0.0)))
+    return (side_mm / (meters_per_unit * 1000.0)) ** 2
+
+
 def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
            charts_per_mesh: int = 100, timeout_s: float = 300.0,
-           pieces: NDArray[Any] | None = None) -> UVLayout:
+           pieces: NDArray[Any] | None = None, min_chart_area: float = 0.0) -> UVLayout:
     """Unwrap with xatlas in a child process. ``charts_per_mesh`` caps each chart's area
     at total area / charts_per_mesh, which keeps noisy scans from taking minutes
-    (measured on the face scan decimated to 50k faces: 32 s uncapped, 2.4 s at 100).
+    (measured on the face scan decimated to 50k faces: 32 s uncapped, 2.4 s at 100),
+    but never below ``min_chart_area`` (scene units squared; see
+    :func:`diffusion_chart_area`).
 
     ``pieces`` (a small integer per triangle of :func:`triangulate`, e.g. a face's
     regions) splits the mesh into pieces that xatlas charts side by side on its threads;
@@ -100,7 +119,8 @@ def unwrap(mesh: MeshData, resolution: int = 2048, padding: int = 4,
     if not area.sum() > 0:
         raise InputError("the mesh has no area (every face is degenerate)", mesh.source)
     start = time.perf_counter()
-    chart_area = float(area.sum() / charts_per_mesh) if charts_per_mesh else 0.0
+    chart_area = max(float(area.sum() / charts_per_mesh), float(min_chart_area)) \
+        if charts_per_mesh else 0.0
     result = _xatlas_in_child(mesh.points, tris, pieces, chart_area, resolution, padding,
                               timeout_s)
     seconds = time.perf_counter() - start

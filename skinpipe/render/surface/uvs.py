@@ -16,7 +16,7 @@ from pxr import Sdf, Usd, UsdGeom, Vt
 from ...errors import InputError
 from ...usd.io import export_layer_atomic, open_stage_guarded
 from ..scene import SceneData, SceneDelegate, SceneMesh
-from .unwrap import triangulate, unwrap
+from .unwrap import diffusion_chart_area, triangulate, unwrap
 
 
 def uv_triangles(mesh: SceneMesh) -> NDArray[np.int32] | None:
@@ -86,6 +86,13 @@ def region_pieces(mesh: SceneMesh) -> NDArray[np.int32] | None:
     return np.argmax(corners.sum(axis=1), axis=1).astype(np.int32)
 
 
+def widest_variance_mm2(mesh: SceneMesh) -> float:
+    """The widest term any of the mesh's profiles gives light (weight over 1e-3 in a
+    channel), 0 for a mesh without profiles."""
+    return max((float(np.max(f.variances_mm2[np.max(f.weights, axis=1) > 1e-3],
+                              initial=0.0)) for f in mesh.fits), default=0.0)
+
+
 def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
                           progress: Callable[[str], None] | None = None
                           ) -> tuple[NDArray[np.float64], NDArray[np.int32], dict[str, Any]]:
@@ -94,7 +101,9 @@ def unwrap_and_write_back(stage: Any, mesh: SceneMesh, reason: str, write: bool,
     meshes only: a polygon split across charts has no faceVarying form)."""
     if progress:
         progress(f"unwrap {mesh.path} with xatlas ({reason})")
-    layout = unwrap(mesh.mesh, pieces=region_pieces(mesh))
+    layout = unwrap(mesh.mesh, pieces=region_pieces(mesh),
+                    min_chart_area=diffusion_chart_area(widest_variance_mm2(mesh),
+                                                        mesh.mesh.meters_per_unit))
     uv = layout.uv.astype(np.float32).astype(np.float64)
     measures: dict[str, Any] = {"charts": layout.charts, "utilization": layout.utilization,
                                 "seconds": layout.seconds, "reason": reason}
