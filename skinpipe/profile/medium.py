@@ -16,7 +16,9 @@ quotes). This module inverts a measured pencil-beam profile to (alpha, l, g):
 2. **l and g from the profile's shape.** Of R, the single scattering of the pencil is
    alpha p_g(-1) pi / 2, all of it at the entry point (the pencil goes straight down): a
    share of 1 / H(alpha, 1)^2 at g = 0, a few per cent at 0.7. The rest is multiply
-   scattered, shaped as Christensen & Burley 2015 (eq. 3, fitted to Monte Carlo:
+   scattered, shaped as an isotropic half space's multiply scattered light tallied by
+   the tests' light tracer (pencil_profile_table.py, from tools/tabulate_pencil_profile.py:
+   exact for g = 0), as Christensen & Burley 2015 (eq. 3, fitted to Monte Carlo:
    (e^{-r/d} + e^{-r/3d}) / r, d = l' / s(A), their eq. 6) or as the diffusion dipole,
    at the similarity relation's reduced albedo and mean free path l' = l / (1 - alpha g).
    l is fitted per channel so that the model's edge-spread function (:mod:`.edge`)
@@ -46,6 +48,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq, minimize_scalar
 
 from ..errors import InputError
+from . import pencil_profile_table as PROFILE
 from . import pencil_reflectance_table as TABLE
 from .edge import spread_beyond_rings
 from .models import (
@@ -60,6 +63,9 @@ FloatArray = NDArray[np.float64]
 
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(64)
 _MU, _W = 0.5 * (_NODES + 1.0), 0.5 * _WEIGHTS
+_PROFILE_S = np.asarray(PROFILE.S_GRID)
+_PROFILE_RADII = np.asarray(PROFILE.RADII)
+_PROFILE_BEYOND = np.asarray(PROFILE.BEYOND)
 EDGE_POSITIONS = 100
 """Edge positions the shape fit compares, log-spaced (the reported error uses all)."""
 
@@ -142,6 +148,24 @@ class MediumEstimate:
         return van_de_hulst_colour(self.single_scattering_albedo, self.anisotropy)
 
 
+def _traced_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: float
+                       ) -> FloatArray:
+    """The multiply scattered light of an isotropic index-matched half space as the light
+    tracer tallies it (pencil_profile_table.py), normalised, averaged over each ring: its
+    share beyond r interpolated in s = sqrt(1 - alpha) and log r; inside the first radius
+    the density is taken as flat, beyond the last there is none."""
+    s = min(max(math.sqrt(max(1.0 - albedo, 0.0)), _PROFILE_S[0]), _PROFILE_S[-1])
+    i = min(max(int(np.searchsorted(_PROFILE_S, s)) - 1, 0), _PROFILE_S.size - 2)
+    f = (s - _PROFILE_S[i]) / (_PROFILE_S[i + 1] - _PROFILE_S[i])
+    row = (1.0 - f) * _PROFILE_BEYOND[i] + f * _PROFILE_BEYOND[i + 1]
+    r = np.concatenate([[0.0], outer]) / mean_free_path_mm
+    first = _PROFILE_RADII[0]
+    beyond = np.where(r < first, 1.0 - (1.0 - row[0]) * (r / first) ** 2,
+                      np.interp(np.log(np.maximum(r, first)), np.log(_PROFILE_RADII), row,
+                                right=0.0))
+    return -np.diff(beyond) / (math.pi * np.diff(np.concatenate([[0.0], outer]) ** 2))
+
+
 def _burley_ring_means(outer: FloatArray, d_mm: float) -> FloatArray:
     """Christensen & Burley's normalised profile averaged over each ring: its light
     within r is 1 - e^{-r/d} / 4 - 3 e^{-r/3d} / 4."""
@@ -213,10 +237,11 @@ def _dipole_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: floa
         np.concatenate([[0.0], outer]) ** 2))
 
 
-MULTIPLE_SCATTERING_MODELS = ("burley", "dipole")
-"""Shapes of the multiply scattered light the inversion tries: Christensen & Burley 2015
-(fitted to Monte Carlo; holds near the entry point) and the diffusion dipole (Jensen et
-al. 2001; holds in the far field), both at the similarity relation's reduced albedo and
+MULTIPLE_SCATTERING_MODELS = ("traced", "burley", "dipole")
+"""Shapes of the multiply scattered light the inversion tries: the light tracer's
+isotropic half space (skin1's own: its mean free path back to 1%), Christensen & Burley
+2015 (fitted to Monte Carlo; holds near the entry point) and the diffusion dipole (Jensen
+et al. 2001; holds in the far field), each at the similarity relation's reduced albedo and
 mean free path. Each region keeps the medium whose model matches its
 edge best; the medium, not the model, is what is written."""
 
@@ -226,6 +251,8 @@ def _ring_means(outer: FloatArray, shape: _Shape, mean_free_path_mm: float,
     reduced = mean_free_path_mm * shape.reduced_length
     if model == "dipole":
         ms = _dipole_ring_means(outer, shape.reduced_albedo, reduced)
+    elif model == "traced":
+        ms = _traced_ring_means(outer, shape.reduced_albedo, reduced)
     else:
         ms = _burley_ring_means(outer, reduced / shape.burley_s)
     out = (1.0 - shape.single_share) * ms
