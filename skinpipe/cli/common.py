@@ -203,6 +203,10 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
                         "normal incidence (where the profile was measured); 1 = "
                         "index-matched, where the light leaving follows each region's "
                         "medium by angle (its single scattering too)")
+    p.add_argument("--no-transmission", action="store_true",
+                   help="leave out light through thin parts (ears, nostrils' rims): "
+                        "by default what the skin's far side receives leaves the near "
+                        "side through the volume, by each region's medium")
     p.add_argument("--no-write-uvs", action="store_true",
                    help="do not write xatlas UVs back into the asset's geo layer")
     p.add_argument("--ocio", default=None,
@@ -232,6 +236,7 @@ def render_options(args: argparse.Namespace) -> Any:
         light_samples=args.light_samples, shadow_sampling=args.shadow_sampling,
         interleave_period=args.interleave_period, light_sequence=args.light_sequence,
         roughness=args.roughness, rho_s=args.rho_s, ior=args.ior,
+        transmission=not args.no_transmission,
         albedo_split=args.albedo_split, variance_grid=args.variance_grid,
         scattering=not args.no_scattering, blur=args.blur, single_profile=args.single_profile,
         camera=args.camera, write_uvs=not args.no_write_uvs, device=args.device,

@@ -78,6 +78,9 @@ class RenderOptions:
     """The skin's refractive index: light crossing its surface loses the Fresnel share of
     a smooth dielectric, relative to normal incidence (:mod:`.light.boundary`); 1:
     index-matched, no loss."""
+    transmission: bool = True
+    """Light through thin parts (:mod:`.light.thin_parts`): what a back point receives
+    leaves the front through the volume."""
     albedo_split: float = 0.5
     """Exponent of the albedo applied before scattering (0.5: sqrt before and after)."""
     variance_grid: int = 12

@@ -23,7 +23,7 @@ from ..errors import InputError
 from ..imageio import (
     read_image,
 )
-from ..usd.openpbr import region_medium
+from ..profile.medium import MediumEstimate
 from .bands import beside, in_bands
 from .device.choice import set_device
 from .device.huge_pages import apply_to_numpy, huge_pages_choice
@@ -66,6 +66,7 @@ from .light.raytrace import RayScene, offset_ray_origin
 from .light.reflection_law import ReflectionLaw, angular_correction
 from .light.samples import interleave_period, light_direction, sobol_points
 from .light.specular import torrance_sparrow
+from .light.thin_parts import ThinMedia, far_side
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .shading import (
@@ -75,9 +76,11 @@ from .shading import (
     bilinear,
     bilinear_of,
     mean_albedo,
+    media_summary,
     mesh_hits,
     normal_map,
     ray_owners,
+    skin_media,
     surface_flux,
     times_albedo_weight,
 )
@@ -216,7 +219,9 @@ class Renderer:
             mesh.geometry_key(), opts.texture_size, scene_geometry_key(scene),
             [lt.key() for lt in scene.lights], opts.light_samples, opts.ior, mesh.albedo,
             scene.working_colorspace, opts.seed, opts.shadow_sampling, opts.light_sequence,
-            period if opts.shadow_sampling != "full" else 0)  # full sampling has none
+            period if opts.shadow_sampling != "full" else 0,  # full sampling has none
+            opts.transmission and content_hash(*(f.variances_mm2 for f in mesh.fits),
+                                               *(f.weights for f in mesh.fits)))
         return SkinTextures(mesh, uv, uv_tris, tris, maps, period=period,
                             texels_per_pixel=per_pixel,
                             keys={"maps": key, "albedo": albedo_key,
@@ -273,6 +278,8 @@ class Renderer:
             interleave = np.take(interleave_classes(covered.shape, period), texel) \
                 if opts.shadow_sampling != "full" else None
             positions, normals = (texel_rows(m, texel) for m in maps.surface)
+            regions = texel_rows(maps.region_weights, texel) \
+                if opts.transmission and maps.region_weights is not None else None
             if release is not None:
                 maps = maps.without_surface(*self._keeps())
                 release.arrive("irradiance")
@@ -281,6 +288,9 @@ class Renderer:
                                      opts.light_samples, boundary,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
                                      coherent=True, period=period)
+            through = self._thin_parts(log, scene, tex, rays, positions, normals, texel,
+                                       regions) if opts.transmission else None
+            del regions
             penumbra: dict[str, int] = {}  # texels refined per light (adaptive)
             if opts.shadow_sampling == "adaptive" and res.interleaved:
                 res, refined = refine_penumbrae(
@@ -306,7 +316,12 @@ class Renderer:
                 entering = res.entering_with(visibility)
             else:
                 entering = res.entering
-            del normal
+            if through is not None:  # the far side's light, through the volume
+                back, factor = through
+                at = np.flatnonzero(back >= 0)
+                entering = entering.copy()
+                entering[at] += factor[at] * entering[back[at]]
+            del normal, through
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the per-light sums go before the planes and their push-pull (0.3 GB at
             # texture 4096)
@@ -815,10 +830,10 @@ class Renderer:
                 leave = transmission(n_dot_v, opts.ior)[:, None]
                 assert tex.radiance is not None
                 radiance = bilinear(tex.radiance, uv)
-                if self._angular_law:
-                    law, boundary = self._reflection_law(log, scene, tex)
-                    radiance += angular_correction(law, boundary, scene.lights, pos, n,
-                                                   view, at, at["albedo"], weights)
+                law = self._reflection_law(log, scene, tex) if self._angular_law else None
+                if law is not None:
+                    radiance += angular_correction(*law, scene.lights, pos, n, view, at,
+                                                   at["albedo"], weights)
                 out["diffuse"][sel] = radiance * leave
             if "albedo" in wanted:
                 out["albedo"][sel] = at["albedo"]
@@ -840,28 +855,56 @@ class Renderer:
         (docs/render.md)."""
         return self.options.ior == 1.0
 
-    def _reflection_law(self, log: TaskLog, scene: SceneData, tex: SkinTextures
-                        ) -> tuple[ReflectionLaw, SkinBoundary]:
-        """The angular law of ``tex``'s skin (:mod:`.light.reflection_law`): each region's
-        medium (:func:`~skinpipe.usd.openpbr.region_medium`, the one OpenPBR is given) made
-        to reflect the mesh's mean albedo, and the boundary the irradiance used."""
-        mesh, ior = tex.mesh, self.options.ior
+    def _media(self, log: TaskLog, scene: SceneData, tex: SkinTextures
+               ) -> tuple[NDArray[np.float64], list[MediumEstimate] | None]:
+        """:func:`~.shading.skin_media` of ``tex``'s mesh, kept across frames."""
+        mesh = tex.mesh
 
-        def compute() -> tuple[ReflectionLaw, SkinBoundary]:
-            boundary = _skin_boundary(log, scene, tex, ior)
-            albedo = tuple(float(x) for x in np.clip(
-                mean_albedo(mesh, scene.working_colorspace), 1e-4, 1.0))
-            media = [region_medium(fit, None, albedo) for fit in mesh.fits]  # type: ignore[arg-type]
-            law = ReflectionLaw(np.array([m.single_scattering_albedo for m in media]),
-                                np.array([m.anisotropy for m in media]), ior)
-            log.measures["reflection_law"] = {
-                "single_scattering_albedo": law.albedo.round(5).tolist(),
-                "anisotropy": law.anisotropy.tolist()}
-            return law, boundary
+        def compute() -> tuple[NDArray[np.float64], list[MediumEstimate] | None]:
+            albedo, media, note = skin_media(mesh, scene.working_colorspace)
+            if note:
+                log.skipped.append(note)
+            if media is not None:
+                log.measures["media"] = media_summary(media)
+            return albedo, media
 
-        key = content_hash(tex.keys["albedo"], ior, *(f.variances_mm2 for f in mesh.fits),
+        key = content_hash(tex.keys["albedo"], *(f.variances_mm2 for f in mesh.fits),
                            *(f.weights for f in mesh.fits))
-        return self._cached(log, f"reflection law:{mesh.path}", key, compute, report=False)
+        return self._cached(log, f"media:{mesh.path}", key, compute, report=False)
+
+    def _reflection_law(self, log: TaskLog, scene: SceneData, tex: SkinTextures
+                        ) -> tuple[ReflectionLaw, SkinBoundary] | None:
+        """The angular law of ``tex``'s skin (:mod:`.light.reflection_law`) from its
+        regions' media (:meth:`_media`), and the boundary the irradiance used."""
+        _, media = self._media(log, scene, tex)
+        if media is None:
+            return None
+        law = ReflectionLaw(np.array([m.single_scattering_albedo for m in media]),
+                            np.array([m.anisotropy for m in media]), self.options.ior)
+        return law, _skin_boundary(log, scene, tex, self.options.ior)
+
+    def _thin_parts(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
+                    rays: RayScene, positions: NDArray[Any], normals: NDArray[Any],
+                    texel: NDArray[Any], regions: NDArray[Any] | None
+                    ) -> tuple[NDArray[np.int64], NDArray[np.float32]] | None:
+        """Per covered texel (rows of ``texel``) the row of the texel on the skin's far
+        side whose irradiance leaves here through the volume, and what it is worth
+        (:mod:`.light.thin_parts`): (rows, -1 for none; factors (N, 3)); None when no
+        texel has a far side within reach."""
+        albedo, media = self._media(log, scene, tex)
+        if media is None:
+            return None
+        thin = ThinMedia.of([m.single_scattering_albedo for m in media],
+                            [m.mean_free_path_mm for m in media],
+                            [m.anisotropy for m in media], albedo, scene.meters_per_unit)
+        mesh = tex.mesh
+        start = time.perf_counter()
+        rows, factor = far_side(rays, scene.meshes.index(mesh), mesh.mesh.points, tex.tris,
+                                tex.uv, tex.uv_tris, self.options.texture_size, positions,
+                                normals, texel, thin, regions)
+        log.measures["thin_parts"] = {"texels": int((rows >= 0).sum()), "reach": thin.reach,
+                                      "seconds": time.perf_counter() - start}
+        return (rows, factor) if np.any(rows >= 0) else None
 
     def _specular(self, scene: SceneData, pos: NDArray[Any], n: NDArray[Any],
                   view: NDArray[Any], at: dict[str, NDArray[np.float32]]

@@ -15,6 +15,8 @@ from ..imageio import (
     convert_colorspace,
     read_image,
 )
+from ..profile.medium import MediumEstimate
+from ..usd.openpbr import region_medium
 from .bands import in_bands
 from .light.raytrace import RayScene
 from .scene import SceneMesh
@@ -124,6 +126,28 @@ def mean_albedo(mesh: SceneMesh, working: str) -> NDArray[np.float64]:
     if cs != working:
         sample = convert_colorspace(sample, cs, working)
     return sample.mean(axis=0).astype(np.float64)
+
+
+def skin_media(mesh: SceneMesh, working: str
+               ) -> tuple[NDArray[np.float64], list[MediumEstimate] | None, str | None]:
+    """The mesh's mean albedo (:func:`mean_albedo`) and each region's medium made to
+    reflect it (:func:`~skinpipe.usd.openpbr.region_medium`, the one OpenPBR is given):
+    what the angular law and the light through thin parts scatter by; None and why where
+    a profile inverts to no medium."""
+    albedo = np.clip(mean_albedo(mesh, working), 1e-4, 1.0)
+    level = (float(albedo[0]), float(albedo[1]), float(albedo[2]))
+    try:
+        return albedo, [region_medium(fit, None, level) for fit in mesh.fits], None
+    except InputError as exc:
+        return albedo, None, f"{mesh.path}: no medium for the angular law and thin parts ({exc})"
+
+
+def media_summary(media: list[MediumEstimate]) -> dict[str, Any]:
+    """``render.json``'s record of the media, per region."""
+    return {"single_scattering_albedo": [m.single_scattering_albedo.round(5).tolist()
+                                         for m in media],
+            "mean_free_path_mm": [m.mean_free_path_mm.round(5).tolist() for m in media],
+            "anisotropy": [m.anisotropy for m in media]}
 
 
 def albedo_texture(image: NDArray[np.float32], size: int) -> NDArray[np.float32]:

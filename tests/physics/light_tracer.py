@@ -168,6 +168,39 @@ def trace(medium: Medium, photons: int, edges_mm: NDArray[np.float64],
     return Tally(edges, sums, total / photons, photons)
 
 
+def trace_slab_from_below(medium: Medium, thickness_mm: float, photons: int,
+                          seed: int = 0, batch: int = 200_000) -> float:
+    """What a camera straight above an index-matched slab (0 > z > -thickness) sees of a
+    normal pencil of unit power entering its underside: the scattered light's
+    up-radiance summed over the top surface (the collision estimator of :func:`trace`),
+    i.e. the exit radiance under uniform unit irradiance from below. The unscattered
+    beam, a delta in direction, is left out. Photons leaving either face are gone."""
+    if medium.eta != 1.0:
+        raise ValueError("the slab tracer is index-matched only")
+    rng = np.random.default_rng(seed)
+    st, alb, g = medium.sigma_t, medium.albedo, medium.g
+    total, done = 0.0, 0
+    while done < photons:
+        n = min(batch, photons - done)
+        done += n
+        z = np.full(n, -float(thickness_mm))
+        d = np.tile([0.0, 0.0, 1.0], (n, 1))
+        w = np.ones(n)
+        while w.size:
+            z = z + (-np.log(1.0 - rng.random(w.size)) / st) * d[:, 2]
+            inside = (z < 0.0) & (z > -thickness_mm)
+            z, d, w = z[inside], d[inside], w[inside]
+            total += float((w * alb * henyey_greenstein(d[:, 2], g) * np.exp(st * z)).sum())
+            w = w * alb
+            d = _turn(d, _sample_cos(rng.random(w.size), g), 2 * math.pi * rng.random(w.size))
+            low = w < 1e-3
+            if low.any():  # Russian roulette, as in trace
+                live = ~low | (rng.random(w.size) < 0.1)
+                w = np.where(low, w * 10.0, w)
+                z, d, w = z[live], d[live], w[live]
+    return total / photons
+
+
 def single_scattering_index_matched(medium: Medium) -> float:
     """Closed form of the up-radiance's total from first collisions only (eta = 1, a
     normal pencil): sum over depth of sigma_s p(-1 -> +1) e^{-2 sigma_t z} dz =

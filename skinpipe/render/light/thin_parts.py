@@ -1,0 +1,167 @@
+"""Light through thin parts of the skin: what enters one side of an ear, a nostril's
+rim or a slab and leaves the other, through the volume, which texture-space diffusion
+(light carried along the surface only) cannot carry.
+
+Per covered texel a ray goes into the skin along -n to where it leaves the mesh again
+(Embree; the first hit on the same skin mesh, from inside, within the thickness the
+medium lets light through): the back point and the thickness d between them. The light
+the back point receives (its irradiance, every light of the scene, as the texture-space
+irradiance holds it) crosses the slab of thickness d and leaves the front with the
+transmission of that region's medium, pi L / E = T(alpha', sigma_t' d): an index-matched
+slab lit uniformly from behind, seen from straight above, tabulated by the tests' light
+tracer (slab_transmission_table.py) at the similarity relation's reduced albedo and
+thickness. It is added to the front texel's irradiance over the mesh's mean albedo, so
+that the diffusion (which multiplies by the albedo) spreads it over the front as the
+profile spreads light: the transmitted light leaves within about d of the back point's
+opposite, the profile's own width at skin's thicknesses.
+
+The medium of each region is the one its profile inverts to (:mod:`skinpipe.profile.
+medium`, as OpenPBR gets it). What it leaves out: the back's own light is not reduced
+by what goes through (a thin slab reflects less than a thick one); the slab is taken as
+locally flat and uniformly lit; a boundary's Fresnel loss is in the medium as inverted,
+not modelled twice.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import slab_transmission_table as TABLE
+from .raytrace import RayScene, offset_ray_origin
+
+_S = np.asarray(TABLE.S_GRID)
+_LOG_TAU = np.log(np.asarray(TABLE.TAU_GRID))
+_LOG_T = np.log(np.maximum(np.asarray(TABLE.TRANSMISSION), 1e-12))
+
+FloatArray = NDArray[np.float64]
+
+
+def slab_transmission(reduced_albedo: ArrayLike, optical_thickness: ArrayLike) -> FloatArray:
+    """T = pi L / E of the table: bilinear in (s, log tau) of log T, s = sqrt(1 - alpha');
+    beyond the thickest slab the last two columns' exponential fall is carried on, below
+    the thinnest T goes to 0 with tau."""
+    s = np.clip(np.sqrt(np.clip(1.0 - np.asarray(reduced_albedo, np.float64), 0.0, 1.0)),
+                _S[0], _S[-1])
+    tau = np.maximum(np.asarray(optical_thickness, np.float64), 1e-9)
+    s, tau = np.broadcast_arrays(s, tau)
+    shape = s.shape
+    s, tau = s.reshape(-1), tau.reshape(-1)
+    i = np.clip(np.searchsorted(_S, s) - 1, 0, _S.size - 2)
+    fs = (s - _S[i]) / (_S[i + 1] - _S[i])
+    x = np.log(tau)
+    j = np.clip(np.searchsorted(_LOG_TAU, x) - 1, 0, _LOG_TAU.size - 2)
+    fx = (x - _LOG_TAU[j]) / (_LOG_TAU[j + 1] - _LOG_TAU[j])
+
+    def at(jj: NDArray[np.intp], f: FloatArray) -> FloatArray:
+        return (1 - fs) * ((1 - f) * _LOG_T[i, jj] + f * _LOG_T[i, jj + 1]) \
+            + fs * ((1 - f) * _LOG_T[i + 1, jj] + f * _LOG_T[i + 1, jj + 1])
+
+    first = np.exp(at(np.zeros_like(j), np.zeros_like(fx))) * tau / math.exp(_LOG_TAU[0])
+    out = np.where(x < _LOG_TAU[0], first, np.exp(at(j, fx)))
+    return out.reshape(shape)
+
+
+@dataclass(frozen=True)
+class ThinMedia:
+    """Per region (R) and channel (3): the reduced albedo alpha' and the reduced
+    extinction sigma_t' (per scene unit), and the mesh's mean albedo (3,)."""
+
+    reduced_albedo: FloatArray
+    reduced_extinction: FloatArray
+    mean_albedo: FloatArray
+
+    @classmethod
+    def of(cls, albedo: ArrayLike, mean_free_path_mm: ArrayLike, anisotropy: ArrayLike,
+           mean_albedo: ArrayLike, meters_per_unit: float) -> ThinMedia:
+        """From each region's medium (albedo and mean free path (R, 3), g (R,))."""
+        a = np.asarray(albedo, np.float64).reshape(-1, 3)
+        g = np.asarray(anisotropy, np.float64).reshape(-1, 1)
+        sigma_t = 1.0 / np.asarray(mean_free_path_mm, np.float64).reshape(-1, 3)
+        per_unit = meters_per_unit * 1000.0  # mm a scene unit
+        return cls(a * (1 - g) / (1 - a * g), sigma_t * (1 - a * g) * per_unit,
+                   np.maximum(np.asarray(mean_albedo, np.float64), 1e-4))
+
+    @property
+    def reach(self) -> float:
+        """The thickness (scene units) beyond which no region lets a thousandth of its
+        albedo through."""
+        tau = np.asarray(TABLE.TAU_GRID)
+        t = slab_transmission(self.reduced_albedo[..., None], tau)  # (R, 3, taus)
+        past = (t / self.mean_albedo[None, :, None] > 1e-3).any(axis=(0, 1))
+        last = tau[np.flatnonzero(past)[-1]] if past.any() else tau[0]
+        return float(last / self.reduced_extinction.min())
+
+    def through(self, thickness: FloatArray, weights: FloatArray | None) -> FloatArray:
+        """(N, 3) what a back point's irradiance is worth at the front, over the mean
+        albedo, for ``thickness`` (N,) scene units, the regions blended by ``weights``
+        (N, R) (None: equally)."""
+        d = np.asarray(thickness, np.float64)
+        n_regions = self.reduced_albedo.shape[0]
+        w = np.full((d.size, n_regions), 1.0 / n_regions) if weights is None else \
+            np.asarray(weights, np.float64).reshape(d.size, n_regions)
+        out = np.zeros((d.size, 3))
+        for r in range(n_regions):
+            t = slab_transmission(self.reduced_albedo[r][None, :],
+                                  self.reduced_extinction[r][None, :] * d[:, None])
+            out += w[:, r, None] * t
+        return out / self.mean_albedo
+
+
+def back_points(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
+                mesh_tris: NDArray[np.integer], points: FloatArray, normals: FloatArray,
+                reach: float) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+    """Per point the skin triangle (local index into ``mesh_tris``, -1: none) where a ray
+    into the skin along -normal leaves the same mesh within ``reach``, and the
+    barycentrics (N, 2) and distance there. A hit from outside (a fold, another part in
+    the way) is none."""
+    n = np.asarray(normals, np.float32)
+    origin = offset_ray_origin(points, -n)
+    prim, u, v, dist = rays.intersect(origin, -n)
+    hit = np.flatnonzero(prim >= 0)
+    owner = rays.owner[prim[hit]]
+    own = owner[:, 0] == mesh_index
+    hit, local = hit[own], owner[own, 1]
+    tri = np.asarray(mesh_points, np.float64)[np.asarray(mesh_tris)[local]]  # (H, 3, 3)
+    face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    leaving = np.einsum("ij,ij->i", face, -n[hit]) > 0
+    near = dist[hit] <= reach
+    keep = leaving & near
+    out = np.full(points.shape[0], -1, np.int64)
+    out[hit[keep]] = local[keep]
+    bary = np.zeros((points.shape[0], 2))
+    bary[hit[keep], 0], bary[hit[keep], 1] = u[hit[keep]], v[hit[keep]]
+    thickness = np.zeros(points.shape[0])
+    thickness[hit[keep]] = dist[hit[keep]]
+    return out, bary, thickness
+
+
+def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
+             mesh_tris: NDArray[np.integer], uv: FloatArray, uv_tris: NDArray[np.integer],
+             size: int, points: FloatArray, normals: FloatArray, texel: NDArray[np.intp],
+             media: ThinMedia, regions: NDArray[Any] | None
+             ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """For covered texels (flat indices ``texel`` of a ``size`` texture, at ``points`` with
+    ``normals``) the row in ``texel`` of the texel on the skin's far side
+    (:func:`back_points`; -1: none, or its texel is not covered) and what that texel's
+    irradiance is worth here (N, 3), the regions blended by ``regions`` (N, R)."""
+    tri, bary, thickness = back_points(rays, mesh_index, mesh_points, mesh_tris, points,
+                                       normals, media.reach)
+    found = np.flatnonzero(tri >= 0)
+    corners = np.asarray(uv)[np.asarray(uv_tris)[tri[found]]]  # (F, 3, 2)
+    u, v = bary[found, 0:1], bary[found, 1:2]
+    at_uv = corners[:, 0] * (1 - u - v) + corners[:, 1] * u + corners[:, 2] * v
+    x, y = (np.clip((at_uv[:, k] * size).astype(np.int64), 0, size - 1) for k in (0, 1))
+    row_of = np.full(size * size, -1, np.int64)
+    row_of[texel] = np.arange(texel.size)
+    rows = np.full(texel.size, -1, np.int64)
+    rows[found] = row_of[y * size + x]
+    factor = np.zeros((texel.size, 3), np.float32)
+    at = np.flatnonzero(rows >= 0)
+    factor[at] = media.through(thickness[at], None if regions is None else
+                               np.asarray(regions[at], np.float64))
+    return rows, factor

@@ -1,0 +1,121 @@
+"""Light through thin parts (skinpipe/render/light/thin_parts.py) against the independent
+light tracer (tests/physics/light_tracer.py, ``trace_slab_from_below``: an index-matched
+slab of skin1 lit uniformly from behind, seen from straight above; Mitsuba 3's volpath
+gives the same to 0.3%): the table alone, and through the CLI a slab mesh lit from
+behind, the profile taking the user's road (skin1's traced CSV through ``skinpipe fit``
+at its defaults, ``author`` without UVs, ``render``)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from pxr import Gf, Sdf, UsdGeom
+
+from skinpipe.cli import main
+from skinpipe.render.light.thin_parts import slab_transmission
+
+from ...physics.light_tracer import medium, trace_slab_from_below
+from ...render_scenes import distant_down, ortho_camera_down, scene_over
+
+PHYSICS = Path(__file__).parents[2] / "fixtures" / "physics"
+SIDE_MM = 40.0
+
+
+def _truth(thickness_mm: float, photons: int = 100_000) -> np.ndarray:
+    """The up-radiance above the slab per unit irradiance from below, R, G, B."""
+    return np.array([trace_slab_from_below(medium("skin1", c), thickness_mm, photons,
+                                           seed=11 + c) for c in range(3)])
+
+
+@pytest.mark.parametrize("thickness_mm", [0.5, 2.0, 5.0])
+def test_the_table_gives_the_tracers_transmission(thickness_mm: float) -> None:
+    s = np.array([0.74, 0.88, 1.01])
+    a = np.array([0.032, 0.17, 0.48])
+    got = slab_transmission(s / (s + a), (s + a) * thickness_mm) / math.pi
+    np.testing.assert_allclose(got, _truth(thickness_mm), rtol=0.06)
+
+
+def _slab_obj(path: Path, thickness_mm: float, n: int = 16) -> Path:
+    """A closed box SIDE_MM wide and ``thickness_mm`` thick, top face at z = 0, outward
+    faces, without UVs."""
+    xs = np.linspace(-SIDE_MM / 2, SIDE_MM / 2, n + 1)
+    verts: list[tuple[float, float, float]] = []
+    faces: list[tuple[int, int, int]] = []
+
+    def grid(z: float, up: bool) -> None:
+        base = len(verts)
+        verts.extend((x, y, z) for y in xs for x in xs)
+        for r in range(n):
+            for c in range(n):
+                a = base + r * (n + 1) + c
+                quad = (a, a + 1, a + n + 2, a + n + 1)
+                faces.extend([(quad[0], quad[1], quad[2]), (quad[0], quad[2], quad[3])]
+                             if up else [(quad[0], quad[2], quad[1]), (quad[0], quad[3], quad[2])])
+
+    grid(0.0, True)
+    grid(-thickness_mm, False)
+    top, bottom = 0, (n + 1) ** 2
+    ring = [r * (n + 1) + c for r, c in
+            [(0, c) for c in range(n)] + [(r, n) for r in range(n)]
+            + [(n, c) for c in range(n, 0, -1)] + [(r, 0) for r in range(n, 0, -1)]]
+    for i, a in enumerate(ring):  # the sides, outward with the ring counter-clockwise
+        b = ring[(i + 1) % len(ring)]
+        faces.extend([(top + a, bottom + a, bottom + b), (top + a, bottom + b, top + b)])
+    path.write_text("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in verts)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+    return path
+
+
+def _rendered_transmission(tmp: Path, thickness_mm: float, *extra: str) -> np.ndarray:
+    """The diffuse radiance at the top's centre, R, G, B, under unit irradiance from
+    below, the slab's albedo skin1's measured one."""
+    fits = tmp / "fits"
+    if not fits.exists():
+        fits.mkdir()
+        assert main(["fit", str(PHYSICS / "skin1.csv"), "-k", "6",
+                     "-o", str(fits / "skin1.json")]) == 0
+    landmarks = tmp / "landmarks.json"
+    landmarks.write_text(json.dumps({"regions": {"skin1": [[0.0, 0.0, 0.0]]}}))
+    asset = tmp / f"asset_{thickness_mm:g}"
+    assert main(["author", "--fits", str(fits), "--mesh",
+                 str(_slab_obj(tmp / f"slab_{thickness_mm:g}.obj", thickness_mm)),
+                 "--landmarks", str(landmarks), "-o", str(asset)]) == 0
+    totals = json.loads((PHYSICS / "totals.json").read_text())["skin1"]["channels"]
+    albedo = [math.pi * c["lit_up_radiance"]["0.0"] for c in totals]
+
+    def build(stage) -> None:
+        ortho_camera_down(stage, 8.0, 8.0)
+        light = distant_down(stage)
+        UsdGeom.Xformable(light).AddRotateXOp().Set(180.0)  # shining up, from behind
+        for shader in ("/Face/Looks/SkinMaterial/PreviewSurface",
+                       "/Face/Looks/Regions/skin1/PreviewSurface"):
+            stage.OverridePrim(shader).CreateAttribute(
+                "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+
+    scene = scene_over(asset / "asset.usda", tmp / f"scene_{thickness_mm:g}.usda", build)
+    out = tmp / f"out_{thickness_mm:g}"
+    assert main(["render", str(scene), "-o", str(out), "--resolution", "16x16",
+                 "--texture-size", "512", "--rho-s", "0", "--ior", "1",
+                 "--aovs", "diffuse", *extra]) == 0
+    buf = oiio.ImageBuf(str(out / f"{scene.stem}.exr"))
+    names = list(buf.spec().channelnames)
+    px = np.asarray(buf.get_pixels(oiio.FLOAT))[6:10, 6:10]
+    return np.array([float(px[..., names.index(f"diffuse.{c}")].mean()) for c in "RGB"])
+
+
+@pytest.mark.slow  # a fit, two authors and three renders: about 40 s
+def test_a_slab_lit_from_behind_lets_through_what_the_tracer_does(tmp_path: Path) -> None:
+    """2 and 5 mm of skin1: within 10% per channel (the light that reaches the top is
+    the transmitted light alone: the top is unlit). Without transmission: nothing but
+    what creeps round the slab's sides from 20 mm away."""
+    for thickness in (2.0, 5.0):
+        got = _rendered_transmission(tmp_path, thickness)
+        want = _truth(thickness)
+        assert np.all(np.abs(got / want - 1) < 0.10), (thickness, got / want)
+    dark = _rendered_transmission(tmp_path, 2.0, "--no-transmission")
+    assert np.all(dark < 1e-3 * _truth(2.0)), dark  # what creeps round the slab's sides
