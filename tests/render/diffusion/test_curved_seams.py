@@ -77,13 +77,20 @@ def test_charts_made_for_diffusion_carry_light_across_seams_on_a_sphere() -> Non
     assert diffusion_chart_area(4.0, 0.01) == pytest.approx(0.64)  # cm: 8 mm = 0.8 cm
 
 
-def _worst_step(diffuse_rgb: np.ndarray, width_mm: float) -> np.ndarray:
+def _worst_step(diffuse_rgb: np.ndarray, width_mm: float, radius_mm: float = RADIUS_MM,
+                light_deg: float = 0.0) -> np.ndarray:
     """Per channel the largest jump between adjacent pixels beyond what their
-    neighbours' steps say (a step at a seam), over the sphere's lit face (radius < 0.9 R,
-    above 2% of the channel's peak) where the light changes by less than 1% a pixel."""
+    neighbours' steps say (a step at a seam), over the sphere's face (radius < 0.9 R,
+    above 2% of the channel's peak, away from the terminator's kink: |n.l| > 0.2 for a
+    light ``light_deg`` off the camera's axis towards +x) where the light changes by
+    less than 1% a pixel."""
     w = diffuse_rgb.shape[1]
     x = (np.arange(w) + 0.5) / w * width_mm - width_mm / 2
-    inside = np.add.outer(x[::-1] ** 2, x**2) < (0.9 * RADIUS_MM) ** 2
+    xx, yy = np.meshgrid(x, x[::-1])
+    inside = xx**2 + yy**2 < (0.9 * radius_mm) ** 2
+    zz = np.sqrt(np.clip(radius_mm**2 - xx**2 - yy**2, 0.0, None))
+    theta = math.radians(light_deg)
+    inside &= np.abs(xx * math.sin(theta) + zz * math.cos(theta)) > 0.2 * radius_mm
     worst = np.zeros(3)
     for c in range(3):
         a = diffuse_rgb[..., c].astype(np.float64)

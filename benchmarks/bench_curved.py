@@ -1,0 +1,182 @@
+"""Benchmark: curved skin against a path tracer, through the CLI.
+
+    python benchmarks/bench_curved.py [-o benchmarks/results/curved.json]
+
+A sphere of skin1 (Jensen et al. 2001, index-matched) of radius 10 mm and 5 mm under a
+distant light at 0 and 60 degrees, seen from straight above. Mitsuba 3's ``volpath``
+renders the medium itself (one monochrome render a channel, 4096 samples a pixel, a strip
+through the centre); skinpipe renders skin1's traced profile the user's way (the CSV
+through ``fit`` at its defaults, the sphere without UVs through ``author``, ``render
+--ior 1 --rho-s 0`` with the albedo skin1 measures). Printed per channel along the strip:
+the centre's radiance over the truth's, the 50%, 10% and 2% points of the centre's level
+on the terminator's side (mm from the centre), the light just past the geometric
+terminator (1 to 2 mm beyond it) over the truth's, and the largest seam step of the
+render (tests/render/diffusion/test_curved_seams.py's measure). Without the ``mitsuba``
+package, and lit from straight above (the terminator is the rim), only the seam steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.bench_mitsuba import mitsuba_variant  # noqa: E402
+from tests.render.diffusion.test_curved_seams import _sphere, _worst_step  # noqa: E402
+
+SKIN1 = ([0.74, 0.88, 1.01], [0.032, 0.17, 0.48])
+SPP = 4096
+STRIP = (480, 4)
+CASES = ((10.0, 0.0), (10.0, 60.0), (5.0, 0.0), (5.0, 60.0))
+
+
+def mitsuba_strip(variant: str, radius_mm: float, angle_deg: float) -> np.ndarray:
+    """(3, STRIP[0]) the path-traced radiance along the strip through the centre."""
+    import mitsuba as mi
+
+    mi.set_variant(variant)
+    T = mi.ScalarTransform4f
+    half = 1.2 * radius_mm
+    px, rows = STRIP
+    light = [math.sin(math.radians(angle_deg)), 0.0, math.cos(math.radians(angle_deg))]
+    out = []
+    for s, a in zip(*SKIN1, strict=True):
+        scene = {
+            "type": "scene", "integrator": {"type": "volpath", "max_depth": -1},
+            "sensor": {"type": "orthographic",
+                       "to_world": T.look_at(origin=[0, 0, 5 * radius_mm], target=[0, 0, 0],
+                                             up=[0, 1, 0]) @ T.scale([half, half * rows / px, 1]),
+                       "film": {"type": "hdrfilm", "width": px, "height": rows,
+                                "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": SPP}},
+            "light": {"type": "directional", "direction": [-x for x in light],
+                      "irradiance": 1.0},
+            "ball": {"type": "sphere", "radius": radius_mm, "bsdf": {"type": "null"},
+                     "interior": {"type": "homogeneous", "albedo": s / (s + a),
+                                  "sigma_t": s + a, "phase": {"type": "isotropic"}}}}
+        image = np.array(mi.render(mi.load_dict(scene))).reshape(rows, px, -1)[..., 0]
+        out.append(image.mean(axis=0))
+    return np.array(out)
+
+
+def skinpipe_render(tmp: Path, radius_mm: float, angle_deg: float) -> np.ndarray:
+    """The diffuse AOV (512 x 512 over 2.4 radii) of skinpipe's sphere, RGB."""
+    import OpenImageIO as oiio
+    from pxr import Gf, Sdf, UsdGeom
+
+    from skinpipe.cli import main
+    from tests.render_scenes import distant_down, ortho_camera_down, scene_over
+
+    fits = tmp / "fits"
+    if not fits.exists():
+        fits.mkdir()
+        assert main(["fit", str(ROOT / "tests" / "fixtures" / "physics" / "skin1.csv"),
+                     "-k", "6", "-o", str(fits / "skin1.json")]) == 0
+    mesh = _sphere(radius_mm)
+    obj = tmp / f"sphere_{radius_mm:g}.obj"
+    tri = mesh.face_indices.reshape(-1, 3) + 1
+    obj.write_text("".join(f"v {a:.6f} {b:.6f} {c:.6f}\n" for a, b, c in mesh.points)
+                   + "".join(f"f {a} {b} {c}\n" for a, b, c in tri))
+    landmarks = tmp / "landmarks.json"
+    landmarks.write_text(json.dumps({"regions": {"skin1": [[0.0, 0.0, radius_mm]]}}))
+    asset = tmp / f"asset_{radius_mm:g}"
+    if not asset.exists():
+        assert main(["author", "--fits", str(fits), "--mesh", str(obj), "--landmarks",
+                     str(landmarks), "-o", str(asset)]) == 0
+    totals = json.loads((ROOT / "tests" / "fixtures" / "physics" / "totals.json")
+                        .read_text())["skin1"]["channels"]
+    albedo = [math.pi * c["lit_up_radiance"]["0.0"] for c in totals]
+    width = 2.4 * radius_mm
+
+    def build(stage) -> None:
+        ortho_camera_down(stage, width, width)
+        UsdGeom.Xformable(distant_down(stage)).AddRotateYOp().Set(angle_deg)
+        for shader in ("/Face/Looks/SkinMaterial/PreviewSurface",
+                       "/Face/Looks/Regions/skin1/PreviewSurface"):
+            stage.OverridePrim(shader).CreateAttribute(
+                "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+
+    scene = scene_over(asset / "asset.usda", tmp / f"scene_{radius_mm:g}_{angle_deg:g}.usda",
+                       build)
+    out = tmp / f"out_{radius_mm:g}_{angle_deg:g}"
+    assert main(["render", str(scene), "-o", str(out), "--resolution", "512x512",
+                 "--texture-size", "1024", "--rho-s", "0", "--ior", "1",
+                 "--aovs", "diffuse"]) == 0
+    buf = oiio.ImageBuf(str(out / f"{scene.stem}.exr"))
+    names = list(buf.spec().channelnames)
+    px = np.asarray(buf.get_pixels(oiio.FLOAT))
+    return np.stack([px[..., names.index(f"diffuse.{c}")] for c in "RGB"], axis=-1)
+
+
+def terminator_figures(x: np.ndarray, level: np.ndarray, terminator_mm: float
+                       ) -> dict[str, float]:
+    """The centre's level, where the light falls to 50%, 10% and 2% of it on the
+    terminator's side (x < 0), and the mean light 1-2 mm beyond the terminator."""
+    centre = float(np.interp(0.0, x, level))
+    out = {"centre": centre}
+    for share in (0.5, 0.1, 0.02):
+        below = np.flatnonzero((x < 0) & (level < share * centre))
+        i = int(below.max()) if below.size else 0
+        x0, x1, a0, a1 = x[i], x[i + 1], level[i], level[i + 1]
+        out[f"point_{round(share * 100)}_mm"] = float(
+            x0 + (share * centre - a0) / (a1 - a0) * (x1 - x0)) if a1 != a0 else float(x0)
+    past = (x < terminator_mm - 1.0) & (x > terminator_mm - 2.0)
+    out["past_terminator"] = float(level[past].mean())
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "results" /
+                                                      "curved.json"))
+    args = parser.parse_args()
+    variant, why = mitsuba_variant()
+    if variant is not None:
+        variant = variant.replace("_rgb", "_mono")
+    print(f"Mitsuba: {variant or 'left out'} ({why})")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for radius, angle in CASES:
+            rgb = skinpipe_render(Path(tmp), radius, angle)
+            width = 2.4 * radius
+            row: dict = {"radius_mm": radius, "angle_deg": angle,
+                         "seam_step": _worst_step(rgb, width, radius, angle).round(4).tolist()}
+            traced = variant is not None and angle > 0  # at 0 the terminator is the rim
+            if traced:
+                truth = mitsuba_strip(variant, radius, angle)
+                x_t = ((np.arange(STRIP[0]) + 0.5) / STRIP[0] * 2 - 1) * 1.2 * radius
+                h = rgb.shape[0]
+                x_s = (np.arange(rgb.shape[1]) + 0.5) / rgb.shape[1] * width - width / 2
+                strip = rgb[h // 2 - 2:h // 2 + 2].mean(axis=0)
+                terminator = -radius * math.cos(math.radians(angle))
+                for c, name in enumerate("RGB"):
+                    t = terminator_figures(x_t, truth[c], terminator)
+                    s = terminator_figures(x_s, strip[:, c], terminator)
+                    row[name] = {"truth": t, "skinpipe": s}
+            rows.append(row)
+            line = f"R {radius:g} mm, {angle:g} deg: seam step {row['seam_step']}"
+            for name in "RGB" if traced else "":
+                t, s = row[name]["truth"], row[name]["skinpipe"]
+                line += (f"\n  {name}: centre {s['centre'] / t['centre']:.3f} of the truth; "
+                         f"50/10/2% at {s['point_50_mm']:.2f}/{s['point_10_mm']:.2f}/"
+                         f"{s['point_2_mm']:.2f} mm (truth {t['point_50_mm']:.2f}/"
+                         f"{t['point_10_mm']:.2f}/{t['point_2_mm']:.2f}); past the "
+                         f"terminator {s['past_terminator'] / max(t['past_terminator'], 1e-12):.2f}"
+                         " of the truth")
+            print(line, flush=True)
+    out = Path(args.output)
+    out.write_text(json.dumps({"mitsuba_variant": variant, "mitsuba_spp": SPP,
+                               "mitsuba_note": why, "rows": rows}, indent=1) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
