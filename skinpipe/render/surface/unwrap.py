@@ -76,9 +76,11 @@ def _xatlas_in_child(points: NDArray[Any], tris: NDArray[Any], pieces: NDArray[A
             return {key: npz[key] for key in npz.files}
 
 
-CHART_SIGMAS = 4.0
+CHART_SIGMAS = 8.0
 """A chart's side, in standard deviations of the profile's widest term, below which
-xatlas's area cap may not cut (:func:`diffusion_chart_area`)."""
+xatlas's area cap may not cut (:func:`diffusion_chart_area`). An area is not a width:
+xatlas cuts a tube of radius 5 mm capped at (4 sigma)^2 into rings 1.4 mm long, as
+narrow as the first cap's charts; at (8 sigma)^2 into six charts."""
 
 
 def diffusion_chart_area(widest_variance_mm2: float, meters_per_unit: float) -> float:
