@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_mitsuba import mitsuba_variant  # noqa: E402
+from benchmarks.bench_mitsuba import mono_variant  # noqa: E402
 from tests.render.diffusion.test_curved_seams import _sphere, _worst_step  # noqa: E402
 
 SKIN1 = ([0.74, 0.88, 1.01], [0.032, 0.17, 0.48])
@@ -138,9 +138,7 @@ def main() -> None:
     parser.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "results" /
                                                       "curved.json"))
     args = parser.parse_args()
-    variant, why = mitsuba_variant()
-    if variant is not None:
-        variant = variant.replace("_rgb", "_mono")
+    variant, why = mono_variant()
     print(f"Mitsuba: {variant or 'left out'} ({why})")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

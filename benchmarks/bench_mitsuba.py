@@ -65,6 +65,13 @@ def mitsuba_variant() -> tuple[str | None, str]:
     return "scalar_rgb", f"the LLVM variant does not run here ({why}); scalar instead"
 
 
+def mono_variant() -> tuple[str | None, str]:
+    """:func:`mitsuba_variant` in its monochrome form: one render a channel, for media
+    (an RGB medium fires fireflies where one channel is far thinner than another)."""
+    variant, why = mitsuba_variant()
+    return (None if variant is None else variant.replace("_rgb", "_mono")), why
+
+
 def seal_free_scene(scene: Path, out: Path) -> Path:
     """A layer over ``scene`` that deactivates meshes hidden from the camera (the seal):
     Mitsuba has no such visibility, so neither renderer gets them."""

@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_mitsuba import mitsuba_variant  # noqa: E402
+from benchmarks.bench_mitsuba import mono_variant  # noqa: E402
 from skinpipe.package_data import package_folder  # noqa: E402
 from skinpipe.profile.edge import (  # noqa: E402
     edge_positions_mm,
@@ -150,9 +150,7 @@ def main() -> None:
     parser.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "results" /
                                                       "openpbr_medium.json"))
     args = parser.parse_args()
-    variant, why = mitsuba_variant()
-    if variant is not None:
-        variant = variant.replace("_rgb", "_mono")
+    variant, why = mono_variant()
     print(f"Mitsuba: {variant or 'left out'} ({why})")
     rows = []
     fixtures = ROOT / "tests" / "fixtures" / "physics"

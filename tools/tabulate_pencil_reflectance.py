@@ -17,11 +17,10 @@ van de Hulst's similarity variable, over which the reflectance is smooth.
 
 from __future__ import annotations
 
-import textwrap
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from table_literal import wrapped
 
 ANISOTROPIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
 S_GRID = tuple(float(round(x, 6)) for x in np.concatenate([
@@ -46,13 +45,6 @@ def reflectance(albedo: float, g: float) -> float:
     return float(sample.rt_matrices()[0][-1, -1])
 
 
-def _wrapped(values: Sequence[float]) -> str:
-    """A tuple literal broken into lines of at most 100 characters."""
-    body = textwrap.fill(", ".join(repr(v) for v in values), width=92,
-                         initial_indent="    ", subsequent_indent="    ")
-    return f"(\n{body},\n)"
-
-
 def main() -> None:
     rows = [[round(reflectance(albedo_of(s, g), g), 7) for s in S_GRID]
             for g in ANISOTROPIES]
@@ -64,8 +56,8 @@ normal pencil on an index-matched half space of anisotropy ANISOTROPIES[k] at
 s = S_GRID[i] = sqrt((1 - alpha) / (1 - alpha g))."""
 
 ANISOTROPIES = {ANISOTROPIES!r}
-S_GRID = {_wrapped(S_GRID)}
-REFLECTANCE = ({", ".join(_wrapped(row) for row in rows)})
+S_GRID = {wrapped(S_GRID)}
+REFLECTANCE = ({", ".join(wrapped(row) for row in rows)})
 ''')
     print(f"wrote {OUT}")
 

@@ -92,6 +92,13 @@ def chandrasekhar_h(albedo: float, mu: ArrayLike) -> FloatArray:
     ).reshape(m.shape)
 
 
+def henyey_greenstein(cos_theta: ArrayLike, g: ArrayLike) -> FloatArray:
+    """p_g(cos Theta) = (1 - g^2) / (4 pi (1 + g^2 - 2 g cos Theta)^1.5), over the sphere."""
+    c = np.asarray(cos_theta, dtype=np.float64)
+    g = np.asarray(g, dtype=np.float64)
+    return (1.0 - g * g) / (4.0 * math.pi * np.maximum(1.0 + g * g - 2.0 * g * c, 1e-12) ** 1.5)
+
+
 def pencil_reflectance(albedo: float) -> float:
     """R = alpha H(alpha, 1)^2 / 8: pi times the exit radiance seen from straight above,
     summed over the surface, per unit power of a normal pencil (index-matched, isotropic)."""
@@ -220,7 +227,7 @@ def _shape(reflectance: float, g: float = 0.0) -> _Shape | None:
         return None
     root = float(brentq(lambda x: float(curve(x)) - reflectance, low, high, xtol=1e-13))
     a = (1.0 - root * root) / (1.0 - g * root * root)
-    back = (1.0 - g * g) / (4.0 * math.pi * (1.0 + g) ** 3)  # p_HG(cos = -1)
+    back = float(henyey_greenstein(-1.0, g))  # straight back up the pencil
     return _Shape(a, g, a * back * math.pi / 2.0 / reflectance,
                   float(burley_scaling_searchlight(van_de_hulst_colour(a, g))))
 

@@ -66,7 +66,7 @@ from .light.raytrace import RayScene, offset_ray_origin
 from .light.reflection_law import ReflectionLaw, angular_correction
 from .light.samples import interleave_period, light_direction, sobol_points
 from .light.specular import torrance_sparrow
-from .light.thin_parts import ThinMedia, far_side
+from .light.thin_parts import ThinMedia, far_side, with_far_side
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .shading import (
@@ -220,8 +220,7 @@ class Renderer:
             [lt.key() for lt in scene.lights], opts.light_samples, opts.ior, mesh.albedo,
             scene.working_colorspace, opts.seed, opts.shadow_sampling, opts.light_sequence,
             period if opts.shadow_sampling != "full" else 0,  # full sampling has none
-            opts.transmission and content_hash(*(f.variances_mm2 for f in mesh.fits),
-                                               *(f.weights for f in mesh.fits)))
+            opts.transmission and mesh.fits_key())
         return SkinTextures(mesh, uv, uv_tris, tris, maps, period=period,
                             texels_per_pixel=per_pixel,
                             keys={"maps": key, "albedo": albedo_key,
@@ -283,7 +282,7 @@ class Renderer:
             if release is not None:
                 maps = maps.without_surface(*self._keeps())
                 release.arrive("irradiance")
-            boundary = _skin_boundary(log, scene, tex, opts.ior)
+            boundary = self._skin_boundary(log, scene, tex)
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, boundary,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
@@ -317,10 +316,7 @@ class Renderer:
             else:
                 entering = res.entering
             if through is not None:  # the far side's light, through the volume
-                back, factor = through
-                at = np.flatnonzero(back >= 0)
-                entering = entering.copy()
-                entering[at] += factor[at] * entering[back[at]]
+                entering = with_far_side(entering, *through)
             del normal, through
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the per-light sums go before the planes and their push-pull (0.3 GB at
@@ -849,11 +845,24 @@ class Renderer:
     @property
     def _angular_law(self) -> bool:
         """Whether the diffuse light follows :mod:`.light.reflection_law`: index-matched
-        skin (``--ior 1``). Behind a boundary the medium inverted from the profile (made
-        index-matched, as OpenPBR takes it) mistakes the boundary's smaller entry spike for
-        forward scattering, and the boundary's depth factor holds the truth closer
-        (docs/render.md)."""
+        skin only (``--ior 1``; behind a boundary D holds closer: docs/render.md)."""
         return self.options.ior == 1.0
+
+    def _mean_albedo(self, log: TaskLog, scene: SceneData, tex: SkinTextures
+                     ) -> NDArray[np.float64]:
+        """:func:`~.shading.mean_albedo` of ``tex``'s mesh (one read of its texture), kept."""
+        return self._cached(log, f"mean albedo:{tex.mesh.path}", tex.keys["albedo"],
+                            lambda: mean_albedo(tex.mesh, scene.working_colorspace),
+                            report=False)
+
+    def _skin_boundary(self, log: TaskLog, scene: SceneData, tex: SkinTextures
+                       ) -> SkinBoundary:
+        """The skin's dielectric boundary for its mean albedo, recorded in the log."""
+        boundary = SkinBoundary.from_albedo(self._mean_albedo(log, scene, tex),
+                                            self.options.ior)
+        log.measures["boundary"] = {"ior": boundary.eta,
+                                    "reduced_albedo": list(boundary.reduced_albedo)}
+        return boundary
 
     def _media(self, log: TaskLog, scene: SceneData, tex: SkinTextures
                ) -> tuple[NDArray[np.float64], list[MediumEstimate] | None]:
@@ -861,42 +870,41 @@ class Renderer:
         mesh = tex.mesh
 
         def compute() -> tuple[NDArray[np.float64], list[MediumEstimate] | None]:
-            albedo, media, note = skin_media(mesh, scene.working_colorspace)
-            if note:
-                log.skipped.append(note)
-            if media is not None:
-                log.measures["media"] = media_summary(media)
+            albedo, media, note = skin_media(mesh, self._mean_albedo(log, scene, tex))
+            log.skipped += [note] if note else []
+            log.measures["media"] = media_summary(media) if media is not None else None
             return albedo, media
 
-        key = content_hash(tex.keys["albedo"], *(f.variances_mm2 for f in mesh.fits),
-                           *(f.weights for f in mesh.fits))
-        return self._cached(log, f"media:{mesh.path}", key, compute, report=False)
+        return self._cached(log, f"media:{mesh.path}",
+                            content_hash(tex.keys["albedo"], mesh.fits_key()), compute,
+                            report=False)
 
     def _reflection_law(self, log: TaskLog, scene: SceneData, tex: SkinTextures
                         ) -> tuple[ReflectionLaw, SkinBoundary] | None:
         """The angular law of ``tex``'s skin (:mod:`.light.reflection_law`) from its
-        regions' media (:meth:`_media`), and the boundary the irradiance used."""
-        _, media = self._media(log, scene, tex)
-        if media is None:
-            return None
-        law = ReflectionLaw(np.array([m.single_scattering_albedo for m in media]),
-                            np.array([m.anisotropy for m in media]), self.options.ior)
-        return law, _skin_boundary(log, scene, tex, self.options.ior)
+        regions' media (:meth:`_media`), and the boundary the irradiance used; kept."""
+        def compute() -> tuple[ReflectionLaw, SkinBoundary] | None:
+            _, media = self._media(log, scene, tex)
+            if media is None:
+                return None
+            return (ReflectionLaw(np.array([m.single_scattering_albedo for m in media]),
+                                  np.array([m.anisotropy for m in media]), self.options.ior),
+                    self._skin_boundary(log, scene, tex))
+
+        key = content_hash(tex.keys["albedo"], self.options.ior, tex.mesh.fits_key())
+        return self._cached(log, f"reflection law:{tex.mesh.path}", key, compute,
+                            report=False)
 
     def _thin_parts(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, positions: NDArray[Any], normals: NDArray[Any],
                     texel: NDArray[Any], regions: NDArray[Any] | None
                     ) -> tuple[NDArray[np.int64], NDArray[np.float32]] | None:
-        """Per covered texel (rows of ``texel``) the row of the texel on the skin's far
-        side whose irradiance leaves here through the volume, and what it is worth
-        (:mod:`.light.thin_parts`): (rows, -1 for none; factors (N, 3)); None when no
-        texel has a far side within reach."""
+        """:func:`~.light.thin_parts.far_side` of the covered texels (rows of ``texel``);
+        None when no texel has a far side within reach."""
         albedo, media = self._media(log, scene, tex)
         if media is None:
             return None
-        thin = ThinMedia.of([m.single_scattering_albedo for m in media],
-                            [m.mean_free_path_mm for m in media],
-                            [m.anisotropy for m in media], albedo, scene.meters_per_unit)
+        thin = ThinMedia.of(media, albedo, scene.meters_per_unit)
         mesh = tex.mesh
         start = time.perf_counter()
         rows, factor = far_side(rays, scene.meshes.index(mesh), mesh.mesh.points, tex.tris,
@@ -950,15 +958,6 @@ class Renderer:
         out["diffuse"][sel] = albedo * e / math.pi
         out["albedo"][sel] = albedo
         out["irradiance"][sel] = e
-
-
-def _skin_boundary(log: TaskLog, scene: SceneData, tex: SkinTextures,
-                   ior: float) -> SkinBoundary:
-    """The skin's dielectric boundary for its mean albedo, recorded in the log."""
-    boundary = SkinBoundary.from_albedo(mean_albedo(tex.mesh, scene.working_colorspace), ior)
-    log.measures["boundary"] = {"ior": boundary.eta,
-                                "reduced_albedo": list(boundary.reduced_albedo)}
-    return boundary
 
 
 def _period_notes(opts: RenderOptions, period: int) -> list[str]:

@@ -165,6 +165,11 @@ class SceneMesh:
                             self.uv_indices if self.uv_indices is not None else 0,
                             self.region_weights if self.region_weights is not None else 0)
 
+    def fits_key(self) -> str:
+        """The content of the profiles' terms: what the regions' media depend on."""
+        return content_hash(*(f.variances_mm2 for f in self.fits),
+                            *(f.weights for f in self.fits))
+
 
 @dataclass
 class SceneData:

@@ -128,13 +128,13 @@ def mean_albedo(mesh: SceneMesh, working: str) -> NDArray[np.float64]:
     return sample.mean(axis=0).astype(np.float64)
 
 
-def skin_media(mesh: SceneMesh, working: str
+def skin_media(mesh: SceneMesh, mean: NDArray[np.float64]
                ) -> tuple[NDArray[np.float64], list[MediumEstimate] | None, str | None]:
-    """The mesh's mean albedo (:func:`mean_albedo`) and each region's medium made to
-    reflect it (:func:`~skinpipe.usd.openpbr.region_medium`, the one OpenPBR is given):
-    what the angular law and the light through thin parts scatter by; None and why where
-    a profile inverts to no medium."""
-    albedo = np.clip(mean_albedo(mesh, working), 1e-4, 1.0)
+    """The mesh's ``mean`` albedo (:func:`mean_albedo`) as the media take it, and each
+    region's medium made to reflect it (:func:`~skinpipe.usd.openpbr.region_medium`, the
+    one OpenPBR is given): what the angular law and the light through thin parts scatter
+    by; None and why where a profile inverts to no medium."""
+    albedo = np.clip(mean, 1e-4, 1.0)
     level = (float(albedo[0]), float(albedo[1]), float(albedo[2]))
     try:
         return albedo, [region_medium(fit, None, level) for fit in mesh.fits], None

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -93,6 +94,18 @@ def _turn(d: NDArray[np.float64], cos_t: NDArray[np.float64], phi: NDArray[np.fl
     out = (sin_t * np.cos(phi))[:, None] * t1 + (sin_t * np.sin(phi))[:, None] * t2 \
         + cos_t[:, None] * d
     return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _roulette(rng: np.random.Generator, w: NDArray[np.float64], *state: NDArray[Any]
+              ) -> tuple[NDArray[Any], ...]:
+    """Russian roulette on photons of weight below 1e-3: one in ten goes on, ten times
+    heavier (unbiased); ``state`` (their positions, directions) and ``w`` of those left."""
+    low = w < 1e-3
+    if not low.any():
+        return (*state, w)
+    live = ~low | (rng.random(w.size) < 0.1)
+    w = np.where(low, w * 10.0, w)
+    return (*(a[live] for a in state), w[live])
 
 
 @dataclass
@@ -160,11 +173,7 @@ def trace(medium: Medium, photons: int, edges_mm: NDArray[np.float64],
             w[c] *= alb
             d[c] = _turn(d[c], _sample_cos(rng.random(c.size), g),
                          2 * math.pi * rng.random(c.size))
-            low = w < 1e-3
-            if low.any():  # Russian roulette: one in ten goes on, ten times heavier
-                live = ~low | (rng.random(w.size) < 0.1)
-                w = np.where(low, w * 10.0, w)
-                pos, d, w = pos[live], d[live], w[live]
+            pos, d, w = _roulette(rng, w, pos, d)
     return Tally(edges, sums, total / photons, photons)
 
 
@@ -193,11 +202,7 @@ def trace_slab_from_below(medium: Medium, thickness_mm: float, photons: int,
             total += float((w * alb * henyey_greenstein(d[:, 2], g) * np.exp(st * z)).sum())
             w = w * alb
             d = _turn(d, _sample_cos(rng.random(w.size), g), 2 * math.pi * rng.random(w.size))
-            low = w < 1e-3
-            if low.any():  # Russian roulette, as in trace
-                live = ~low | (rng.random(w.size) < 0.1)
-                w = np.where(low, w * 10.0, w)
-                z, d, w = z[live], d[live], w[live]
+            z, d, w = _roulette(rng, w, z, d)
     return total / photons
 
 

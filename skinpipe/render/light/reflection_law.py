@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...profile.medium import chandrasekhar_h
+from ...profile.medium import chandrasekhar_h, henyey_greenstein
 from ..scene import Light
 from .boundary import SkinBoundary, refracted_cos, transmission
 from .irradiance import incidence_cos
@@ -45,13 +45,6 @@ MU_NODES = 257
 """Cosines at which H is tabulated for the lookups (linear: within 1e-5 of H)."""
 
 FloatArray = NDArray[np.float64]
-
-
-def henyey_greenstein(cos_theta: ArrayLike, g: ArrayLike) -> FloatArray:
-    """p_g(cos Theta) = (1 - g^2) / (4 pi (1 + g^2 - 2 g cos Theta)^1.5), over the sphere."""
-    c = np.asarray(cos_theta, dtype=np.float64)
-    g = np.asarray(g, dtype=np.float64)
-    return (1.0 - g * g) / (4.0 * math.pi * np.maximum(1.0 + g * g - 2.0 * g * c, 1e-12) ** 1.5)
 
 
 @dataclass(frozen=True)

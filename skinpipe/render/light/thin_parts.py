@@ -25,12 +25,15 @@ not modelled twice.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ...profile.medium import MediumEstimate
 from . import slab_transmission_table as TABLE
 from .raytrace import RayScene, offset_ray_origin
 
@@ -76,17 +79,18 @@ class ThinMedia:
     mean_albedo: FloatArray
 
     @classmethod
-    def of(cls, albedo: ArrayLike, mean_free_path_mm: ArrayLike, anisotropy: ArrayLike,
-           mean_albedo: ArrayLike, meters_per_unit: float) -> ThinMedia:
-        """From each region's medium (albedo and mean free path (R, 3), g (R,))."""
-        a = np.asarray(albedo, np.float64).reshape(-1, 3)
-        g = np.asarray(anisotropy, np.float64).reshape(-1, 1)
-        sigma_t = 1.0 / np.asarray(mean_free_path_mm, np.float64).reshape(-1, 3)
+    def of(cls, media: Sequence[MediumEstimate], mean_albedo: ArrayLike,
+           meters_per_unit: float) -> ThinMedia:
+        """From each region's medium."""
+        a = np.array([m.single_scattering_albedo for m in media], np.float64).reshape(-1, 3)
+        g = np.array([m.anisotropy for m in media], np.float64).reshape(-1, 1)
+        sigma_t = 1.0 / np.array([m.mean_free_path_mm for m in media],
+                                 np.float64).reshape(-1, 3)
         per_unit = meters_per_unit * 1000.0  # mm a scene unit
         return cls(a * (1 - g) / (1 - a * g), sigma_t * (1 - a * g) * per_unit,
                    np.maximum(np.asarray(mean_albedo, np.float64), 1e-4))
 
-    @property
+    @cached_property
     def reach(self) -> float:
         """The thickness (scene units) beyond which no region lets a thousandth of its
         albedo through."""
@@ -156,8 +160,8 @@ def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     u, v = bary[found, 0:1], bary[found, 1:2]
     at_uv = corners[:, 0] * (1 - u - v) + corners[:, 1] * u + corners[:, 2] * v
     x, y = (np.clip((at_uv[:, k] * size).astype(np.int64), 0, size - 1) for k in (0, 1))
-    row_of = np.full(size * size, -1, np.int64)
-    row_of[texel] = np.arange(texel.size)
+    row_of = np.full(size * size, -1, np.int32)  # 64 MB at texture 4096, not 128
+    row_of[texel] = np.arange(texel.size, dtype=np.int32)
     rows = np.full(texel.size, -1, np.int64)
     rows[found] = row_of[y * size + x]
     factor = np.zeros((texel.size, 3), np.float32)
@@ -165,3 +169,13 @@ def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     factor[at] = media.through(thickness[at], None if regions is None else
                                np.asarray(regions[at], np.float64))
     return rows, factor
+
+
+def with_far_side(entering: NDArray[np.float32], rows: NDArray[np.int64],
+                  factor: NDArray[np.float32]) -> NDArray[np.float32]:
+    """``entering`` (N, 3) irradiance rows plus each row's far side's (:func:`far_side`'s
+    ``rows``, -1: none) times its ``factor``, the far side read as it was."""
+    at = np.flatnonzero(rows >= 0)
+    out = entering.copy()
+    out[at] += factor[at] * entering[rows[at]]
+    return out
