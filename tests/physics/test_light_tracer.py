@@ -17,6 +17,7 @@ from .light_tracer import (
     medium,
     single_scattering_index_matched,
     trace,
+    trace_slab_from_below,
 )
 
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "physics"
@@ -60,6 +61,50 @@ def test_an_isotropic_half_space_reflects_as_chandrasekhar_says() -> None:
     want = albedo * _chandrasekhar_h(albedo, np.array([1.0]))[0] ** 2 / (8 * math.pi)
     tally = trace(m, 200_000, np.array([50.0]), seed=5)
     assert tally.total == pytest.approx(want, rel=0.01)
+
+
+def test_an_almost_absorbing_slab_lets_through_its_single_scattering() -> None:
+    """Lit uniformly from below, seen from straight above: the first collisions send up
+    a tau e^-tau / (4 pi) per unit irradiance (isotropic; the beam to the collision and
+    the way up together cross the slab once), all that leaves at albedo 1e-3."""
+    for tau in (0.5, 2.0):
+        m = Medium(sigma_s=0.001, sigma_a=0.999)
+        want = 0.001 * tau * math.exp(-tau) / (4 * math.pi)
+        assert trace_slab_from_below(m, tau, 100_000, seed=9) == pytest.approx(want,
+                                                                              rel=0.01)
+
+
+@pytest.mark.slow  # three Mitsuba renders a thickness
+def test_the_slab_from_below_is_mitsubas() -> None:
+    """skin1 2 and 5 mm thick, lit from below: Mitsuba 3's volpath (4096 samples a
+    pixel, a null boundary, the unscattered beam a delta it does not see) within 1.5%."""
+    mi = pytest.importorskip("mitsuba")
+    try:
+        mi.set_variant("llvm_ad_mono")
+    except (AttributeError, ImportError):
+        mi.set_variant("scalar_mono")
+    transform = mi.ScalarTransform4f
+    for thickness in (2.0, 5.0):
+        for c in range(3):
+            m = medium("skin1", c)
+            scene = mi.load_dict({
+                "type": "scene", "integrator": {"type": "volpath", "max_depth": -1},
+                "sensor": {"type": "orthographic",
+                           "to_world": transform.look_at(origin=[0, 0, 10], target=[0, 0, 0],
+                                                         up=[0, 1, 0])
+                           @ transform.scale([2, 2, 1]),
+                           "film": {"type": "hdrfilm", "width": 16, "height": 16,
+                                    "rfilter": {"type": "box"}},
+                           "sampler": {"type": "independent", "sample_count": 4096}},
+                "light": {"type": "directional", "direction": [0, 0, 1], "irradiance": 1.0},
+                "slab": {"type": "cube", "bsdf": {"type": "null"},
+                         "to_world": transform.translate([0, 0, -thickness / 2])
+                         @ transform.scale([200, 200, thickness / 2]),
+                         "interior": {"type": "homogeneous", "albedo": m.albedo,
+                                      "sigma_t": m.sigma_t, "phase": {"type": "isotropic"}}}})
+            got = float(np.array(mi.render(scene)).mean())
+            want = trace_slab_from_below(m, thickness, 200_000, seed=21 + c)
+            assert got == pytest.approx(want, rel=0.015), (thickness, c)
 
 
 @pytest.mark.parametrize("channel", [0, 2])
