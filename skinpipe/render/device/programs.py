@@ -98,9 +98,12 @@ def build(source: str, options: list[str] | None = None) -> Any:
 
 def _build_now(source: str, options: list[str] | None) -> Any:
     ctx, _ = cl_context()
-    # argument info lets Kernel.warm fill a launch of any kernel
+    # argument info lets Kernel.warm fill a launch of any kernel. Denormals flushed to
+    # zero: a recursive blur's tail decaying across a layout's empty margins runs
+    # through subnormal floats, which x86 cores handle in microcode, many times slower
+    # (the 2048^2 blur at the copy floor with them flushed: docs/benchmarks.md)
     opts = [*(options or []), f"-DNT_STORE={int(device_choice().nontemporal_stores)}",
-            "-cl-kernel-arg-info"]
+            "-cl-kernel-arg-info", "-cl-denorms-are-zero"]
     start = time.perf_counter()
     with warnings.catch_warnings():
         # Intel's runtime writes a build log for every program, errors or not
