@@ -47,21 +47,27 @@ def disc_share_below(radius_mm: ArrayLike, t_mm: ArrayLike) -> FloatArray:
     return r**2 * (math.pi - np.arccos(c)) + np.clip(t, -r, r) * r * np.sqrt(1.0 - c**2)
 
 
+def ring_areas_beyond(radius_mm: ArrayLike, t_mm: ArrayLike) -> FloatArray:
+    """(m, n): the area (mm^2) of each of the n rings of ``radius_mm`` beyond the line
+    u_x = t, for each of the m ``t_mm``: :func:`spread_beyond_rings` is this times the
+    ring radiances."""
+    outer = ring_edges_mm(np.asarray(radius_mm, dtype=np.float64))
+    inner = np.concatenate([[0.0], outer[:-1]])
+    area = math.pi * (outer**2 - inner**2)
+    t = np.asarray(t_mm, dtype=np.float64).reshape(-1, 1)
+    return area[None, :] - (disc_share_below(outer[None, :], t)
+                            - disc_share_below(inner[None, :], t))
+
+
 def spread_beyond_rings(radius_mm: ArrayLike, values: ArrayLike, t_mm: ArrayLike,
                         chunk: int = 256) -> FloatArray:
     """1 - E(t) of a sampled profile: the light beyond the line u_x = t, per channel
     ((m,) or (m, c) for ``values`` (n,) or (n, c)); each sample the radiance of its ring."""
-    r = np.asarray(radius_mm, dtype=np.float64)
     p = np.asarray(values, dtype=np.float64)
-    outer = ring_edges_mm(r)
-    inner = np.concatenate([[0.0], outer[:-1]])
-    area = math.pi * (outer**2 - inner**2)
     t = np.asarray(t_mm, dtype=np.float64).reshape(-1)
     out = np.empty((t.size, *p.shape[1:]))
     for s in range(0, t.size, chunk):
-        tt = t[s:s + chunk, None]
-        below = disc_share_below(outer[None, :], tt) - disc_share_below(inner[None, :], tt)
-        out[s:s + chunk] = (area[None, :] - below) @ p
+        out[s:s + chunk] = ring_areas_beyond(radius_mm, t[s:s + chunk]) @ p
     return out
 
 

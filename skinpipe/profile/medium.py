@@ -50,7 +50,7 @@ from scipy.optimize import brentq, minimize_scalar
 from ..errors import InputError
 from . import pencil_profile_table as PROFILE
 from . import pencil_reflectance_table as TABLE
-from .edge import spread_beyond_rings
+from .edge import ring_areas_beyond
 from .models import (
     burley_scaling_searchlight,
     dipole_tail_flux,
@@ -293,18 +293,17 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
     # a few rings); the reported error takes every ring edge.
     every = outer[outer >= central]
     want = np.geomspace(every[0], every[-1], EDGE_POSITIONS)
-    beyond = spread_beyond_rings(r, np.eye(r.size), np.unique(
-        every[np.clip(np.searchsorted(every, want), 0, every.size - 1)]))
-    beyond_every = spread_beyond_rings(r, np.eye(r.size), every)
+    beyond_every = ring_areas_beyond(r, every)
+    beyond = beyond_every[np.unique(np.clip(np.searchsorted(every, want), 0, every.size - 1))]
     mean = p.clip(0).mean(axis=1)
     rms_mm = max(float(np.sqrt(np.sum(mean * r**3) / max(np.sum(mean * r), 1e-300))), 1e-3)
     bounds = (math.log(rms_mm / 100), math.log(rms_mm * 100))
     totals = np.maximum(area @ p, 1e-300)
     measured = beyond @ p / totals
 
-    def fit(c: int, g: float, model: str) -> tuple[float, float, _Shape] | None:
+    def fit(shape: _Shape | None, c: int, model: str
+            ) -> tuple[float, float, _Shape] | None:
         """(largest edge difference, mean free path, shape) of channel c's best fit."""
-        shape = _shape(float(refl[c]), g)
         if shape is None:
             return None
 
@@ -321,8 +320,9 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
         albedo_from_pencil_reflectance(x)  # refuses what no medium reflects
     fits = {}
     for g in ANISOTROPIES:
+        shapes = [_shape(float(x), g) for x in refl]
         for m in MULTIPLE_SCATTERING_MODELS:
-            found = [fit(c, g, m) for c in range(p.shape[1])]
+            found = [fit(shape, c, m) for c, shape in enumerate(shapes)]
             if all(f is not None for f in found):
                 fits[g, m] = found
     g_best, model_best = min(fits, key=lambda k: max(f[0] for f in fits[k]))
