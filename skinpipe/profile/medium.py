@@ -318,13 +318,23 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
 
     for x in refl:
         albedo_from_pencil_reflectance(x)  # refuses what no medium reflects
-    fits = {}
+    fits: dict[tuple[float, str], list[tuple[float, float, _Shape]]] = {}
+    best = math.inf  # the least largest-channel error of the pairs fitted so far
     for g in ANISOTROPIES:
         shapes = [_shape(float(x), g) for x in refl]
         for m in MULTIPLE_SCATTERING_MODELS:
-            found = [fit(shape, c, m) for c, shape in enumerate(shapes)]
-            if all(f is not None for f in found):
+            found: list[tuple[float, float, _Shape]] = []
+            # the last channel first (blue: skin's shortest, the hardest edge), and a
+            # channel as far off as the best pair's worst means this pair cannot win
+            # (an earlier pair wins a tie): its other channels are not fitted
+            for c in reversed(range(len(shapes))):
+                got = fit(shapes[c], c, m)
+                if got is None or got[0] >= best:
+                    break
+                found.insert(0, got)
+            else:
                 fits[g, m] = found
+                best = min(best, max(f[0] for f in found))
     g_best, model_best = min(fits, key=lambda k: max(f[0] for f in fits[k]))
     albedo, mfp, err2c, edge = (np.empty(p.shape[1]) for _ in range(4))
     for c, (_, length, shape) in enumerate(fits[g_best, model_best]):
