@@ -338,7 +338,7 @@ def test_pivoting_weights_match_lawson_hanson(free_scale: bool) -> None:
     (w >= 0, multipliers of the zero weights >= 0, stationarity on the others)."""
     from scipy.optimize import nnls
 
-    from skinpipe.profile.fit import gram_weights_pivoting
+    from skinpipe.profile.simplex_weights import gram_weights_pivoting
 
     hess, grad = _gram_systems(400, 6, seed=3)
     w, left = gram_weights_pivoting(hess, grad, free_scale)
@@ -374,7 +374,7 @@ def test_pivoting_leaves_what_it_cannot_settle_to_lawson_hanson() -> None:
     """A Gram matrix of zeros (Gaussians that underflow at every sample) and a system
     after zero rounds come back as unsettled, so the caller's NNLS answers them; the
     fitness' weights are then still on the simplex."""
-    from skinpipe.profile.fit import _gram_weights, gram_weights_pivoting
+    from skinpipe.profile.simplex_weights import gram_weights, gram_weights_pivoting
 
     hess, grad = _gram_systems(8, 4, seed=5)
     hess[2], grad[2] = 0.0, 0.0
@@ -382,7 +382,7 @@ def test_pivoting_leaves_what_it_cannot_settle_to_lawson_hanson() -> None:
     assert 2 in left
     _, none_done = gram_weights_pivoting(hess, grad, False, rounds=0)
     assert sorted(none_done) == list(range(8))
-    w = _gram_weights(hess, grad, False)
+    w = gram_weights(hess, grad, False)
     assert np.all(np.isfinite(w)) and np.all(w >= 0)
     np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
 
@@ -394,7 +394,12 @@ def test_gauss_newton_hessian_is_2_jt_j_by_finite_differences(fixed: bool) -> No
     and of the energy residuals sqrt(b) (t - E w), computed here in numpy; two sample
     sets (one profile's channels sharing weights, one with per-channel standard
     deviations), so both groupings are covered."""
-    from skinpipe.profile.fit import HESS_REG, _gauss_newton_problem, _layout, _make_curves
+    from skinpipe.profile.fit import _make_curves
+    from skinpipe.profile.ipopt_refine import (
+        HESS_REG,
+        gauss_newton_problem,
+        parameter_layout,
+    )
 
     rng = np.random.default_rng(11)
     r = np.linspace(0.0, 3.0, 40)
@@ -403,13 +408,13 @@ def test_gauss_newton_hessian_is_2_jt_j_by_finite_differences(fixed: bool) -> No
     noisy = MeasuredProfile(r, values * 1.01, stddev=values * 0.02 + 1e-3)
     curves = (_make_curves([plain], [(0, c) for c in range(3)], 1.0)
               + _make_curves([noisy], [(0, 0), (0, 1)], 1.0, use_stddev=True))
-    layout, chunks = _layout(curves)
+    layout, chunks = parameter_layout(curves)
     assert [m for _, m in layout] == [3, 1, 1]
     k = 4
     log_u = np.log([0.01, 0.1, 0.7, 3.0])
     w = rng.uniform(0.1, 1.0, (len(curves), k))
     params = np.concatenate(chunks + ([log_u] if fixed else []))
-    _, hess = _gauss_newton_problem(layout, k, fixed, False)
+    _, hess = gauss_newton_problem(layout, k, fixed, False)
     x = w.ravel() if fixed else np.concatenate([log_u, w.ravel()])
     ours = np.array(hess(x, params, 1.0, np.zeros(len(curves)))).reshape(x.size, x.size)
 
