@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
+import pyopencl as cl
 from numpy.typing import NDArray
 
 from ...errors import InputError
@@ -634,9 +635,9 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
     ``fill`` is its reference): the splat on the device (``splat_level``: numpy's
     accumulations took half of a 4096 diffusion, 4.8 of 12 s) into ``scratch``, then
     the reads across the seams from there into ``into`` (``read_seams``), which it
-    returns; on a device without doubles the host reads across the seams into an atlas
-    of its own, returned instead. ``scratch`` and ``into``: device buffers of at least
-    the atlas (float4). Host memory a device on this machine reads in place."""
+    returns; on a device without doubles the host reads across the seams and the atlas
+    goes into ``into`` as well. ``scratch`` and ``into``: device buffers of at least the
+    atlas (float4). Host memory a device on this machine reads in place."""
     kernel = pyramid_kernels(layout.n_regions)["splat_level"]
     queue = layout.iir.queue
     lh, lw = grid.shape
@@ -652,7 +653,11 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
                                         global_offset=(0, first)))
     if out is not None:
         read_output(queue, splat_into, out)
-        return host_buffer(grid.tiles.read_across_seams(out))
+        # into ``into``, which outlives the kernels that read the atlas: a buffer over
+        # this function's array let the array go with the caller's last reference while
+        # a blur or the terms' sum still read it (a band of texels came out black)
+        cl.enqueue_copy(queue, into, grid.tiles.read_across_seams(out))
+        return into
     # the reads on the device too: scipy's product ran on one core (0.45 s of a 2.8 s
     # diffusion at texture 2048), the kernel on all, the same sums
     args = (*reads, np.int32(lh), np.int32(lw), np.int32(grid.level > 0), scratch,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import OpenImageIO as oiio
@@ -577,11 +578,22 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
 def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Where the device has no doubles (no ``read_seams``), the host reads each level
-    across the seams (scipy's product with SeamReads.matrix) into an atlas of its own:
-    the same diffused light bit for bit as the device's reads, on the two-chart patch
-    with random light and d'Eon's six terms."""
+    across the seams (scipy's product with SeamReads.matrix): the same diffused light
+    bit for bit as the device's reads, on the two-chart patch with random light and
+    d'Eon's six terms. The atlas goes into the layout's own buffer, which outlives the
+    kernels that read it: a buffer over a temporary array let the array go while they
+    still read it (a band of texels black in a third of loaded runs)."""
+    import skinpipe.render.diffusion.diffuse as diffuse_module
     import skinpipe.render.diffusion.layout as layout_module
 
+    fill, into_own = layout_module._fill_level, []
+
+    def recorded(layout: Any, grid: Any, irradiance: Any, scratch: Any, into: Any) -> Any:
+        atlas = fill(layout, grid, irradiance, scratch, into)
+        into_own.append(atlas is into)
+        return atlas
+
+    monkeypatch.setattr(diffuse_module, "_fill_level", recorded)
     maps, charts = _layout(256)
     e = np.random.default_rng(5).random((256, 256, 3)).astype(np.float32)
     v, w = DEON_2007_SKIN.variances_mm2, DEON_2007_SKIN.weights
@@ -593,6 +605,7 @@ def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
                              v, w, charts=charts)
         assert len(set(stats.levels)) >= 2  # several levels, each filled in turn
         outs.append(out)
+    assert into_own and all(into_own), into_own
     np.testing.assert_array_equal(outs[1], outs[0])
 
 
