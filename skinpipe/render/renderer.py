@@ -66,7 +66,7 @@ from .light.raytrace import RayScene, offset_ray_origin
 from .light.reflection_law import ReflectionLaw, angular_correction
 from .light.samples import interleave_period, light_direction, sobol_points
 from .light.specular import torrance_sparrow
-from .light.thin_parts import ThinMedia, far_side, with_far_side
+from .light.thin_parts import FarSide, ThinMedia, far_side, with_far_side
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .shading import (
@@ -316,7 +316,7 @@ class Renderer:
             else:
                 entering = res.entering
             if through is not None:  # the far side's light, through the volume
-                entering = with_far_side(entering, *through)
+                entering = with_far_side(entering, through)
             del normal, through
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the per-light sums go before the planes and their push-pull (0.3 GB at
@@ -897,8 +897,7 @@ class Renderer:
 
     def _thin_parts(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
                     rays: RayScene, positions: NDArray[Any], normals: NDArray[Any],
-                    texel: NDArray[Any], regions: NDArray[Any] | None
-                    ) -> tuple[NDArray[np.int64], NDArray[np.float32]] | None:
+                    texel: NDArray[Any], regions: NDArray[Any] | None) -> FarSide | None:
         """:func:`~.light.thin_parts.far_side` of the covered texels (rows of ``texel``);
         None when no texel has a far side within reach."""
         albedo, media = self._media(log, scene, tex)
@@ -907,12 +906,12 @@ class Renderer:
         thin = ThinMedia.of(media, albedo, scene.meters_per_unit)
         mesh = tex.mesh
         start = time.perf_counter()
-        rows, factor = far_side(rays, scene.meshes.index(mesh), mesh.mesh.points, tex.tris,
-                                tex.uv, tex.uv_tris, self.options.texture_size, positions,
-                                normals, texel, thin, regions)
-        log.measures["thin_parts"] = {"texels": int((rows >= 0).sum()), "reach": thin.reach,
+        far = far_side(rays, scene.meshes.index(mesh), mesh.mesh.points, tex.tris, tex.uv,
+                       tex.uv_tris, self.options.texture_size, positions, normals, texel,
+                       thin, regions)
+        log.measures["thin_parts"] = {"texels": int(far.rows.size), "reach": thin.reach,
                                       "seconds": time.perf_counter() - start}
-        return (rows, factor) if np.any(rows >= 0) else None
+        return far if far.rows.size else None
 
     def _specular(self, scene: SceneData, pos: NDArray[Any], n: NDArray[Any],
                   view: NDArray[Any], at: dict[str, NDArray[np.float32]]

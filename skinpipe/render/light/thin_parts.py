@@ -116,66 +116,86 @@ class ThinMedia:
         return out / self.mean_albedo
 
 
+BAND_POINTS = 1 << 20
+"""Points whose rays into the skin go to Embree at once: the rays' arrays are a band's,
+not the texture's (at texture 4096 the whole texture's held 1 GB at the render's peak),
+and what is kept is the few points with a far side."""
+
+
+@dataclass(frozen=True)
+class FarSide:
+    """The points (rows) that have a far side within reach: each one's row of the far
+    side's texel and what that texel's irradiance is worth there (K, 3)."""
+
+    rows: NDArray[np.int64]
+    far_rows: NDArray[np.int64]
+    factor: NDArray[np.float32]
+
+
 def back_points(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
                 mesh_tris: NDArray[np.integer], points: FloatArray, normals: FloatArray,
-                reach: float) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
-    """Per point the skin triangle (local index into ``mesh_tris``, -1: none) where a ray
-    into the skin along -normal leaves the same mesh within ``reach``, and the
-    barycentrics (N, 2) and distance there. A hit from outside (a fold, another part in
-    the way) is none."""
-    n = np.asarray(normals, np.float32)
-    origin = offset_ray_origin(points, -n)
-    prim, u, v, dist = rays.intersect(origin, -n)
-    hit = np.flatnonzero(prim >= 0)
-    owner = rays.owner[prim[hit]]
-    own = owner[:, 0] == mesh_index
-    hit, local = hit[own], owner[own, 1]
-    tri = np.asarray(mesh_points, np.float64)[np.asarray(mesh_tris)[local]]  # (H, 3, 3)
-    face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    leaving = np.einsum("ij,ij->i", face, -n[hit]) > 0
-    near = dist[hit] <= reach
-    keep = leaving & near
-    out = np.full(points.shape[0], -1, np.int64)
-    out[hit[keep]] = local[keep]
-    bary = np.zeros((points.shape[0], 2))
-    bary[hit[keep], 0], bary[hit[keep], 1] = u[hit[keep]], v[hit[keep]]
-    thickness = np.zeros(points.shape[0])
-    thickness[hit[keep]] = dist[hit[keep]]
-    return out, bary, thickness
+                reach: float) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray,
+                                       FloatArray]:
+    """The points (indices into ``points``) where a ray into the skin along -normal leaves
+    the same mesh within ``reach``: those indices, the skin triangle hit (local index into
+    ``mesh_tris``), its barycentrics (K, 2) and the distance. A hit from outside (a fold,
+    another part in the way) is none. In bands of :data:`BAND_POINTS` points."""
+    tris = np.asarray(mesh_tris)
+    verts = np.asarray(mesh_points, np.float64)
+    found: list[tuple[NDArray[np.int64], ...]] = []
+    for first in range(0, points.shape[0], BAND_POINTS):
+        band = slice(first, min(first + BAND_POINTS, points.shape[0]))
+        n = np.asarray(normals[band], np.float32)
+        prim, u, v, dist = rays.intersect(offset_ray_origin(points[band], -n), -n)
+        hit = np.flatnonzero(prim >= 0)
+        owner = rays.owner[prim[hit]]
+        own = owner[:, 0] == mesh_index
+        hit, local = hit[own], owner[own, 1]
+        tri = verts[tris[local]]  # (H, 3, 3)
+        face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        leaving = np.einsum("ij,ij->i", face, -n[hit]) > 0
+        keep = leaving & (dist[hit] <= reach)
+        hit = hit[keep]
+        found.append((hit + first, local[keep], np.stack([u[hit], v[hit]], axis=1),
+                      dist[hit].astype(np.float64)))
+    if not found:
+        return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
+                np.zeros(0))
+    index, tri, bary, thickness = (np.concatenate(parts) for parts in zip(*found,
+                                                                           strict=True))
+    return index.astype(np.int64), tri.astype(np.int64), bary.astype(np.float64), thickness
 
 
 def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
              mesh_tris: NDArray[np.integer], uv: FloatArray, uv_tris: NDArray[np.integer],
              size: int, points: FloatArray, normals: FloatArray, texel: NDArray[np.intp],
-             media: ThinMedia, regions: NDArray[Any] | None
-             ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+             media: ThinMedia, regions: NDArray[Any] | None) -> FarSide:
     """For covered texels (flat indices ``texel`` of a ``size`` texture, at ``points`` with
-    ``normals``) the row in ``texel`` of the texel on the skin's far side
-    (:func:`back_points`; -1: none, or its texel is not covered) and what that texel's
-    irradiance is worth here (N, 3), the regions blended by ``regions`` (N, R)."""
-    tri, bary, thickness = back_points(rays, mesh_index, mesh_points, mesh_tris, points,
-                                       normals, media.reach)
-    found = np.flatnonzero(tri >= 0)
-    corners = np.asarray(uv)[np.asarray(uv_tris)[tri[found]]]  # (F, 3, 2)
-    u, v = bary[found, 0:1], bary[found, 1:2]
+    ``normals``) those whose far side (:func:`back_points`) is a covered texel: their
+    rows, the far texel's row and what its irradiance is worth here, the regions blended
+    by ``regions`` (N, R)."""
+    index, tri, bary, thickness = back_points(rays, mesh_index, mesh_points, mesh_tris,
+                                              points, normals, media.reach)
+    if not index.size:
+        return FarSide(index, index, np.zeros((0, 3), np.float32))
+    corners = np.asarray(uv)[np.asarray(uv_tris)[tri]]  # (K, 3, 2)
+    u, v = bary[:, 0:1], bary[:, 1:2]
     at_uv = corners[:, 0] * (1 - u - v) + corners[:, 1] * u + corners[:, 2] * v
     x, y = (np.clip((at_uv[:, k] * size).astype(np.int64), 0, size - 1) for k in (0, 1))
     row_of = np.full(size * size, -1, np.int32)  # 64 MB at texture 4096, not 128
     row_of[texel] = np.arange(texel.size, dtype=np.int32)
-    rows = np.full(texel.size, -1, np.int64)
-    rows[found] = row_of[y * size + x]
-    factor = np.zeros((texel.size, 3), np.float32)
-    at = np.flatnonzero(rows >= 0)
-    factor[at] = media.through(thickness[at], None if regions is None else
-                               np.asarray(regions[at], np.float64))
-    return rows, factor
+    far = row_of[y * size + x].astype(np.int64)
+    del row_of
+    covered = far >= 0
+    index, far, thickness = index[covered], far[covered], thickness[covered]
+    factor = media.through(thickness, None if regions is None else
+                           np.asarray(regions[index], np.float64)).astype(np.float32)
+    return FarSide(index, far, factor)
 
 
-def with_far_side(entering: NDArray[np.float32], rows: NDArray[np.int64],
-                  factor: NDArray[np.float32]) -> NDArray[np.float32]:
-    """``entering`` (N, 3) irradiance rows plus each row's far side's (:func:`far_side`'s
-    ``rows``, -1: none) times its ``factor``, the far side read as it was."""
-    at = np.flatnonzero(rows >= 0)
+def with_far_side(entering: NDArray[np.float32], far: FarSide) -> NDArray[np.float32]:
+    """``entering`` (N, 3) irradiance rows plus, at each row of ``far``, its far side's
+    row times its factor, the far side read as it was."""
     out = entering.copy()
-    out[at] += factor[at] * entering[rows[at]]
+    out[far.rows] += far.factor * entering[far.far_rows]
     return out

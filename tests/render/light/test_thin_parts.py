@@ -119,3 +119,30 @@ def test_a_slab_lit_from_behind_lets_through_what_the_tracer_does(tmp_path: Path
         assert np.all(np.abs(got / want - 1) < 0.10), (thickness, got / want)
     dark = _rendered_transmission(tmp_path, 2.0, "--no-transmission")
     assert np.all(dark < 1e-3 * _truth(2.0)), dark  # what creeps round the slab's sides
+
+
+def test_rays_into_the_skin_go_in_bands_and_keep_only_far_sides(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """back_points casts its rays a band of points at a time and keeps only the points
+    with a far side: a closed box 2 mm thick, its top's points over half of it, banded 7
+    at a time, finds the same points, triangles, barycentrics and thicknesses as in one
+    band; a point off the box finds none."""
+    from skinpipe.render.light import thin_parts
+    from skinpipe.render.light.raytrace import RayScene
+
+    corners = np.array([[x, y, z] for z in (0.0, 2.0) for y in (0.0, 10.0) for x in (0.0, 10.0)])
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    rays = RayScene([(corners, tris)])
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(0.5, 19.5, 40), rng.uniform(0.5, 9.5, 40),
+                              np.full(40, 2.0)])
+    normals = np.tile([0.0, 0.0, 1.0], (40, 1))
+    whole = thin_parts.back_points(rays, 0, corners, tris, points, normals, 5.0)
+    monkeypatch.setattr(thin_parts, "BAND_POINTS", 7)
+    banded = thin_parts.back_points(rays, 0, corners, tris, points, normals, 5.0)
+    for a, b in zip(whole, banded, strict=True):
+        np.testing.assert_array_equal(a, b)
+    index, _, _, thickness = banded
+    np.testing.assert_array_equal(index, np.flatnonzero(points[:, 0] < 10.0))
+    np.testing.assert_allclose(thickness, 2.0, rtol=1e-4)  # from the offset origin
