@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -97,6 +98,14 @@ def henyey_greenstein(cos_theta: ArrayLike, g: ArrayLike) -> FloatArray:
     c = np.asarray(cos_theta, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)
     return (1.0 - g * g) / (4.0 * math.pi * np.maximum(1.0 + g * g - 2.0 * g * c, 1e-12) ** 1.5)
+
+
+def similarity_relation(albedo: ArrayLike, g: ArrayLike) -> tuple[Any, Any]:
+    """van de Hulst's similarity relation: the isotropic medium a medium of albedo alpha
+    and anisotropy g scatters like, as (alpha' = alpha (1 - g) / (1 - alpha g), and the
+    factor 1 - alpha g that takes sigma_t to sigma_t' = 1 / l')."""
+    a = albedo
+    return a * (1.0 - g) / (1.0 - a * g), 1.0 - a * g
 
 
 def pencil_reflectance(albedo: float) -> float:
@@ -196,14 +205,13 @@ class _Shape:
 
     @property
     def reduced_albedo(self) -> float:
-        """alpha' = alpha (1 - g) / (1 - alpha g) (similarity relation)."""
-        a, g = self.albedo, self.anisotropy
-        return a * (1.0 - g) / (1.0 - a * g)
+        """alpha' (:func:`similarity_relation`)."""
+        return similarity_relation(self.albedo, self.anisotropy)[0]
 
     @property
     def reduced_length(self) -> float:
         """l' / l = 1 / (1 - alpha g): the transport mean free path's."""
-        return 1.0 / (1.0 - self.albedo * self.anisotropy)
+        return 1.0 / similarity_relation(self.albedo, self.anisotropy)[1]
 
 
 @cache

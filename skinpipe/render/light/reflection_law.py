@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...profile.medium import chandrasekhar_h, henyey_greenstein
+from ...profile.medium import chandrasekhar_h, henyey_greenstein, similarity_relation
 from ..scene import Light
 from .boundary import SkinBoundary, refracted_cos, transmission
 from .irradiance import incidence_cos
@@ -71,9 +71,8 @@ class ReflectionLaw:
 
     @property
     def reduced_albedo(self) -> FloatArray:
-        """alpha' = alpha (1 - g) / (1 - alpha g), (R, 3)."""
-        g = self.anisotropy[:, None]
-        return self.albedo * (1.0 - g) / (1.0 - self.albedo * g)
+        """alpha' (:func:`~skinpipe.profile.medium.similarity_relation`), (R, 3)."""
+        return similarity_relation(self.albedo, self.anisotropy[:, None])[0]
 
     def radiance(self, mu_i: FloatArray, mu_o: FloatArray, cos_theta: FloatArray,
                  region: int) -> FloatArray:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...profile.medium import MediumEstimate
+from ...profile.medium import MediumEstimate, similarity_relation
 from . import slab_transmission_table as TABLE
 from .raytrace import RayScene, offset_ray_origin
 
@@ -87,7 +87,8 @@ class ThinMedia:
         sigma_t = 1.0 / np.array([m.mean_free_path_mm for m in media],
                                  np.float64).reshape(-1, 3)
         per_unit = meters_per_unit * 1000.0  # mm a scene unit
-        return cls(a * (1 - g) / (1 - a * g), sigma_t * (1 - a * g) * per_unit,
+        reduced, factor = similarity_relation(a, g)
+        return cls(reduced, sigma_t * factor * per_unit,
                    np.maximum(np.asarray(mean_albedo, np.float64), 1e-4))
 
     @cached_property
