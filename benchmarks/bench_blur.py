@@ -86,7 +86,7 @@ def main() -> None:
     import cv2
     from scipy.ndimage import gaussian_filter
 
-    from skinpipe.render.device.choice import device_choice
+    from skinpipe.render.device.choice import open_device
     from skinpipe.render.diffusion.blur_switch import DirectLimits, direct_limits, prefers_direct
     from skinpipe.render.diffusion.direct_blur import DirectBlur, fir_radius
     from skinpipe.render.diffusion.gather import OpenCLBlur
@@ -108,9 +108,10 @@ def main() -> None:
 
     copy_s = copy_seconds()
     cv_dst = np.empty_like(tex)
-    gather = OpenCLBlur(np.ones((n, n), np.float32))
-    iir = RecursiveBlur(n, n)
-    direct = DirectBlur(n, n)
+    device = open_device()
+    gather = OpenCLBlur(device, np.ones((n, n), np.float32))
+    iir = RecursiveBlur(device, n, n)
+    direct = DirectBlur(device, n, n)
     rows = []
 
     def cv2_blur(image: np.ndarray, ksize: int, sigma: float, dst: Any = None) -> np.ndarray:
@@ -123,7 +124,7 @@ def main() -> None:
         gather.upload(tex)
         gather.blur_in_place(sig, sig)  # warm-up: the first enqueue JIT-compiles
         gather_s = best_of(lambda sig=sig: gather.blur_in_place(sig, sig))
-        gathered = OpenCLBlur(np.ones((n, n), np.float32)).blur(tex, sig, sig)
+        gathered = OpenCLBlur(device, np.ones((n, n), np.float32)).blur(tex, sig, sig)
         iir.upload(tex)
         iir.blur_in_place(sig, sig)
         recursive_map_s = best_of(lambda sig=sig: iir.blur_in_place(sig, sig))
@@ -141,7 +142,7 @@ def main() -> None:
         recursive_s, cv_s, direct_s = best["recursive"], best["cv2"], best.get("direct")
         cv_same_s = best["cv2_same"] if "cv2_same" in best else best_of(
             lambda sigma=sigma, k=k_same: cv2_blur(tex, k, sigma, cv_dst), 1)
-        uses_direct = prefers_direct(sigma, sigma)
+        uses_direct = prefers_direct(device, sigma, sigma)
         ours_s = direct_s if uses_direct else recursive_s
         ref = gaussian_filter(tex.astype(np.float64), (sigma, sigma, 0), truncate=3.0,
                               mode="nearest")
@@ -187,8 +188,8 @@ def main() -> None:
     for row in rows:
         row["ours_vs_floor"] = row["ours_s"] / floor_s
         row["recursive_uniform_vs_floor"] = row["recursive_uniform_s"] / floor_s
-    doc = {"benchmark": "blur", "device": device_choice().summary(),
-           "blur_switch": asdict(direct_limits() or DirectLimits(None, None, "unused")),
+    doc = {"benchmark": "blur", "device": device.choice.summary(),
+           "blur_switch": asdict(direct_limits(device) or DirectLimits(None, None, "unused")),
            "size": n, "channels": 4, "dtype": "float32",
            "copy_bandwidth_gbps": bandwidth / 1e9, "floor_s": floor_s,
            "one_pass_floor_s": floor_s / 2, "rows": rows}

@@ -113,8 +113,8 @@ def bench_size(stage: Any, size: int, with_naive: bool, repeats: int) -> dict[st
         return out
 
     def layout() -> DiffusionLayout:
-        return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                               maps.region_weights)
+        return DiffusionLayout(renderer.device, maps.mm_per_texel_u, maps.mm_per_texel_v,
+                               maps.coverage, maps.region_weights)
 
     layout()  # warm-up: kernels compile on first use
     row["diffusion_layout_s"], prepared = best_of(layout, repeats)

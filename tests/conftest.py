@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ from skinpipe.profile.types import MeasuredProfile
 from skinpipe.render.device import choice
 from skinpipe.render.diffusion.blur_switch import SWITCH_ENV
 from skinpipe.render.diffusion.direct_blur import FIR_MAX_RADIUS, FIR_MAX_RADIUS_PER_TEXEL
+from skinpipe.render.options import DEVICE_ENV
 
 from .reference_profiles import deon_profile
 
@@ -34,14 +36,19 @@ OPENCL_DEVICES = _working_devices()
 
 
 @pytest.fixture(scope="session", params=OPENCL_DEVICES, ids=lambda c: c.runtime)
-def cl_device(request: pytest.FixtureRequest) -> choice.Candidate:
+def cl_device(request: pytest.FixtureRequest) -> Iterator[choice.Device]:
     """Runs a test on each OpenCL device that passes the probe (pocl-cpu, intel-cpu, a
-    GPU): a runtime-specific failure shows by name. Session scope, so pytest groups the
-    tests by device and each device's programs are built once."""
-    cand: choice.Candidate = request.param
-    choice.set_device(cand.runtime)
-    yield cand
-    choice.set_device(None)
+    GPU): a runtime-specific failure shows by name. The device is the environment's
+    meanwhile (``$SKINPIPE_OPENCL_DEVICE``: what a step given no device runs on, as a
+    user's would); session scope, so pytest groups the tests by device and each
+    device's programs are built once."""
+    before = os.environ.get(DEVICE_ENV)
+    os.environ[DEVICE_ENV] = request.param.runtime
+    yield choice.open_device()
+    if before is None:
+        os.environ.pop(DEVICE_ENV, None)
+    else:
+        os.environ[DEVICE_ENV] = before
 
 
 @pytest.fixture

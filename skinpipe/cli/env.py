@@ -23,14 +23,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_env(args: argparse.Namespace) -> int:
-    from ..render.device.choice import choose_device, device_spec, set_device
+    from ..render.device.choice import choose_device, device_spec
     from ..render.device.runtimes import SETUP
     from ..usd.schema import pxr_plugin_path_line
 
     print(pxr_plugin_path_line())
-    if args.device:
-        set_device(args.device)
-    choice = choose_device(device_spec(), probe_all=True)
+    choice = choose_device(args.device or device_spec(), probe_all=True)
     _eprint(f"# OpenCL device ('{choice.spec}'): {choice.candidate.label} "
             f"[{choice.candidate.runtime}]"
             + ("" if choice.nontemporal_stores else " (without streaming stores)"))

@@ -29,7 +29,7 @@ from ..imageio import (
 from ..usd.io import open_stage_guarded
 from .bands import BAND_THREADS, host_threads, in_bands
 from .budget import check_render_fits
-from .device.choice import device_choice, set_device
+from .device.choice import Device
 from .device.programs import LEDGER, KernelLedger
 from .diffusion.blur_switch import direct_limits
 from .frame import SkinTextures
@@ -178,8 +178,6 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
     if renderer is None:
         renderer = Renderer(open_stage_guarded(scene_path), options, progress)
     renderer.options = options
-    if options.device:
-        set_device(options.device)
     ledger = LEDGER.copy()
     out_dir.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {"scene": str(scene_path), "options": _options_json(options),
@@ -210,16 +208,16 @@ def render_files(scene_path: Path, out_dir: Path, options: RenderOptions,
         if own:
             renderer.close()
     doc["total_seconds"] = time.perf_counter() - start
-    doc["opencl"] = opencl_summary(ledger)
+    doc["opencl"] = opencl_summary(renderer.device, ledger)
     atomic_write_json(out_dir / "render.json", doc)
     return doc
 
 
-def opencl_summary(before: KernelLedger) -> dict[str, Any]:
+def opencl_summary(device: Device, before: KernelLedger) -> dict[str, Any]:
     """The device, why the others were not used, the programs built and their seconds,
     the kernels launched since ``before``, and the direct/recursive blur switch used."""
-    doc = {**device_choice().summary(), **LEDGER.since(before)}
-    used = direct_limits()
+    doc = {**device.choice.summary(), **LEDGER.since(before)}
+    used = direct_limits(device)
     if used is not None:  # only if a blur asked for it
         doc["blur_switch"] = asdict(used)
     return doc

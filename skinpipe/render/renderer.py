@@ -25,7 +25,7 @@ from ..imageio import (
 )
 from ..profile.medium import MediumEstimate
 from .bands import beside, in_bands
-from .device.choice import set_device
+from .device.choice import Device, open_device
 from .device.huge_pages import apply_to_numpy, huge_pages_choice
 from .device.memory import streams
 from .device.programs import start_prewarm
@@ -110,8 +110,6 @@ class Renderer:
                  progress: Callable[[str], None] | None = None) -> None:
         self.stage = stage
         self.options = options
-        if options.device:
-            set_device(options.device)
         self.delegate = SceneDelegate(stage, options.camera)
         self.progress = progress or (lambda _msg: None)
         # large buffers ask for huge pages only where their first touch is not dearer
@@ -170,34 +168,42 @@ class Renderer:
 
         return self._cached(log, "unwrap", mesh.geometry_key(), compute)
 
+    @property
+    def device(self) -> Device:
+        """The OpenCL device the options ask for (probed at the first request in this
+        process), which every texture-space step is handed."""
+        return open_device(self.options.device)
+
     def _kernel_plan(self, scene: SceneData) -> list[Callable[[], Any]]:
         """The device kernels this render will need, in the order it needs them, for a
         :class:`~.opencl.Prewarm` to build and compile while the host works."""
-        opts = self.options
+        opts, device = self.options, self.device
         domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
         # each skin mesh's interleaving period where its UVs are known before the render
         # (an unwrap's are not: theirs, if not 2, are built at their first launch)
         periods = {self._interleaving(scene, m, m.uv, uv_triangles(m), triangulate(m.mesh))[0]
                    if usable_uvs(m) is None else 2 for m in scene.skin}
         steps: list[Callable[[], Any]] = [
-            texture_kernels,
-            *(partial(irradiance_kernels, scene.lights, opts.light_samples,
+            partial(texture_kernels, device),
+            *(partial(irradiance_kernels, device, scene.lights, opts.light_samples,
                       opts.shadow_sampling != "full", domes,
                       filtered=opts.shadow_sampling == "interleaved",
                       sequence=opts.light_sequence,
                       refined=opts.shadow_sampling == "adaptive", period=p)
               for p in sorted(periods)),
-            push_pull_kernels]
+            partial(push_pull_kernels, device)]
         if opts.scattering and opts.blur == "recursive":
-            steps.insert(1 + len(periods), margin_kernels)  # the seam layout's
+            # the seam layout's
+            steps.insert(1 + len(periods), partial(margin_kernels, device))
             regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
                               for m in scene.skin})
-            steps += [partial(pyramid_kernels, r) for r in regions] + [seam_read_kernel]
+            steps += [partial(pyramid_kernels, device, r) for r in regions]
+            steps.append(partial(seam_read_kernel, device))
             stream = streams(opts.texture_size ** 2 * 16)
             # the finest level, the coarser ones (smaller: plain stores), the switch's
-            steps += [partial(pass_kernels, s) for s in dict.fromkeys((stream, False,
-                                                                       TUNE_STREAM))]
-            steps += [tuning_kernels, partial(texel_kernels, stream)]
+            steps += [partial(pass_kernels, device, s)
+                      for s in dict.fromkeys((stream, False, TUNE_STREAM))]
+            steps += [partial(tuning_kernels, device), partial(texel_kernels, device, stream)]
         return steps
 
     def skin_textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
@@ -212,7 +218,7 @@ class Renderer:
                            scene.meters_per_unit)
         maps = self._cached(log, "texture_maps", key, lambda: rasterize(
             mesh.mesh.points, tris, uv, uv_tris, opts.texture_size, scene.meters_per_unit,
-            mesh.region_weights))
+            mesh.region_weights, self.device))
         albedo_key = content_hash(key, mesh.albedo, scene.working_colorspace)
         period, per_pixel = self._interleaving(scene, mesh, uv, uv_tris, tris)
         irradiance_key = content_hash(
@@ -286,7 +292,7 @@ class Renderer:
             res = irradiance_texture(positions, normals, scene.lights, rays,
                                      opts.light_samples, boundary,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
-                                     coherent=True, period=period)
+                                     coherent=True, period=period, device=self.device)
             through = self._thin_parts(log, scene, tex, rays, positions, normals, texel,
                                        regions) if opts.transmission else None
             del regions
@@ -295,7 +301,8 @@ class Renderer:
                 res, refined = refine_penumbrae(
                     res, covered, positions, normals, interleave, scene.lights, rays,
                     opts.light_samples, boundary, opts.seed, dome_textures,
-                    opts.light_sequence, texel, coherent=True, period=period)
+                    opts.light_sequence, texel, coherent=True, period=period,
+                    device=self.device)
                 penumbra = {path: int(where.size) for path, where in refined.items()}
             if after_rays is not None:
                 after_rays()
@@ -311,7 +318,8 @@ class Renderer:
             coverage = maps.coverage  # made here, not there
             gutter = beside(lambda: prepare_dilation(coverage), "skinpipe-gutter")
             if filtered:  # the sums of the visibility as traced are not made at all
-                visibility = interleaved_visibility(res, maps, texel, period, normal)
+                visibility = interleaved_visibility(res, maps, texel, period, normal,
+                                                    self.device)
                 entering = res.entering_with(visibility)
             else:
                 entering = res.entering
@@ -322,8 +330,8 @@ class Renderer:
             # the per-light sums go before the planes and their push-pull (0.3 GB at
             # texture 4096)
             del interleave, res
-            filled, vis = _filled_planes(scene, maps, covered, texel, entering, visibility,
-                                         gutter)
+            filled, vis = _filled_planes(self.device, scene, maps, covered, texel, entering,
+                                         visibility, gutter)
             # the cache keeps what later tasks read, not the per-light arrays (~100 MB);
             # the irradiance itself is the filled one on the charts (SkinTextures)
             return filled[..., :3], vis, notes
@@ -484,10 +492,11 @@ class Renderer:
         key = content_hash(tex.keys["maps"], geometry_key, mesh_index)
 
         def layout(maps: TextureMaps, store: TileStore | None) -> DiffusionLayout:
-            return DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                                   maps.region_weights,
-                                   chart_layout(maps, tex.mesh.mesh.points, tex.tris, tex.uv,
-                                                tex.uv_tris, rays, mesh_index),
+            return DiffusionLayout(self.device, maps.mm_per_texel_u, maps.mm_per_texel_v,
+                                   maps.coverage, maps.region_weights,
+                                   chart_layout(self.device, maps, tex.mesh.mesh.points,
+                                                tex.tris, tex.uv, tex.uv_tris, rays,
+                                                mesh_index),
                                    store, maps.texel_regions,
                                    maps.triangle_stretch() if maps.tri_mm is not None
                                    else None)
@@ -501,7 +510,7 @@ class Renderer:
                 if release is not None:
                     release.arrive("layout")
                 store = None if opts.layout_cache is None else \
-                    TileStore(Path(opts.layout_cache), key)
+                    TileStore(Path(opts.layout_cache), key, self.device)
                 prepared = self._cached(log, "diffusion_layout", key,
                                         partial(layout, maps, store), report=False)
                 del maps
@@ -545,7 +554,7 @@ class Renderer:
             assert pre is not None
             if tex.at_hits is not None:  # the shading's lookups are taken
                 self._release_irradiance(tex)
-            times_albedo_weight(pre, albedo, tex.albedo_image, a)
+            times_albedo_weight(pre, albedo, tex.albedo_image, a, self.device)
             if albedo is not None and tex.at_hits is not None and 1.0 - a in EXACT_POWERS:
                 # the weight after the blur comes from the albedo's own image: the map
                 # goes before the diffusion's peak (201 MB at texture 4096)
@@ -567,7 +576,7 @@ class Renderer:
                 else:
                     out, stats = diffuse_gather(pre, maps.mm_per_texel_u, maps.mm_per_texel_v,
                                                 cov, terms.variances_mm2, terms.weights,
-                                                maps.region_weights)
+                                                maps.region_weights, self.device)
                 del pre  # texture-sized arrays go as soon as they are used (peak memory)
                 skipped, passes = stats.skipped, stats.passes
                 work = {"pyramid_levels": stats.levels,
@@ -577,9 +586,10 @@ class Renderer:
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
             flux_out = surface_flux(out, maps)
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            times_albedo_weight(out, albedo, tex.albedo_image, 1.0 - a)  # out: its own
+            times_albedo_weight(out, albedo, tex.albedo_image, 1.0 - a, self.device)
             out *= np.float32(1.0 / math.pi)
-            radiance = dilate_charts(push_pull(out, cov, in_place=True), cov)
+            radiance = dilate_charts(push_pull(out, cov, in_place=True, device=self.device),
+                                     cov)
             return radiance, skipped, passes, energy, work
 
         radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)
@@ -664,7 +674,7 @@ class Renderer:
         if scene.camera is None:
             raise InputError("the stage has no UsdGeomCamera (add one, or pass --camera)")
         if not self._prewarmed:  # later frames find every kernel built
-            start_prewarm(self._kernel_plan(scene))
+            start_prewarm(self.device, self._kernel_plan(scene))
             self._prewarmed = True
         rays = self._cached(log, "bvh", scene_geometry_key(scene), lambda: RayScene(
             [(m.mesh.points, triangulate(m.mesh)) for m in scene.meshes]))
@@ -969,7 +979,8 @@ def _period_notes(opts: RenderOptions, period: int) -> list[str]:
     return []
 
 
-def _filled_planes(scene: SceneData, maps: Any, covered: NDArray[Any], texel: NDArray[Any],
+def _filled_planes(device: Device, scene: SceneData, maps: Any, covered: NDArray[Any],
+                   texel: NDArray[Any],
                    entering: NDArray[Any], visibility: dict[str, NDArray[Any]],
                    gutter: Any) -> tuple[NDArray[np.float32], dict[str, NDArray[Any]]]:
     """The irradiance and the visibility the specular lobe looks up, from the covered
@@ -988,7 +999,7 @@ def _filled_planes(scene: SceneData, maps: Any, covered: NDArray[Any], texel: ND
             flat[at, 3 + i] = column[rows]
 
     in_bands(scatter, texel.size)
-    pulled = push_pull(planes, maps.coverage, in_place=True)
+    pulled = push_pull(planes, maps.coverage, in_place=True, device=device)
     gutter.result()
     filled = dilate_charts(pulled, maps.coverage)
     return filled, {path: filled[..., 3 + i] for i, path in enumerate(spec)}

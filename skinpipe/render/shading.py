@@ -18,6 +18,7 @@ from ..imageio import (
 from ..profile.medium import MediumEstimate
 from ..usd.openpbr import region_medium
 from .bands import in_bands
+from .device.choice import Device
 from .light.raytrace import RayScene
 from .scene import SceneMesh
 from .surface.resample import (
@@ -198,7 +199,8 @@ def times_albedo_power(rgb: NDArray[np.float32], albedo: NDArray[np.float32], po
 
 
 def times_albedo_weight(rgb: NDArray[np.float32], albedo: NDArray[np.float32] | None,
-                        image: NDArray[np.float32] | None, power: float) -> None:
+                        image: NDArray[np.float32] | None, power: float,
+                        device: Device | None = None) -> None:
     """``rgb *= albedo ** power`` in place from the albedo map where one was made
     (:func:`times_albedo_power`), else from the albedo's own image on the device
     (:func:`~.resample.times_resampled_power`: the same floats for the powers of
@@ -207,7 +209,7 @@ def times_albedo_weight(rgb: NDArray[np.float32], albedo: NDArray[np.float32] | 
         times_albedo_power(rgb, albedo, power)
     else:
         assert image is not None
-        times_resampled_power(rgb, image, power)
+        times_resampled_power(rgb, image, power, device)
 
 
 def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -> float:

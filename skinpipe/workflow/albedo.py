@@ -23,6 +23,7 @@ from pxr import Sdf, Usd, UsdShade
 
 from ..errors import InputError
 from ..imageio import write_texture
+from ..render.device.choice import Device
 from ..render.diffusion.push_pull import dilate_charts, push_pull
 from ..render.surface.texture_maps import TextureMaps, rasterize, texel_rows
 from ..render.surface.unwrap import triangulate
@@ -237,12 +238,13 @@ ALBEDO_NAME = "albedo.exr"
 
 
 def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
-                       progress: Any = None) -> Path:
+                       progress: Any = None, device: Device | None = None) -> Path:
     """Paint the sample albedo for the first skin mesh of ``asset`` (unwrapping it first
-    when it has no usable UVs) and bind it; returns the texture's path."""
+    when it has no usable UVs) and bind it; returns the texture's path. ``device``: the
+    OpenCL device its maps are made on (None: the environment's)."""
     stage, scene, mesh, uv, uv_tris, _ = ensure_skin_uvs(asset, progress)
     maps = rasterize(mesh.mesh.points, triangulate(mesh.mesh), uv, uv_tris, size,
-                     scene.meters_per_unit, mesh.region_weights)
+                     scene.meters_per_unit, mesh.region_weights, device)
     if progress:
         progress(f"paint albedo {size}x{size}")
     albedo = paint_skin_albedo(maps, mesh.region_names, scene.meters_per_unit, seed)
@@ -255,7 +257,7 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
                                                       scene.meters_per_unit)
         painted = SubsurfaceMaps(str(folder / SUBSURFACE_COLOUR_NAME),
                                  str(folder / SUBSURFACE_SCALE_NAME), radius)
-    image = _as_image(albedo, maps)
+    image = _as_image(albedo, maps, device)
     # OpenImageIO makes the MIP-mapped textures without the GIL while MaterialX builds and
     # validates the material document (0.34 and 0.3 s at 1024); nothing is saved until
     # the textures are written
@@ -263,8 +265,10 @@ def bake_sample_albedo(asset: Path, size: int = 2048, seed: int = 7,
         def write_all() -> None:
             write_texture(texture, image, WORKING_COLORSPACE)
             if painted is not None:
-                write_texture(painted.colour, _as_image(colour, maps), WORKING_COLORSPACE)
-                write_texture(painted.radius_scale, _as_image(scale, maps), DATA_COLORSPACE)
+                write_texture(painted.colour, _as_image(colour, maps, device),
+                              WORKING_COLORSPACE)
+                write_texture(painted.radius_scale, _as_image(scale, maps, device),
+                              DATA_COLORSPACE)
 
         written = pool.submit(write_all)
         author_albedo_texture(stage, mesh.path, texture, before_save=written.result,
@@ -318,9 +322,10 @@ def paint_subsurface_maps(maps: TextureMaps, albedo: NDArray[np.float32],
     return colour.reshape(shape), scale.reshape(shape), radius
 
 
-def _as_image(texels: NDArray[np.float32], maps: TextureMaps) -> NDArray[np.float32]:
+def _as_image(texels: NDArray[np.float32], maps: TextureMaps, device: Device | None
+              ) -> NDArray[np.float32]:
     """A texture-space map as the texture is written: charts pushed and dilated beyond
     their borders (MIP levels and filtering read there), row 0 at v = 1. ``texels`` is
     filled in place (its covered texels keep their values)."""
-    return dilate_charts(push_pull(texels, maps.coverage, in_place=True),
+    return dilate_charts(push_pull(texels, maps.coverage, in_place=True, device=device),
                          maps.coverage)[::-1]

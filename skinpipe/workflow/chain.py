@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from ..imageio import oiio_error, write_ldr
 from ..profile.fit import FitOptions, check_terms, fit_sum_of_gaussians
 from ..profile.io import read_fit_inputs, read_profile_csv, write_fit_json
 from ..profile.types import FitResult, MeasuredProfile
-from ..render.device.choice import set_device
+from ..render.device.choice import open_device
 from ..render.device.programs import start_prewarm
 from ..render.diffusion.push_pull import push_pull_kernels
 from ..render.options import RenderOptions
@@ -200,14 +201,15 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
     start = time.perf_counter()
     result = ChainResult({"stages": {}, "regions": {}})
     report = result.report
-    if options.device:
-        # the device asked for from the first OpenCL work on (the painter's, its
-        # prewarm's): the loader lists its runtimes once, at that first query
-        set_device(options.device)
+    device = None
     if paint:
-        # the painter's kernels are built (on PoCL, compiled) and MaterialX's libraries
-        # loaded while the captures are ingested: 0.4-0.5 s of a 1 s paint stage otherwise
-        start_prewarm([texture_kernels, push_pull_kernels, mtlx_library])
+        # the device asked for is the first OpenCL work's (the loader lists its runtimes
+        # once, at that first query); the painter's kernels are built (on PoCL, compiled)
+        # and MaterialX's libraries loaded while the captures are ingested: 0.4-0.5 s of
+        # a 1 s paint stage otherwise
+        device = open_device(options.device)
+        start_prewarm(device, [partial(texture_kernels, device),
+                               partial(push_pull_kernels, device), mtlx_library])
     scan = None
     if prepare:
         scan = loaded_mesh = loaded_mesh if loaded_mesh is not None else load_mesh(mesh)
@@ -255,7 +257,8 @@ def run_chain(captures: Path, mesh: Path, landmarks: Path, out: Path, k: int,
         uvs = ensure_skin_uvs(paths.asset, progress)
         report["stages"]["unwrap"] = {"seconds": time.perf_counter() - t0, "uvs": uvs.note}
         t0 = time.perf_counter()
-        texture = bake_sample_albedo(paths.asset, options.texture_size, progress=progress)
+        texture = bake_sample_albedo(paths.asset, options.texture_size, progress=progress,
+                                     device=device)
         report["stages"]["paint_albedo"] = {"seconds": time.perf_counter() - t0,
                                             "texture": str(texture)}
     t0 = time.perf_counter()

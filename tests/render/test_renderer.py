@@ -7,6 +7,7 @@ import json
 import math
 import struct
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from skinpipe.cli import main
 from skinpipe.errors import InputError
 from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render.device import programs
 from skinpipe.render.diffusion.diffuse import diffuse
 from skinpipe.render.diffusion.layout import DiffusionLayout
 from skinpipe.render.diffusion.terms import diffusion_terms, kept_diffusion_terms
@@ -33,6 +35,7 @@ from skinpipe.render.surface.unwrap import triangulate, unwrap
 from skinpipe.usd.io import open_stage_guarded
 from skinpipe.usd.mesh import MeshData
 
+from ..conftest import OPENCL_DEVICES
 from ..png_chunks import png_chunks
 from ..render_scenes import (
     deon_fit,
@@ -358,6 +361,32 @@ def test_render_of_a_lit_patch_is_albedo_times_irradiance(lit_patch: Path) -> No
                                rtol=2e-3)
     assert images["specular"][24, 24].max() > 0  # the sun reflects straight up
     assert "unwrap" not in log.seconds  # the patch has usable st
+
+
+@pytest.mark.skipif(len(OPENCL_DEVICES) < 2, reason="one OpenCL runtime here")
+def test_each_renderer_runs_on_its_own_device(lit_patch: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two renderers in one process asking for two devices: each one's kernels run on
+    its own (the device is handed down, not a process-wide choice that the last one
+    made wins), and the images agree within the runtimes' rounding."""
+    first, second = (c.runtime for c in OPENCL_DEVICES[:2])
+    renderers = [Renderer(open_stage_guarded(lit_patch), replace(SMALL, device=spec))
+                 for spec in (first, second)]
+    call = programs.Kernel.__call__
+    seen: list[str] = []
+
+    def recorded(self: Any, queue: Any, *args: Any, **kwargs: Any) -> Any:
+        seen.append(queue.device.platform.name)
+        return call(self, queue, *args, **kwargs)
+
+    monkeypatch.setattr(programs.Kernel, "__call__", recorded)
+    images = []
+    for renderer in renderers:
+        seen.clear()
+        images.append(renderer.render()[0]["beauty"])
+        renderer.close()
+        assert seen and set(seen) == {renderer.device.cl_device.platform.name}, set(seen)
+    np.testing.assert_allclose(images[0], images[1], atol=1e-3)
 
 
 def test_camera_change_reuses_texture_space_work(lit_patch: Path) -> None:

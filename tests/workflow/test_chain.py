@@ -56,11 +56,11 @@ def test_the_chain_asks_for_its_device_before_its_first_opencl_work(
     class Stop(Exception):
         pass
 
-    def prewarm(steps: object) -> None:
+    def prewarm(device: object, steps: object) -> None:
         calls.append("prewarm")
         raise Stop
 
-    monkeypatch.setattr(chain, "set_device", lambda spec: calls.append(f"device {spec}"))
+    monkeypatch.setattr(chain, "open_device", lambda spec: calls.append(f"device {spec}"))
     monkeypatch.setattr(chain, "start_prewarm", prewarm)
     with pytest.raises(Stop):
         chain.run_chain(tmp_path / "captures", tmp_path / "mesh.ply", tmp_path / "lm.json",

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
@@ -33,20 +33,6 @@ MIN_LOCAL_MEM_BYTES = 32 << 10
 rows (64 B a texel of a row) go to a global buffer where they do not fit (NVIDIA's GPUs
 offer OpenCL 48 KiB, 768 texels)."""
 PROBE_ITEMS = 256
-_T = TypeVar("_T", bound=Callable[..., Any])
-_DEVICE_CACHES: list[Any] = []
-
-
-def device_cache(maxsize: int = 1) -> Callable[[_T], _T]:
-    """``lru_cache`` for what belongs to the chosen device (contexts, programs, buffers,
-    tuned switches): cleared together when another device is chosen."""
-    def wrap(fn: _T) -> _T:
-        cached = lru_cache(maxsize=maxsize)(fn)
-        _DEVICE_CACHES.append(cached)
-        return cached  # type: ignore[return-value]
-    return wrap
-
-
 @dataclass(frozen=True)
 class Candidate:
     """One OpenCL device as the ICD loader lists it."""
@@ -273,50 +259,80 @@ def program_cache_dir() -> Path:
     return tree.open()
 
 
-_preference: str | None = None
-
-
 def device_spec() -> str:
-    """The device asked for: :func:`set_device` if called, else ``$SKINPIPE_OPENCL_DEVICE``,
-    else ``auto``."""
-    return (_preference or os.environ.get(DEVICE_ENV) or "auto").strip() or "auto"
+    """The device asked for by the environment: ``$SKINPIPE_OPENCL_DEVICE``, else
+    ``auto``."""
+    return (os.environ.get(DEVICE_ENV) or "auto").strip() or "auto"
 
 
-def set_device(spec: str | None) -> None:
-    """Ask for another device (None: back to the environment / auto). Every
-    device-bound cache (:func:`device_cache`) is cleared when the choice changes, so
-    buffers and programs of the old device are never mixed with the new one."""
-    global _preference
-    before = device_spec()
-    _preference = spec
-    if device_spec() != before:
-        for cached in _DEVICE_CACHES:
-            cached.cache_clear()
+class Device:
+    """The OpenCL device a render runs on: the probe's choice, a context and an in-order
+    queue on it, and the programs built for it. Made by :func:`open_device` and passed
+    down to every step that launches a kernel or makes a buffer; what is built or kept
+    for a device (kernels, coefficient buffers, a tuned blur switch) is cached by the
+    device object, so two devices in one process never share one."""
+
+    __slots__ = ("choice", "context", "programs", "queue")
+
+    def __init__(self, choice: DeviceChoice) -> None:
+        self.choice = choice
+        self.context = cl.Context([choice.device])
+        self.queue = cl.CommandQueue(self.context)
+        self.programs: dict[tuple[str, tuple[str, ...]], Any] = {}
+        """Programs by (source, options), built or being built (see
+        :func:`~.programs.build`)."""
+
+    @property
+    def cl_device(self) -> Any:
+        """The pyopencl device."""
+        return self.choice.device
+
+    @property
+    def runtime(self) -> str:
+        return self.choice.candidate.runtime
+
+    @property
+    def on_host_memory(self) -> bool:
+        """Whether the device runs on this machine's memory (a CPU device)."""
+        return self.choice.candidate.kind == "cpu"
+
+    @property
+    def nontemporal_stores(self) -> bool:
+        return self.choice.nontemporal_stores
+
+    @property
+    def has_doubles(self) -> bool:
+        return "cl_khr_fp64" in self.choice.device.extensions
+
+    @property
+    def jit_at_first_launch(self) -> bool:
+        """Whether the device compiles kernels at their first launch (PoCL) rather than
+        when their program is built (Intel's runtime, GPU drivers)."""
+        return self.runtime.startswith("pocl")
+
+    def __repr__(self) -> str:
+        return f"Device({self.choice.candidate.label!r}, spec={self.choice.spec!r})"
 
 
-_CHOICE_LOCK = threading.RLock()
-"""One thread probes and makes the context; the others wait for it (a :class:`Prewarm`
-starts while the render builds its BVH)."""
+def or_default(device: Device | None) -> Device:
+    """``device``, or where None the environment's (:func:`open_device` of
+    :func:`device_spec`): for scripts and tests calling one step; a render passes its
+    own."""
+    return open_device() if device is None else device
 
 
-@device_cache()
-def _device_choice() -> DeviceChoice:
-    return choose_device(device_spec())
+_OPEN_LOCK = threading.Lock()
+_OPENED: dict[str, Device] = {}
 
 
-def device_choice() -> DeviceChoice:
-    """The device of this process (probed once)."""
-    with _CHOICE_LOCK:
-        return _device_choice()
-
-
-@device_cache()
-def _cl_context() -> tuple[Any, Any]:
-    ctx = cl.Context([device_choice().device])
-    return ctx, cl.CommandQueue(ctx)
-
-
-def cl_context() -> tuple[Any, Any]:
-    """(context, in-order queue) on the chosen device, made once per device."""
-    with _CHOICE_LOCK:
-        return _cl_context()
+def open_device(spec: str | None = None) -> Device:
+    """The device for ``spec`` (None or empty: :func:`device_spec`), probed at the first request
+    for that spec in this process and then the same object: its programs and kernels
+    stay built for the next render. An :class:`InputError` naming every device tried
+    when none passes."""
+    key = (spec or device_spec()).strip().lower() or "auto"
+    with _OPEN_LOCK:
+        device = _OPENED.get(key)
+        if device is None:
+            device = _OPENED[key] = Device(choose_device(key))
+        return device

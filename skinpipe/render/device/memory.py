@@ -14,7 +14,7 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from .choice import cl_context, device_cache, device_choice
+from .choice import Device
 from .huge_pages import huge_pages_choice
 
 STREAM_MIN_BYTES = 16 << 20
@@ -63,12 +63,7 @@ def in_bands(queue: Any, bands: RowBands | None, units: int, rows_per_unit: int,
         bands.done(first * rows_per_unit, stop * rows_per_unit)
 
 
-@device_cache()
-def _host_memory_device() -> bool:
-    """Whether the device runs on this machine's memory (a CPU device)."""
-    return device_choice().candidate.kind == "cpu"
-
-def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
+def device_buffer(device: Device, size_or_contents: int | NDArray[Any]) -> Any:
     """A read-write device buffer: of that many bytes, or holding that array.
 
     On a CPU device under Linux, one of :data:`HUGE_PAGE_MIN_BYTES` or more is anonymous
@@ -84,13 +79,13 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
     buffer; callers finish their queue before they drop a buffer, as every caller here
     does, since the memory goes with the buffer's last reference.
     """
-    ctx, _ = cl_context()
+    ctx = device.context
     flags = cl.mem_flags.READ_WRITE
     data = None if isinstance(size_or_contents, int) else \
         np.ascontiguousarray(size_or_contents).reshape(-1).view(np.uint8)
     size = size_or_contents if data is None else data.size
     if size < HUGE_PAGE_MIN_BYTES or not hasattr(mmap, "MADV_HUGEPAGE") \
-            or not _host_memory_device():
+            or not device.on_host_memory:
         if data is None:
             return cl.Buffer(ctx, flags, size)
         return cl.Buffer(ctx, flags | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
@@ -105,33 +100,32 @@ def device_buffer(size_or_contents: int | NDArray[Any]) -> Any:
     return cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=view)
 
 
-def _over_host(array: NDArray[Any], access: Any) -> Any:
+def _over_host(device: Device, array: NDArray[Any], access: Any) -> Any:
     """A buffer over ``array``'s memory on a CPU device (``USE_HOST_PTR``), else a copy of
     it; an empty array gets a one-element buffer (OpenCL has no empty buffers)."""
-    ctx, _ = cl_context()
     data = array if array.size else np.zeros(1, array.dtype)
-    how = cl.mem_flags.USE_HOST_PTR if _host_memory_device() else cl.mem_flags.COPY_HOST_PTR
-    return cl.Buffer(ctx, access | how, hostbuf=data)
+    how = cl.mem_flags.USE_HOST_PTR if device.on_host_memory else cl.mem_flags.COPY_HOST_PTR
+    return cl.Buffer(device.context, access | how, hostbuf=data)
 
 
-def host_buffer(array: NDArray[Any]) -> Any:
+def host_buffer(device: Device, array: NDArray[Any]) -> Any:
     """A read-only device buffer over ``array`` (made C-contiguous): on a CPU device the
     array's own memory (no second copy of, say, 100 MB of region weights; pyopencl
     keeps the array alive as long as the buffer, and nothing may write to it
     meanwhile), elsewhere a copy."""
-    return _over_host(np.ascontiguousarray(array), cl.mem_flags.READ_ONLY)
+    return _over_host(device, np.ascontiguousarray(array), cl.mem_flags.READ_ONLY)
 
 
-def host_output(array: NDArray[Any]) -> Any:
+def host_output(device: Device, array: NDArray[Any]) -> Any:
     """A device buffer holding ``array``'s values that kernels write the array's new
     contents into: on a CPU device the array's own memory (no copy either way;
     :func:`read_output` makes the array current), elsewhere a copy."""
     if not array.flags.c_contiguous:
         raise InputError("host_output: the array must be C-contiguous")
-    return _over_host(array, cl.mem_flags.READ_WRITE)
+    return _over_host(device, array, cl.mem_flags.READ_WRITE)
 
 
-def run_on_host_arrays(kernel: Any, queue: Any, global_size: tuple[int, ...],
+def run_on_host_arrays(kernel: Any, device: Device, global_size: tuple[int, ...],
                        args: Sequence[Any], outputs: Sequence[NDArray[Any]]) -> None:
     """Launch ``kernel`` over ``global_size`` with ``args`` and then ``outputs`` as its
     arguments, and wait for it. Each numpy array among ``args`` is read through
@@ -139,21 +133,22 @@ def run_on_host_arrays(kernel: Any, queue: Any, global_size: tuple[int, ...],
     through :func:`host_output`, current on return. The buffers are held until the
     kernel is done: a buffer over a host array lets the array go with it, while the
     kernel may still read it."""
-    held = [host_buffer(a) if isinstance(a, np.ndarray) else a for a in args]
-    written = [host_output(a) for a in outputs]
-    kernel(queue, global_size, None, *held, *written)
+    held = [host_buffer(device, a) if isinstance(a, np.ndarray) else a for a in args]
+    written = [host_output(device, a) for a in outputs]
+    kernel(device.queue, global_size, None, *held, *written)
     for buffer, array in zip(written, outputs, strict=True):
-        read_output(queue, buffer, array)
+        read_output(device, buffer, array)
 
 
-def read_output(queue: Any, buffer: Any, array: NDArray[Any]) -> None:
+def read_output(device: Device, buffer: Any, array: NDArray[Any]) -> None:
     """Bring ``array`` up to date with the :func:`host_output` buffer over it: a map and
     unmap of the memory in place on a CPU device, a copy elsewhere (waits for the queue).
     An empty array has nothing to bring (OpenCL refuses to map zero bytes)."""
+    queue = device.queue
     if array.size == 0:
         queue.finish()
         return
-    if _host_memory_device():
+    if device.on_host_memory:
         mapped, _ = cl.enqueue_map_buffer(queue, buffer, cl.map_flags.READ, 0, array.shape,
                                           array.dtype)
         mapped.base.release(queue)
@@ -167,11 +162,12 @@ class DeviceTexture:
     (``buf_b``) for the work between passes: what every blur class holds. Subclasses
     implement ``blur_in_place`` (sigmas in texels), leaving the result in ``buf_a``."""
 
-    def __init__(self, height: int, width: int) -> None:
-        self.ctx, self.queue = cl_context()
+    def __init__(self, device: Device, height: int, width: int) -> None:
+        self.device = device
+        self.ctx, self.queue = device.context, device.queue
         self.height, self.width = height, width
-        self.buf_a = device_buffer(height * width * 16)
-        self.buf_b = device_buffer(height * width * 16)
+        self.buf_a = device_buffer(device, height * width * 16)
+        self.buf_b = device_buffer(device, height * width * 16)
 
     def upload(self, image: NDArray[Any]) -> None:
         rgba = np.ascontiguousarray(image, dtype=np.float32)

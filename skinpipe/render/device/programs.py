@@ -17,12 +17,7 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 
-from .choice import (
-    cl_context,
-    device_cache,
-    device_choice,
-    program_cache_dir,
-)
+from .choice import Device, program_cache_dir
 from .sources import cl_source
 
 STORE_MACRO = cl_source(__package__, "streaming_store.cl")
@@ -64,51 +59,44 @@ LEDGER = KernelLedger()
 _BUILD_LOCK = threading.Lock()
 
 
-@device_cache()
-def _programs() -> dict[tuple[str, tuple[str, ...]], Future[Any]]:
-    """Programs of this process by (source, options), built or being built: a program
-    that :func:`prewarm` is building is waited for, not built twice."""
-    return {}
-
-
-def build(source: str, options: list[str] | None = None) -> Any:
-    """A program for the shared context, built once per process (callers may call
-    again), from the disk cache when it was built before; ``NT_STORE`` says whether
-    streaming stores work. Safe to call from several threads."""
+def build(device: Device, source: str, options: list[str] | None = None) -> Any:
+    """A program for ``device``, built once per device (callers may call again; one
+    that a :class:`Prewarm` is building is waited for, not built twice), from the disk
+    cache when it was built before; ``NT_STORE`` says whether streaming stores work.
+    Safe to call from several threads."""
     key = (source, tuple(options or ()))
     with _BUILD_LOCK:
-        pending = _programs().get(key)
+        pending = device.programs.get(key)
         if pending is None:
-            pending = _programs()[key] = Future()
+            pending = device.programs[key] = Future()
             mine = True
         else:
             mine = False
     if not mine:
         return pending.result()
     try:
-        program = _build_now(source, options)
+        program = _build_now(device, source, options)
     except BaseException as exc:
         with _BUILD_LOCK:
-            _programs().pop(key, None)  # a later call tries again and sees the error
+            device.programs.pop(key, None)  # a later call tries again and sees the error
         pending.set_exception(exc)
         raise
     pending.set_result(program)
     return program
 
 
-def _build_now(source: str, options: list[str] | None) -> Any:
-    ctx, _ = cl_context()
+def _build_now(device: Device, source: str, options: list[str] | None) -> Any:
     # argument info lets Kernel.warm fill a launch of any kernel. Denormals flushed to
     # zero: a recursive blur's tail decaying across a layout's empty margins runs
     # through subnormal floats, which x86 cores handle in microcode, many times slower
     # (the 2048^2 blur at the copy floor with them flushed: docs/benchmarks.md)
-    opts = [*(options or []), f"-DNT_STORE={int(device_choice().nontemporal_stores)}",
+    opts = [*(options or []), f"-DNT_STORE={int(device.nontemporal_stores)}",
             "-cl-kernel-arg-info", "-cl-denorms-are-zero"]
     start = time.perf_counter()
     with warnings.catch_warnings():
         # Intel's runtime writes a build log for every program, errors or not
         warnings.simplefilter("ignore", cl.CompilerWarning)
-        program = cl.Program(ctx, source).build(options=opts,
+        program = cl.Program(device.context, source).build(options=opts,
                                                 cache_dir=str(program_cache_dir()))
     with _BUILD_LOCK:
         LEDGER.builds += 1
@@ -157,7 +145,7 @@ class Kernel:
         self.name = name
         self.shape = shape
         self._limit = self._kernel.get_work_group_info(
-            cl.kernel_work_group_info.WORK_GROUP_SIZE, device_choice().device)
+            cl.kernel_work_group_info.WORK_GROUP_SIZE, program.devices[0])
 
     def __call__(self, queue: Any, global_size: tuple[int, ...],
                  local_size: tuple[int, ...] | None, *args: Any, **kwargs: Any) -> Any:
@@ -190,16 +178,6 @@ class Kernel:
         queue.finish()
 
 
-def jit_at_first_launch() -> bool:
-    """Whether the device compiles kernels at their first launch (PoCL) rather than when
-    their program is built (Intel's runtime, GPU drivers)."""
-    return _on_pocl()
-
-
-def _on_pocl() -> bool:
-    return device_choice().candidate.runtime.startswith("pocl")
-
-
 class Prewarm:
     """Programs built, and on PoCL kernels compiled, on a background thread ahead of
     their first use, while the render's host work (texture maps, Embree's rays, numpy)
@@ -209,8 +187,8 @@ class Prewarm:
     modules' own cached builders, so the render finds them there) or None. A step that
     fails is left for the render to meet again where its error is reported."""
 
-    def __init__(self, steps: Sequence[Callable[[], Any]]) -> None:
-        cl_context()  # the device is chosen before the thread starts
+    def __init__(self, device: Device, steps: Sequence[Callable[[], Any]]) -> None:
+        self.device = device
         self.seconds = 0.0
         self.kernels = 0
         self._done = threading.Event()
@@ -222,9 +200,8 @@ class Prewarm:
     def _run(self, steps: list[Callable[[], Any]]) -> None:
         start = time.perf_counter()
         try:
-            ctx, _ = cl_context()
-            queue = cl.CommandQueue(ctx)
-            jit = jit_at_first_launch()
+            queue = cl.CommandQueue(self.device.context)
+            jit = self.device.jit_at_first_launch
             for step in steps:
                 if self._stop.is_set():
                     break
@@ -259,10 +236,11 @@ class Prewarm:
 _ACTIVE: list[Prewarm] = []
 
 
-def start_prewarm(steps: Sequence[Callable[[], Any]]) -> Prewarm:
-    """A :class:`Prewarm` of ``steps``, which :func:`wait_for_prewarm` waits for."""
+def start_prewarm(device: Device, steps: Sequence[Callable[[], Any]]) -> Prewarm:
+    """A :class:`Prewarm` of ``steps`` on ``device``, which :func:`wait_for_prewarm`
+    waits for."""
     _ACTIVE[:] = [pre for pre in _ACTIVE if not pre._done.is_set()]
-    _ACTIVE.append(Prewarm(steps))
+    _ACTIVE.append(Prewarm(device, steps))
     return _ACTIVE[-1]
 
 

@@ -19,6 +19,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ import pyopencl as cl
 from ... import __version__
 from ...errors import InputError
 from ..cache import entry_name, kind_folder, read_json_entry, reject, write_json_entry
-from ..device.choice import cl_context, device_cache, device_choice
+from ..device.choice import Device
 from ..device.memory import device_buffer, streams
 from ..device.programs import wait_for_prewarm
 from .direct_blur import (
@@ -105,18 +106,18 @@ def _sigma_for_radius(radius: int) -> float:
     return lo
 
 
-def measure_direct_limits(size: int = TUNE_SIZE, one_sigma: bool = True,
+def measure_direct_limits(device: Device, size: int = TUNE_SIZE, one_sigma: bool = True,
                           per_texel: bool = True) -> DirectLimits:
     """Time the direct and recursive blurs on this device and return where they meet,
     for one-sigma and/or per-texel blurs (a kind not asked for: None, and none of its
     kernels built)."""
     wait_for_prewarm()  # compilations on the other core would slow what is timed
     start = time.perf_counter()
-    ctx, queue = cl_context()
+    ctx, queue = device.context, device.queue
     rng = np.random.default_rng(0)
-    src = device_buffer(rng.random((size, size, 4), dtype=np.float32))
-    tmp, dst = device_buffer(size * size * 16), device_buffer(size * size * 16)
-    iir, direct = iir_kernels(), direct_kernels()
+    src = device_buffer(device, rng.random((size, size, 4), dtype=np.float32))
+    tmp, dst = device_buffer(device, size * size * 16), device_buffer(device, size * size * 16)
+    iir, direct = iir_kernels(device), direct_kernels(device)
     runs: list[Callable[[], None]] = []
     if one_sigma:
         co = iir.coefficients(4.0)
@@ -150,27 +151,28 @@ TUNE_STREAM = streams(TUNE_SIZE * TUNE_SIZE * 16)
 """Whether the measured blurs write with streaming stores."""
 
 
-def tuning_kernels() -> list[Any]:
+def tuning_kernels(device: Device) -> list[Any]:
     """The per-texel direct kernels :func:`measure_direct_limits` times (for
     :class:`~.opencl.Prewarm`; its recursive one is
     ``recursive_blur.pass_kernels(TUNE_STREAM)``). The one-sigma switch is measured
     only by a render that runs one-sigma blurs: the demo runs none."""
-    if known_limit(per_texel=True) is not None:
+    if known_limit(device, per_texel=True) is not None:
         return []  # measured before: nothing will be timed
-    direct = direct_kernels()
+    direct = direct_kernels(device)
     return [direct.kernel(r, r, TUNE_STREAM, True) for r in TEXEL_RADII]
 
 
-def _cache_key() -> list[Any]:
+def _cache_key(device: Device) -> list[Any]:
     """What the measured switch depends on: the device, its driver, skinpipe's version."""
-    d = device_choice().device
-    return ["blur-switch", device_choice().candidate.label, d.driver_version, d.version,
+    d = device.cl_device
+    return ["blur-switch", device.choice.candidate.label, d.driver_version, d.version,
             d.max_compute_units, __version__, TUNE_SIZE]
 
 
-def _cache_path() -> Path | None:
+def _cache_path(device: Device) -> Path | None:
     folder = kind_folder("opencl")
-    return None if folder is None else folder / f"{entry_name('blur-switch', _cache_key())}.json"
+    return None if folder is None else \
+        folder / f"{entry_name('blur-switch', _cache_key(device))}.json"
 
 
 SWITCH_ENV = "SKINPIPE_BLUR_SWITCH"
@@ -196,11 +198,11 @@ _KINDS = {False: "max_radius", True: "max_radius_per_texel"}
 _BOUNDS = {"max_radius": FIR_MAX_RADIUS_TUNED, "max_radius_per_texel": FIR_MAX_RADIUS_PER_TEXEL}
 
 
-def _read_cache() -> dict[str, int]:
+def _read_cache(device: Device) -> dict[str, int]:
     """The switch measured before on this device, each kind checked against the radii
     the kernels are built for (a record out of range is removed, and measured again)."""
-    path = _cache_path()
-    saved = None if path is None else read_json_entry(path, _cache_key())
+    path = _cache_path(device)
+    saved = None if path is None else read_json_entry(path, _cache_key(device))
     if saved is None:
         return {}
     for kind, value in saved.items():
@@ -211,36 +213,37 @@ def _read_cache() -> dict[str, int]:
     return saved
 
 
-def known_limit(per_texel: bool) -> int | None:
+def known_limit(device: Device, per_texel: bool) -> int | None:
     """The switch of one kind from :data:`SWITCH_ENV` or the disk cache; None if it must
     be measured."""
     if os.environ.get(SWITCH_ENV):
         return getattr(fixed_limits(os.environ[SWITCH_ENV]), _KINDS[per_texel])
-    return _read_cache().get(_KINDS[per_texel])
+    return _read_cache(device).get(_KINDS[per_texel])
 
 
-@device_cache(maxsize=2)
-def direct_limit(per_texel: bool) -> tuple[int, str, float]:
+@lru_cache(maxsize=8)
+def direct_limit(device: Device, per_texel: bool) -> tuple[int, str, float]:
     """(widest direct radius, source, seconds measuring) for one-sigma or per-texel
     blurs on the chosen device: :data:`SWITCH_ENV` if set, else from the disk cache,
     else measured now (that kind only, about 0.2 s) and stored beside the other."""
-    known = known_limit(per_texel)
+    known = known_limit(device, per_texel)
     if known is not None:
         return known, "fixed" if os.environ.get(SWITCH_ENV) else "cache", 0.0
-    measured = measure_direct_limits(one_sigma=not per_texel, per_texel=per_texel)
+    measured = measure_direct_limits(device, one_sigma=not per_texel, per_texel=per_texel)
     value = getattr(measured, _KINDS[per_texel])
     assert value is not None
-    path = _cache_path()
+    path = _cache_path(device)
     if path is not None:
         with contextlib.suppress(OSError):  # unkept, it costs a measurement a process
-            write_json_entry(path, _cache_key(), {**_read_cache(), _KINDS[per_texel]: value})
+            write_json_entry(path, _cache_key(device),
+                             {**_read_cache(device), _KINDS[per_texel]: value})
     return value, "measured", measured.seconds
 
 
-def direct_limits() -> DirectLimits | None:
-    """The switch this process used, for ``render.json`` (a kind no blur asked for:
-    None; None if no blur asked at all)."""
-    asked = {k: direct_limit(k) for k in (False, True) if k in _asked_kinds()}
+def direct_limits(device: Device) -> DirectLimits | None:
+    """The switch this process used on ``device``, for ``render.json`` (a kind no blur
+    asked for: None; None if no blur asked at all)."""
+    asked = {k: direct_limit(device, k) for k in (False, True) if k in _asked_kinds(device)}
     if not asked:
         return None
     sources = sorted({v[1] for v in asked.values()})
@@ -249,13 +252,13 @@ def direct_limits() -> DirectLimits | None:
                         sum(v[2] for v in asked.values()))
 
 
-@device_cache()
-def _asked_kinds() -> set[bool]:
+@lru_cache(maxsize=4)
+def _asked_kinds(device: Device) -> set[bool]:
     """The kinds a blur has asked :func:`prefers_direct` about on this device."""
     return set()
 
 
-def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False,
+def prefers_direct(device: Device, sigma_u: float, sigma_v: float, per_texel: bool = False,
                    limits: DirectLimits | None = None) -> bool:
     """Whether the direct blur is the faster one for these sigmas (texels; per texel: the
     widest) on this device: both radii within the switch (``limits``, else
@@ -264,6 +267,6 @@ def prefers_direct(sigma_u: float, sigma_v: float, per_texel: bool = False,
         limit = limits.max_radius_per_texel if per_texel else limits.max_radius
         assert limit is not None, "limits without this kind"
     else:
-        limit = direct_limit(per_texel)[0]
-        _asked_kinds().add(per_texel)
+        limit = direct_limit(device, per_texel)[0]
+        _asked_kinds(device).add(per_texel)
     return max(direct_radius(sigma_u), direct_radius(sigma_v)) <= limit

@@ -24,7 +24,7 @@ import hashlib
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -32,13 +32,12 @@ from numpy.typing import NDArray
 
 from ...errors import InputError
 from ..cache import kept, source_of
-from ..device.choice import device_cache
+from ..device.choice import Device
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
 from .margins import (
     SeamGeometry,
     _device_coverage,
-    _device_has_doubles,
     _margin_sources,
 )
 
@@ -93,7 +92,7 @@ COVERAGE_SAMPLES = 4
 """Sub-samples a texel along each axis where a chart's border may cross it."""
 
 
-def texel_coverage(chart: NDArray[np.int32], triangle: NDArray[np.int32],
+def texel_coverage(device: Device | None, chart: NDArray[np.int32], triangle: NDArray[np.int32],
                    tri_chart: NDArray[np.int32], uv_corners: NDArray[np.float64]
                    ) -> NDArray[np.float32]:
     """Per covered texel (H, W) the share of its square its own chart's triangles
@@ -102,9 +101,10 @@ def texel_coverage(chart: NDArray[np.int32], triangle: NDArray[np.int32],
     (``uv_corners``: texel coordinates). A rasteriser decides by the texel's centre, so
     a border texel stands for its whole square, part of which lies beyond a seam: what
     light falls there must come across the seam too (a pencil beside a seam lost 40% of
-    what crosses it otherwise)."""
-    if chart.size and COVERAGE_SAMPLES == 4 and _device_has_doubles():  # the kernel's 4 x 4
-        return _device_coverage(chart, triangle, tri_chart, uv_corners)
+    what crosses it otherwise). On ``device`` where it has doubles, else (or None) in
+    numpy: the same shares."""
+    if chart.size and COVERAGE_SAMPLES == 4 and device is not None and device.has_doubles:
+        return _device_coverage(device, chart, triangle, tri_chart, uv_corners)
     h, w = chart.shape
     cov = chart >= 0
     border = np.zeros_like(cov)
@@ -240,13 +240,13 @@ class TileLevel:
 _SEAM_READ_KERNEL = cl_source(__package__, "seam_reads.cl")
 
 
-@device_cache()
-def seam_read_kernel() -> Any:
+@lru_cache(maxsize=4)
+def seam_read_kernel(device: Device) -> Any:
     """:data:`_SEAM_READ_KERNEL`'s kernel (one caller at a time: the diffusion's fill);
     None on a device without doubles (the host reads across the seams there)."""
-    if not _device_has_doubles():
+    if not device.has_doubles:
         return None
-    return Kernel(build(_SEAM_READ_KERNEL), "read_seams", 1)
+    return Kernel(build(device, _SEAM_READ_KERNEL), "read_seams", 1)
 
 
 def _bilinear_taps(xy: NDArray[np.float32], shape: tuple[int, int]

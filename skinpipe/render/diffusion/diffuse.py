@@ -13,6 +13,7 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ...errors import InputError
+from ..device.choice import Device, or_default
 from ..device.memory import (
     host_buffer,
     host_output,
@@ -78,7 +79,7 @@ def _direct_sigmas(layout: DiffusionLayout, grid: LevelGrid, variance: float
     sigma_mm = _job_sigma_mm(layout, variance, grid.level)
     if grid.uniform:
         su, sv = (sg / t for sg, t in zip(sigma_mm, grid.typical, strict=True))
-        return [su, sv] if prefers_direct(su, sv) else None
+        return [su, sv] if prefers_direct(layout.device, su, sv) else None
     steps = grid.texel_steps()
     if steps is None:
         return None
@@ -86,8 +87,8 @@ def _direct_sigmas(layout: DiffusionLayout, grid: LevelGrid, variance: float
     # texel sets the radius
     sigmas = [sg / 2.0 ** (q / QUANT_STEPS_PER_OCTAVE)
               for sg, q in zip(sigma_mm, (steps.u, steps.v), strict=True)]
-    return sigmas if prefers_direct(float(sigmas[0][0]), float(sigmas[1][0]),
-                                    per_texel=True) else None
+    return sigmas if prefers_direct(layout.device, float(sigmas[0][0]),
+                                    float(sigmas[1][0]), per_texel=True) else None
 
 
 def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst: Any,
@@ -102,13 +103,13 @@ def _blur_job(layout: DiffusionLayout, grid: LevelGrid, src: Any, tmp: Any, dst:
     direct = _direct_sigmas(layout, grid, variance)
     if direct is not None:
         if grid.uniform:
-            direct_kernels().blur(src, dst, lh, lw, *direct)
+            direct_kernels(layout.device).blur(src, dst, lh, lw, *direct)
         else:
             steps = grid.texel_steps()
             assert steps is not None
-            direct_kernels().blur_per_texel(src, dst, lh, lw, fir_weight_table(direct[0]),
-                                            fir_weight_table(direct[1]), steps.index_u,
-                                            steps.index_v, grid.row_bands(*grid.texel_arrays()))
+            direct_kernels(layout.device).blur_per_texel(
+                src, dst, lh, lw, fir_weight_table(direct[0]), fir_weight_table(direct[1]),
+                steps.index_u, steps.index_v, grid.row_bands(*grid.texel_arrays()))
             note = (f"level {grid.level}: {steps.smaller} texel sizes below the "
                     f"{DIRECT_TEXEL_QUANTILE:g} quantile blurred as that size")
             if steps.smaller and note not in stats.skipped:
@@ -187,6 +188,7 @@ def diffuse(
     term_weights: NDArray[Any],
     region_weights: NDArray[Any] | None = None,
     charts: ChartLayout | None = None,
+    device: Device | None = None,
 ) -> tuple[NDArray[np.float32], BlurStats]:
     """Diffused irradiance sum_i w_i(texel) (G(v_i) * E) for RGB irradiance (H, W, 3).
 
@@ -196,12 +198,13 @@ def diffuse(
     (:data:`~.texture_maps.REGION_WEIGHT_DTYPE`) scaled to sum to 1 at each texel
     (:func:`unit_region_weights`). A texel's weights are the
     region-blended ones, so borders between regions blend smoothly. ``charts``: the UV
-    layout's charts and the surface across their seams (:class:`ChartLayout`). The
+    layout's charts and the surface across their seams (:class:`ChartLayout`).
+    ``device``: where it runs (None: :func:`~..device.choice.or_default`). The
     layout is made for this call; :class:`DiffusionLayout` and :func:`diffuse_prepared`
     keep it.
     """
-    layout = DiffusionLayout(mm_per_texel_u, mm_per_texel_v, coverage, region_weights,
-                             charts)
+    layout = DiffusionLayout(or_default(device), mm_per_texel_u, mm_per_texel_v, coverage,
+                             region_weights, charts)
     return diffuse_prepared(layout, irradiance, variances_mm2, term_weights)
 
 
@@ -237,15 +240,14 @@ def diffuse_prepared(
         if not layout.any_covered:
             stats.skipped.append("diffusion: no covered texel")
         return np.zeros((h, w, 3), np.float32), stats
-    iir = layout.iir
-    queue = iir.queue
+    iir, device = layout.iir, layout.device
 
     jobs, job_weights = _blur_jobs(layout, v, tw, used, stats)
     # each level's tile atlas, its margin as wide as its widest blur reaches, filled
     # with this irradiance (host memory, read in place on a CPU device)
     grids = {k: layout.grid(k, margin)
              for k, margin in sorted(layout.level_margins(v[used]).items())}
-    e_buf = host_buffer(e)
+    e_buf = host_buffer(device, e)
     stats.tile_texels = {k: g.shape[0] * g.shape[1] for k, g in grids.items()}
     nbytes = max((g.shape[0] * g.shape[1] * 16 for g in grids.values()), default=16)
     tmp = layout.buffer("tmp", nbytes)
@@ -270,11 +272,11 @@ def diffuse_prepared(
     into = _alone_into(layout, grids, jobs, batches)
     terms, terms_at = _term_buffer(layout, grids, jobs, batches, into, tmp, nbytes)
     out = np.empty((h, w, 3), np.float32)
-    out_buf = host_output(out)  # every batch adds its terms there
+    out_buf = host_output(device, out)  # every batch adds its terms there
     blurred_texels = _blur_and_add(layout, grids, jobs, batches, into, terms, terms_at,
                                    e_buf, tmp, source_buf, shift_at, tw_buf, shift_buf,
                                    out_buf, stats)
-    read_output(queue, out_buf, out)
+    read_output(device, out_buf, out)
     out_buf.release()  # the array is the host's alone before it is written here
     # a recursive blur rings a little below zero beside a hard edge (-1.4e-4 of the
     # lit level on the demo face); light is not negative
@@ -319,7 +321,7 @@ def _blur_and_add(layout: DiffusionLayout, grids: dict[int, Any], jobs: list[tup
     batch's terms into ``out_buf``; the texels blurred, for the stats."""
     h, w = layout.height, layout.width
     queue, ctx, mf = layout.iir.queue, layout.iir.ctx, cl.mem_flags
-    kernels = pyramid_kernels(layout.n_regions, layout.by_triangle)
+    kernels = pyramid_kernels(layout.device, layout.n_regions, layout.by_triangle)
     source, source_level = None, -1
     blurred_texels = 0.0
     for b, batch in enumerate(batches):

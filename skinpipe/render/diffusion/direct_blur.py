@@ -32,9 +32,9 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device
 from ..device.memory import DeviceTexture, RowBands, in_bands, streams
-from ..device.programs import STORE_MACRO, Kernel, build, jit_at_first_launch
+from ..device.programs import STORE_MACRO, Kernel, build
 from ..device.sources import cl_source
 
 FIR_MAX_ERROR = 6e-4
@@ -215,7 +215,7 @@ _HELPERS = cl_source(__package__, "direct_blur_helpers.cl")
 _KERNEL = cl_source(__package__, "direct_blur.cl")
 
 
-def texel_radii_per_program(radius: int) -> tuple[int, ...]:
+def texel_radii_per_program(device: Device, radius: int) -> tuple[int, ...]:
     """The per-texel radii built in one program with ``radius``. Where kernels are
     compiled at their first launch (PoCL), every built radius: its cost to build a
     program is per program (0.29 s cold whatever it holds, measured; about 60 ms from
@@ -223,7 +223,7 @@ def texel_radii_per_program(radius: int) -> tuple[int, ...]:
     Intel's CPU runtime compiles every kernel of a program when it builds it (cold:
     8.4 s for all 22 kernels of radii 1-11, against 0.4 s for two), and a render uses
     only a few radii."""
-    if jit_at_first_launch():
+    if device.jit_at_first_launch:
         return tuple(r for r in BUILT_RADII if r <= FIR_MAX_RADIUS_PER_TEXEL)
     return (radius,)
 
@@ -246,8 +246,9 @@ class DirectKernels:
     axis, one per per-texel radius; one per device
     (:func:`direct_kernels`)."""
 
-    def __init__(self) -> None:
-        self.ctx, self.queue = cl_context()
+    def __init__(self, device: Device) -> None:
+        self.device = device
+        self.ctx, self.queue = device.context, device.queue
         self._kernels: dict[tuple[int, int, bool, bool], Any] = {}
         self._texel_programs: dict[int, Any] = {}
 
@@ -259,21 +260,21 @@ class DirectKernels:
                     raise InputError(f"per-texel direct blur: radius {ru}, {rv} (one radius "
                                      f"1-{FIR_MAX_RADIUS_PER_TEXEL} for both axes)")
                 if ru not in self._texel_programs:
-                    radii = texel_radii_per_program(ru)
-                    program = build(_texel_source(radii))
+                    radii = texel_radii_per_program(self.device, ru)
+                    program = build(self.device, _texel_source(radii))
                     self._texel_programs.update(dict.fromkeys(radii, program))
                 self._kernels[key] = Kernel(self._texel_programs[ru],
                                             f"fir_band_texel_{ru}_{int(stream)}", (1, 1))
             else:
                 options = [f"-DRU={ru}", f"-DRV={rv}", f"-DB={band_columns(rv)}",
                            f"-DSTREAM={int(stream)}", "-DPER_TEXEL=0", "-DKERNEL_NAME=fir_band"]
-                self._kernels[key] = Kernel(build(STORE_MACRO + _HELPERS + _KERNEL,
-                                                  options), "fir_band", (1, 1))
+                self._kernels[key] = Kernel(build(self.device, STORE_MACRO + _HELPERS
+                                                  + _KERNEL, options), "fir_band", (1, 1))
         return self._kernels[key]
 
     def weights(self, sigma: float) -> tuple[int, Any]:
         """(radius, device buffer of the one-sided float32 weights) for ``sigma`` texels."""
-        return _weights_buffer(round(float(sigma), 6))
+        return _weights_buffer(self.device, round(float(sigma), 6))
 
     def _run(self, ru: int, rv: int, per_texel: bool, src: Any, dst: Any, height: int,
              width: int, *weights: Any, row_bands: RowBands | None = None) -> None:
@@ -320,18 +321,18 @@ class DirectKernels:
                   row_bands=row_bands)
 
 
-@device_cache(maxsize=256)
-def _weights_buffer(sigma: float) -> tuple[int, Any]:
+@lru_cache(maxsize=256)
+def _weights_buffer(device: Device, sigma: float) -> tuple[int, Any]:
     taps = fir_weights(sigma)
     w = np.zeros(built_radius(taps.size - 1) + 1, np.float32)
     w[:taps.size] = taps
-    return w.size - 1, cl.Buffer(cl_context()[0], cl.mem_flags.READ_ONLY
+    return w.size - 1, cl.Buffer(device.context, cl.mem_flags.READ_ONLY
                                  | cl.mem_flags.COPY_HOST_PTR, hostbuf=w)
 
 
-@device_cache()
-def direct_kernels() -> DirectKernels:
-    return DirectKernels()
+@lru_cache(maxsize=4)
+def direct_kernels(device: Device) -> DirectKernels:
+    return DirectKernels(device)
 
 
 PREWARMED_TEXEL_RADII = (2, 4, 7)
@@ -339,11 +340,11 @@ PREWARMED_TEXEL_RADII = (2, 4, 7)
 switch (8-11); a render that needs 11 compiles it when it first does."""
 
 
-def texel_kernels(stream: bool) -> list[Any]:
+def texel_kernels(device: Device, stream: bool) -> list[Any]:
     """The per-texel kernels of :data:`PREWARMED_TEXEL_RADII` (for
     :class:`~.opencl.Prewarm`: a render's radii follow its stretch map, not known
     before it)."""
-    kernels = direct_kernels()
+    kernels = direct_kernels(device)
     return [kernels.kernel(r, r, stream, True) for r in PREWARMED_TEXEL_RADII]
 
 
@@ -352,9 +353,9 @@ class DirectBlur(DeviceTexture):
     per axis, in texels); the same interface as :class:`~.recursive_blur.RecursiveBlur`
     for scalar sigmas."""
 
-    def __init__(self, height: int, width: int) -> None:
-        super().__init__(height, width)
-        self.kernels = direct_kernels()
+    def __init__(self, device: Device, height: int, width: int) -> None:
+        super().__init__(device, height, width)
+        self.kernels = direct_kernels(device)
 
     def blur_in_place(self, sigma_u: float, sigma_v: float) -> None:
         """Blur the uploaded texture (the result becomes the texture)."""

@@ -11,7 +11,7 @@ import numpy as np
 import pyopencl as cl
 from numpy.typing import NDArray
 
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device, or_default
 from ..device.memory import (
     DeviceTexture,
 )
@@ -71,11 +71,9 @@ def _pass_reference(src: NDArray[np.float64], sigma: NDArray[np.float64],
     return dst
 
 
-@device_cache()
-def _cl_state() -> tuple[Any, Any, Any]:
-    """Context, queue and the gather blur's program."""
-    ctx, queue = cl_context()
-    return ctx, queue, build(_KERNEL, [f"-DMIN_SIGMA={MIN_SIGMA_TEXELS}f"])
+def _gather_program(device: Device) -> Any:
+    """The gather blur's program."""
+    return build(device, _KERNEL, [f"-DMIN_SIGMA={MIN_SIGMA_TEXELS}f"])
 
 
 class OpenCLBlur(DeviceTexture):
@@ -85,10 +83,9 @@ class OpenCLBlur(DeviceTexture):
     life of the object, so a sequence of blurs of one texture uploads them once.
     """
 
-    def __init__(self, coverage: NDArray[Any]) -> None:
-        super().__init__(*coverage.shape)
-        _, _, program = _cl_state()
-        self.kernel = Kernel(program, "blur_axis")
+    def __init__(self, device: Device, coverage: NDArray[Any]) -> None:
+        super().__init__(device, *coverage.shape)
+        self.kernel = Kernel(_gather_program(device), "blur_axis")
         mf = cl.mem_flags
         cov = np.ascontiguousarray(coverage, dtype=np.float32)
         self.cover_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cov)
@@ -132,6 +129,7 @@ def diffuse_gather(
     variances_mm2: NDArray[Any],
     term_weights: NDArray[Any],
     region_weights: NDArray[Any] | None = None,
+    device: Device | None = None,
 ) -> tuple[NDArray[np.float32], BlurStats]:
     """The first diffusion: the gather kernel, each term blurred from the previous one.
 
@@ -148,7 +146,7 @@ def diffuse_gather(
     mm_u = np.asarray(mm_per_texel_u, dtype=np.float64)
     mm_v = np.asarray(mm_per_texel_v, dtype=np.float64)
     cov = np.asarray(coverage, dtype=np.float32)
-    blur = OpenCLBlur(cov)
+    blur = OpenCLBlur(or_default(device), cov)
     rgba = np.concatenate([e, np.zeros((h, w, 1), np.float32)], axis=2)
     blur.upload(rgba)
     current = e

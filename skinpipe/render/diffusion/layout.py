@@ -9,6 +9,7 @@ import ctypes
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from functools import lru_cache, partial
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -16,7 +17,7 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from ..device.choice import device_cache
+from ..device.choice import Device
 from ..device.memory import (
     RowBands,
     device_buffer,
@@ -70,8 +71,9 @@ MARGIN_TEXEL_QUANTILE = 0.01
 _PYRAMID_KERNEL = cl_source(__package__, "pyramid.cl")
 
 
-@device_cache(maxsize=8)
-def pyramid_kernels(regions: int, by_triangle: bool = False) -> dict[str, Any]:
+@lru_cache(maxsize=8)
+def pyramid_kernels(device: Device, regions: int, by_triangle: bool = False
+                    ) -> dict[str, Any]:
     """The accumulation kernel for ``regions`` region weights a texel (0: one region;
     ``by_triangle``: made again from the texel's triangle, :class:`TexelRegions`, rather
     than read from a map), and the one that splats the finest texels into a level's
@@ -80,8 +82,8 @@ def pyramid_kernels(regions: int, by_triangle: bool = False) -> dict[str, Any]:
     compiled in: a program a batch cost a cold render a PoCL build (0.3 s) and a
     compilation per batch, for no measurable gain in the accumulation itself."""
 
-    program = build(_PYRAMID_KERNEL, [f"-DREGIONS={regions}",
-                                      f"-DBY_TRIANGLE={int(by_triangle and regions > 0)}"])
+    program = build(device, _PYRAMID_KERNEL, [
+        f"-DREGIONS={regions}", f"-DBY_TRIANGLE={int(by_triangle and regions > 0)}"])
     return {"accumulate_terms": Kernel(program, "accumulate_terms", 2),
             "splat_level": Kernel(program, "splat_level", 2)}
 
@@ -149,7 +151,7 @@ class ChartLayout:
     (:func:`~.chart_tiles.texel_coverage`); None: all of it."""
 
 
-def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
+def chart_layout(device: Device, maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
                  uv: NDArray[Any], uv_tris: NDArray[np.int32], rays: Any,
                  mesh_index: int) -> ChartLayout:
     """The charts of a UV layout rasterised into ``maps`` (a
@@ -163,10 +165,10 @@ def chart_layout(maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
     chart = at_texels(maps.triangle, tri_chart.astype(np.int32, copy=False), -1)
     corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
                                               maps.size)
-    geometry = SeamGeometry(rays, mesh_index, tri_chart, corners, jacobian, maps.triangle,
-                            maps.texel_surface.at)
+    geometry = SeamGeometry(device, rays, mesh_index, tri_chart, corners, jacobian,
+                            maps.triangle, maps.texel_surface.at)
     return ChartLayout(chart, n_charts, geometry,
-                       texel_coverage(chart, maps.triangle, tri_chart, corners))
+                       texel_coverage(device, chart, maps.triangle, tri_chart, corners))
 
 
 def ranked_step(steps: NDArray[np.int32], rank: int) -> tuple[int, int]:
@@ -192,8 +194,9 @@ class LevelGrid:
     ``derived`` (:meth:`derived` of an earlier grid of the same tiles, read back from
     the tile store) those are taken as they are, not made from the texel sizes."""
 
-    def __init__(self, tiles: TileLevel, derived: dict[str, NDArray[Any]] | None = None
-                 ) -> None:
+    def __init__(self, device: Device, tiles: TileLevel,
+                 derived: dict[str, NDArray[Any]] | None = None) -> None:
+        self.device = device
         self.tiles = tiles
         self.level = tiles.level
         self.shape = tiles.shape
@@ -269,7 +272,8 @@ class LevelGrid:
             if int(low) < 0 or int(high) > top:
                 raise ValueError("a level grid's blur indices past their steps")
         self._index_arrays = (qu, qv)
-        self._index = (lo_u, hi_u, lo_v, hi_v, host_buffer(qu), host_buffer(qv))
+        self._index = (lo_u, hi_u, lo_v, hi_v, host_buffer(self.device, qu),
+                       host_buffer(self.device, qv))
         su, sv = derived["steps_u"], derived["steps_v"]
         if not su.size:  # steps past a uint16: the direct blur has no indices
             self._texel = None
@@ -280,8 +284,8 @@ class LevelGrid:
                 int(extremes(tu)[1]) >= su.size or int(extremes(tv)[1]) >= sv.size:
             raise ValueError("a level grid's direct blur steps of another shape")
         self._texel_arrays = (tu, tv)
-        self._texel = TexelSteps(su, sv, host_buffer(tu), host_buffer(tv),
-                                 int(derived["smaller"][0]))
+        self._texel = TexelSteps(su, sv, host_buffer(self.device, tu),
+                                 host_buffer(self.device, tv), int(derived["smaller"][0]))
 
     def device_buffers(self) -> None:
         """Make every device buffer the level's fills and blurs read (each is otherwise
@@ -324,8 +328,9 @@ class LevelGrid:
         ``splat_level`` kernel, made on first use (a CPU device reads them in place)."""
         if self._splat is None:
             t = self.tiles
-            self._splat = (host_buffer(t.owner), host_buffer(t.count),
-                           host_buffer(np.rint(t.shift).astype(np.int32)))
+            d = self.device
+            self._splat = (host_buffer(d, t.owner), host_buffer(d, t.count),
+                           host_buffer(d, np.rint(t.shift).astype(np.int32)))
         return self._splat
 
     def seam_buffers(self) -> tuple[Any, Any] | None:
@@ -334,8 +339,8 @@ class LevelGrid:
         made on first use; None on a device without doubles (the host reads them)."""
         if self._seams is None:
             reads = self.tiles.reads
-            self._seams = False if seam_read_kernel() is None else \
-                (host_buffer(reads.rows), host_buffer(reads.xy))
+            self._seams = False if seam_read_kernel(self.device) is None else \
+                (host_buffer(self.device, reads.rows), host_buffer(self.device, reads.xy))
         return self._seams or None
 
     def index_arrays(self) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
@@ -364,7 +369,7 @@ class LevelGrid:
                                   np.subtract(qv.T, np.int32(lo_v), dtype=np.int32,
                                               order="C"))
             self._index = (lo_u, int(qu.max()), lo_v, int(qv.max()),
-                           *(host_buffer(a) for a in self._index_arrays))
+                           *(host_buffer(self.device, a) for a in self._index_arrays))
         return self._index
 
     def texel_steps(self) -> TexelSteps | None:
@@ -401,7 +406,8 @@ class LevelGrid:
 
                 tu, tv = (index(q, lo) for q, lo in zip(self._q, lows, strict=True))
                 self._texel_arrays = (tu, tv)
-                self._texel = TexelSteps(*steps, host_buffer(tu), host_buffer(tv), smaller)
+                self._texel = TexelSteps(*steps, host_buffer(self.device, tu),
+                                         host_buffer(self.device, tv), smaller)
         return self._texel  # type: ignore[return-value]
 
 
@@ -417,7 +423,8 @@ class DiffusionLayout:
     process made them, and written there where this one makes them.
     """
 
-    def __init__(self, mm_per_texel_u: NDArray[Any], mm_per_texel_v: NDArray[Any],
+    def __init__(self, device: Device, mm_per_texel_u: NDArray[Any],
+                 mm_per_texel_v: NDArray[Any],
                  coverage: NDArray[Any], region_weights: NDArray[Any] | None = None,
                  charts: ChartLayout | None = None, store: TileStore | None = None,
                  texel_regions: TexelRegions | None = None,
@@ -429,6 +436,7 @@ class DiffusionLayout:
         mm = [np.asarray(m, dtype=np.float32) for m in (mm_per_texel_u, mm_per_texel_v)]
         if any(m.shape != (h, w) for m in mm):
             raise InputError(f"coverage and mm-per-texel maps must be ({h}, {w})")
+        self.device = device
         self.height, self.width = h, w
         self.region_weights = None if region_weights is None else \
             np.asarray(region_weights, dtype=REGION_WEIGHT_DTYPE)  # the maps' own: no copy
@@ -469,12 +477,12 @@ class DiffusionLayout:
         # a tile's margin must reach the widest blur at its level's small texels
         self.small_mm = min(float(np.quantile(mc, MARGIN_TEXEL_QUANTILE)) for mc in on_chart)
         del on_chart
-        self.iir = iir_kernels()
-        self.cover_buf = host_buffer(cov)
-        self.chart_buf = host_buffer(np.asarray(charts.chart, np.int32))
+        self.iir = iir_kernels(device)
+        self.cover_buf = host_buffer(device, cov)
+        self.chart_buf = host_buffer(device, np.asarray(charts.chart, np.int32))
         # the part of each texel's square its chart covers, for the tiles' splat
-        self.share_buf = host_buffer(covered.astype(np.float32) if charts.coverage is None
-                                     else charts.coverage)
+        self.share_buf = host_buffer(device, covered.astype(np.float32)
+                                     if charts.coverage is None else charts.coverage)
         self.n_regions = 0 if self.region_weights is None else self.region_weights.shape[2]
         # with the rasterizer's arrays each texel's region weights are made again where
         # the accumulation reads them: the layout does not hold the map (0.2 GB at
@@ -485,11 +493,11 @@ class DiffusionLayout:
                                 and tr.weights.shape[1:] == (self.n_regions,))
         if self.by_triangle:
             assert tr is not None
-            self.region_args = tuple(host_buffer(a) for a in (tr.triangle, tr.frame,
-                                                              tr.corners, tr.weights))
+            self.region_args = tuple(host_buffer(device, a) for a in (
+                tr.triangle, tr.frame, tr.corners, tr.weights))
             self.region_weights = None
         else:
-            self.region_args = (host_buffer(self.region_weights if self.region_weights
+            self.region_args = (host_buffer(device, self.region_weights if self.region_weights
                                             is not None else np.zeros(1, REGION_WEIGHT_DTYPE)),)
 
     def margin(self, level: int, sigma_mm: float) -> int:
@@ -563,7 +571,7 @@ class DiffusionLayout:
             tiles = tile_level(c.chart, c.n_charts, self._mm[0], self._mm[1], level, margin,
                                c.geometry, c.coverage, boxes)
             key = (level, margin)
-            grid = self._grids[key] = LevelGrid(tiles)
+            grid = self._grids[key] = LevelGrid(self.device, tiles)
             if self.store is not None:  # with what its blurs need of the texel sizes
                 self.store.save(tiles, grid.derived())
         return self._grids[key]
@@ -589,7 +597,8 @@ class DiffusionLayout:
     def _load(self, level: int, margin: int) -> bool:
         """Whether the store (if any) held tiles for (``level``, ``margin``), now made a
         level of this layout."""
-        grid = None if self.store is None else self.store.load(level, margin, LevelGrid)
+        grid = None if self.store is None else self.store.load(
+            level, margin, partial(LevelGrid, self.device))
         if grid is None:
             return False
         self._grids[(level, grid.tiles.margin)] = grid
@@ -608,7 +617,7 @@ class DiffusionLayout:
         this layout."""
         if name not in self._buffers or self._buffers[name].size < nbytes:
             self._buffers.pop(name, None)  # its memory goes before the larger one comes
-            self._buffers[name] = device_buffer(nbytes)
+            self._buffers[name] = device_buffer(self.device, nbytes)
         return self._buffers[name]
 
 
@@ -638,12 +647,13 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
     returns; on a device without doubles the host reads across the seams and the atlas
     goes into ``into`` as well. ``scratch`` and ``into``: device buffers of at least the
     atlas (float4). Host memory a device on this machine reads in place."""
-    kernel = pyramid_kernels(layout.n_regions)["splat_level"]
-    queue = layout.iir.queue
+    device = layout.device
+    kernel = pyramid_kernels(device, layout.n_regions)["splat_level"]
+    queue = device.queue
     lh, lw = grid.shape
     reads = grid.seam_buffers()
     out = np.empty((lh * lw, 4), np.float32) if reads is None else None
-    splat_into = scratch if out is None else host_output(out)
+    splat_into = scratch if out is None else host_output(device, out)
     args = (irradiance, layout.share_buf, layout.chart_buf, *grid.splat_buffers(), splat_into,
             np.int32(layout.width), np.int32(layout.height), np.int32(lw), np.int32(lh),
             np.int32(grid.level))
@@ -652,7 +662,7 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
              lambda first, stop: kernel(queue, (lw, stop - first), None, *args,
                                         global_offset=(0, first)))
     if out is not None:
-        read_output(queue, splat_into, out)
+        read_output(device, splat_into, out)
         # into ``into``, which outlives the kernels that read the atlas: a buffer over
         # this function's array let the array go with the caller's last reference while
         # a blur or the terms' sum still read it (a band of texels came out black)
@@ -668,7 +678,7 @@ def _fill_level(layout: DiffusionLayout, grid: LevelGrid, irradiance: Any, scrat
                      lambda a, b: drop_resident_pages([
                          rows[a * lw:b * lw + 1], xy[int(rows[a * lw]):int(rows[b * lw])]])
                      ) if grid.stored else None
-    in_bands(queue, bands, lh, 1, lambda first, stop: seam_read_kernel()(
+    in_bands(queue, bands, lh, 1, lambda first, stop: seam_read_kernel(device)(
         queue, ((stop - first) * lw,), None, *args, global_offset=(first * lw,)))
     return into
 

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from ..device.choice import cl_context, device_cache, device_choice
+from ..device.choice import Device
 from ..device.memory import host_buffer, run_on_host_arrays
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
@@ -31,6 +31,8 @@ class SeamGeometry:
     the triangles (:meth:`~.texture_maps.TexelSurface.at`: the maps' own floats, without
     holding the maps)."""
 
+    device: Device
+    """Where the margin points' arithmetic runs (if it has doubles, else numpy)."""
     rays: Any  # ..raytrace.RayScene
     mesh_index: int
     tri_chart: NDArray[np.int32]
@@ -56,10 +58,11 @@ class SeamGeometry:
     def device_buffers(self) -> dict[str, Any]:
         """The per-triangle arrays the device's ``margin_hits`` reads (every level's):
         the ray scene's owners, each triangle's UV corners, J^+ and chart."""
-        return {"owner": host_buffer(self.rays.owner.astype(np.int64)),
-                "corners": host_buffer(self.uv_corners.astype(np.float64)),
-                "inverse_jac": host_buffer(self.texels_per_scene_unit),
-                "tri_chart": host_buffer(self.tri_chart.astype(np.int32))}
+        d = self.device
+        return {"owner": host_buffer(d, self.rays.owner.astype(np.int64)),
+                "corners": host_buffer(d, self.uv_corners.astype(np.float64)),
+                "inverse_jac": host_buffer(d, self.texels_per_scene_unit),
+                "tri_chart": host_buffer(d, self.tri_chart.astype(np.int32))}
 
 
 def _read_reach(level: int) -> int:
@@ -167,7 +170,7 @@ def _margin_reads(g: SeamGeometry, level: int, shift: NDArray[np.int64],
                           np.concatenate([b_texel[empty], b_texel[~empty]]).astype(np.int32))
     position, normal, jac_b = _cell_frames(g, level, shift, owner, start, w)
     frames = (start, position, normal, jac_b, _norm_axis1(jac_b).max(axis=1))
-    points = _device_points if _device_has_doubles() else _numpy_points
+    points = _device_points if g.device.has_doubles else _numpy_points
     kept, chart, level_xy, t_local = points(g, level, shift, owner, w, texels, frames)
     m_read, xy_read, first = _mean_per_key(texels.texel_of(kept), chart, level_xy, key_of)
     read = kept[first]
@@ -280,40 +283,32 @@ def _numpy_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
 _MARGIN_KERNEL = cl_source(__package__, "margins.cl")
 
 
-def _device_coverage(chart: NDArray[np.int32], triangle: NDArray[np.int32],
+def _device_coverage(device: Device, chart: NDArray[np.int32], triangle: NDArray[np.int32],
                      tri_chart: NDArray[np.int32], uv_corners: NDArray[np.float64]
                      ) -> NDArray[np.float32]:
     """:func:`texel_coverage` on the device (``texel_coverage`` kernel, a work item per
     texel, doubles in numpy's order: the same shares bit for bit; numpy's steps over the
     border texels took 1.25 s at texture 4096, before the layout's first level)."""
     h, w = chart.shape
-    _, queue = cl_context()
     out = np.empty((h, w), np.float32)
-    run_on_host_arrays(Kernel(_margin_program(), "texel_coverage", 2), queue, (w, h), (
+    run_on_host_arrays(Kernel(_margin_program(device), "texel_coverage", 2), device, (w, h), (
         *(np.asarray(a, np.int32) for a in (chart, triangle, tri_chart)),
         np.asarray(uv_corners, np.float64), np.int32(h), np.int32(w)), (out,))
     return out
 
 
-def _device_has_doubles() -> bool:
-    """Whether the chosen OpenCL device computes in doubles (``cl_khr_fp64``): the
-    margin points' arithmetic runs there, else in numpy."""
-    return "cl_khr_fp64" in device_choice().device.extensions
+def _margin_program(device: Device) -> Any:
+    return build(device, _MARGIN_KERNEL, [f"-DS={SEAM_SUBSAMPLES ** 2}"])
 
 
-@device_cache()
-def _margin_program() -> Any:
-    return build(_MARGIN_KERNEL, [f"-DS={SEAM_SUBSAMPLES ** 2}"])
-
-
-def margin_kernels() -> tuple[Any, ...]:
+def margin_kernels(device: Device) -> tuple[Any, ...]:
     """The seam layout's kernels (margin points, read taps), for a
     :class:`~.opencl.Prewarm` (none on a device without doubles). Each call of them
     makes kernel objects of its own: levels and chunks run on several threads, and a
     kernel object's arguments are shared."""
-    if not _device_has_doubles():
+    if not device.has_doubles:
         return ()
-    program = _margin_program()
+    program = _margin_program(device)
     return (*(Kernel(program, name, 1) for name in ("margin_rays", "margin_hits")),
             Kernel(program, "texel_coverage", 2))
 
@@ -326,18 +321,17 @@ def _device_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     """:func:`_numpy_points` with each point's arithmetic in two device kernels around
     the ray cast (numpy's steps over the points, each a pass over M x 3 doubles, were
     30% of the layout's time)."""
-    _, queue = cl_context()
     if texels.sub.shape[0] != SEAM_SUBSAMPLES ** 2:
         raise InputError(f"margin points: {texels.sub.shape[0]} offsets a texel, the "
                          f"kernels take {SEAM_SUBSAMPLES ** 2}")
-    rays_kernel, hits_kernel = margin_kernels()[:2]
+    rays_kernel, hits_kernel = margin_kernels(g.device)[:2]
     start, position, normal, jac_b, jac_norm = frames
     n = texels.count
     points = (texels.empty.astype(np.int64), texels.partial.astype(np.int64), texels.b,
               np.asarray(texels.sub, np.float64))
     origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
     reach = np.empty(n, np.float64)
-    run_on_host_arrays(rays_kernel, queue, (n,), (
+    run_on_host_arrays(rays_kernel, g.device, (n,), (
         *points, start.astype(np.int64), position, normal, jac_b, jac_norm, np.int64(w),
         np.int32(texels.n_empty), np.int32(n)), (origin, direction, reach))
     prim, bu, bv, dist = g.rays.intersect(origin, direction)
@@ -346,7 +340,7 @@ def _device_points(g: SeamGeometry, level: int, shift: NDArray[np.int64],
     chart, t_local = np.empty(n, np.int32), np.empty(n, np.int64)
     level_xy = np.empty((n, 2), np.float64)
     device = g.device_buffers
-    run_on_host_arrays(hits_kernel, queue, (n,), (
+    run_on_host_arrays(hits_kernel, g.device, (n,), (
         *points, jac_b, np.int64(w), np.int32(texels.n_empty), np.int32(n), prim, bu, bv,
         dist, reach, device["owner"], np.int64(g.mesh_index), device["corners"],
         device["inverse_jac"], device["tri_chart"], np.asarray(shift, np.int64), owner,

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device, or_default
 from ..device.memory import device_buffer, host_buffer, host_output, read_output
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
@@ -70,26 +70,27 @@ def push_pull_reference(values: NDArray[Any], coverage: NDArray[Any]) -> NDArray
 _KERNEL = cl_source(__package__, "push_pull.cl")
 
 
-@device_cache()
-def push_pull_kernels() -> tuple[Any, Any, Any]:
-
-    program = build(_KERNEL)
+@lru_cache(maxsize=4)
+def push_pull_kernels(device: Device) -> tuple[Any, Any, Any]:
+    program = build(device, _KERNEL)
     return tuple(Kernel(program, name, dims)
                  for name, dims in (("pull", 2), ("push", 2), ("normalise", 1)))
 
 
-def push_pull(values: NDArray[Any], coverage: NDArray[Any], in_place: bool = False
-              ) -> NDArray[np.float32]:
+def push_pull(values: NDArray[Any], coverage: NDArray[Any], in_place: bool = False,
+              device: Device | None = None) -> NDArray[np.float32]:
     """Fill texels outside the charts (``coverage`` 0) of (H, W[, C]) ``values`` from
     their surroundings, on the OpenCL device; covered texels are returned unchanged.
     The same maps as :func:`push_pull_reference` within float32 rounding. ``in_place``:
     the result goes into ``values`` itself where it is float32 and C-contiguous (a
     caller done with them: a texture-sized array less, 0.2-0.27 GB at texture 4096),
-    else into a new array; either way it is returned."""
-    pull, push, normalise = push_pull_kernels()
+    else into a new array; either way it is returned. ``device``: where it runs (None:
+    :func:`~..device.choice.or_default`)."""
+    device = or_default(device)
+    pull, push, normalise = push_pull_kernels(device)
     v, c, squeeze = _checked(values, coverage)
     in_place = in_place and v.flags.c_contiguous and np.may_share_memory(v, values)
-    _, queue = cl_context()
+    queue = device.queue
     h, w, ch = v.shape
     shapes = [(h, w)]
     while min(shapes[-1]) > 1:
@@ -98,13 +99,14 @@ def push_pull(values: NDArray[Any], coverage: NDArray[Any], in_place: bool = Fal
         out = np.where(c[..., None] > 0, v, np.float32(0.0))
         return out[..., 0] if squeeze else out
     out = v if in_place else np.empty(v.shape, np.float32)  # C order whatever v's
-    out_buf = host_output(out)
+    out_buf = host_output(device, out)
     # in place, the finest level's push reads and writes one buffer (a texel reads only
     # itself, as on the coarser levels)
-    levels = [(out_buf if in_place else host_buffer(v), host_buffer(c))]
+    levels = [(out_buf if in_place else host_buffer(device, v), host_buffer(device, c))]
     for k in range(1, len(shapes)):
         (sh, sw), (dh, dw) = shapes[k - 1], shapes[k]
-        levels.append((device_buffer(dh * dw * ch * 4), device_buffer(dh * dw * 4)))
+        levels.append((device_buffer(device, dh * dw * ch * 4),
+                       device_buffer(device, dh * dw * 4)))
         pull(queue, (dw, dh), None, *levels[k - 1], *levels[k], np.int32(sw), np.int32(sh),
              np.int32(dw), np.int32(dh), np.int32(ch), np.int32(k == 1))
     top_h, top_w = shapes[-1]
@@ -115,7 +117,7 @@ def push_pull(values: NDArray[Any], coverage: NDArray[Any], in_place: bool = Fal
         target = out_buf if k == 0 else levels[k][0]  # in place: a texel reads only itself
         push(queue, (lw, lh), None, *levels[k], levels[k + 1][0], target, np.int32(lw),
              np.int32(lh), np.int32(shapes[k + 1][1]), np.int32(ch), np.int32(k == 0))
-    read_output(queue, out_buf, out)
+    read_output(device, out_buf, out)
     return out[..., 0] if squeeze else out
 
 

@@ -28,9 +28,9 @@ import pyopencl as cl
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device
 from ..device.memory import DeviceTexture, RowBands, in_bands, streams
-from ..device.programs import STORE_MACRO, Kernel, build, jit_at_first_launch
+from ..device.programs import STORE_MACRO, Kernel, build
 from ..device.sources import cl_source
 
 # Deriche 1993's fit of exp(-x^2 / 2) for x >= 0 (x in units of sigma):
@@ -202,8 +202,9 @@ def _variant_source(uniform: bool, stream: bool, global_scratch: bool = False) -
             "#undef GLOBAL_SCRATCH\n#undef SCRATCH_SPACE\n")
 
 
-@device_cache(maxsize=8)
-def _iir_kernel(uniform: bool, stream: bool, global_scratch: bool = False) -> Any:
+@lru_cache(maxsize=8)
+def _iir_kernel(device: Device, uniform: bool, stream: bool, global_scratch: bool = False
+                ) -> Any:
     """The recursive pass for one sigma or per-texel coefficients, with or without
     streaming stores, its scratch in local memory (or global, :class:`IIRKernels`).
     Where kernels are compiled at their first launch (PoCL) the four local ones are in
@@ -212,23 +213,24 @@ def _iir_kernel(uniform: bool, stream: bool, global_scratch: bool = False) -> An
     when it builds it), and for global scratch, each is a program of its own, built
     when first needed."""
     variants = [(u, s) for u in (True, False) for s in (True, False)] \
-        if jit_at_first_launch() and not global_scratch else [(uniform, stream)]
-    program = build("".join(_variant_source(u, s, global_scratch) for u, s in variants))
+        if device.jit_at_first_launch and not global_scratch else [(uniform, stream)]
+    program = build(device, "".join(_variant_source(u, s, global_scratch) for u, s in variants))
     return Kernel(program, _variant_name(uniform, stream, global_scratch), (1,))
 
 
-def pass_kernels(stream: bool, uniform: bool = False) -> list[Any]:
+def pass_kernels(device: Device, stream: bool, uniform: bool = False) -> list[Any]:
     """The per-texel (or one-sigma) recursive pass with or without streaming stores (for
     :class:`~.opencl.Prewarm`; a face's layout runs per-texel blurs)."""
-    return [_iir_kernel(uniform, stream)]
+    return [_iir_kernel(device, uniform, stream)]
 
 
 class IIRKernels:
     """The built recursive-pass kernels (one sigma, per texel); one per process
     (:func:`iir_kernels`)."""
 
-    def __init__(self) -> None:
-        self.ctx, self.queue = cl_context()
+    def __init__(self, device: Device) -> None:
+        self.device = device
+        self.ctx, self.queue = device.context, device.queue
         self.max_line = int(self.ctx.devices[0].local_mem_size) // (16 * LINES_PER_ITEM)
         """The longest row whose scratch fits local memory; longer rows' scratch is a
         global buffer (:meth:`_global_scratch`)."""
@@ -249,7 +251,7 @@ class IIRKernels:
         stream = streams(n * lines * 16)
         items = -(-lines // LINES_PER_ITEM)
         in_global = n > self.max_line
-        kernel = _iir_kernel(index is None, stream, in_global)
+        kernel = _iir_kernel(self.device, index is None, stream, in_global)
         scratch = self._global_scratch(16 * LINES_PER_ITEM * n * items) if in_global else \
             cl.LocalMemory(16 * LINES_PER_ITEM * n)
         args = (src, dst, scratch,
@@ -279,9 +281,9 @@ class IIRKernels:
         self.run_pass(tmp, dst, height, width, coefs_v, index_v_t, bands_v)
 
 
-@device_cache()
-def iir_kernels() -> IIRKernels:
-    return IIRKernels()
+@lru_cache(maxsize=4)
+def iir_kernels(device: Device) -> IIRKernels:
+    return IIRKernels(device)
 
 
 class RecursiveBlur(DeviceTexture):
@@ -291,9 +293,9 @@ class RecursiveBlur(DeviceTexture):
     scalar runs the one-sigma kernel. Cost per texel is the same for any sigma.
     """
 
-    def __init__(self, height: int, width: int) -> None:
-        super().__init__(height, width)
-        self.iir = iir_kernels()
+    def __init__(self, device: Device, height: int, width: int) -> None:
+        super().__init__(device, height, width)
+        self.iir = iir_kernels(device)
 
     def _pass(self, sigma: Any, transposed: bool) -> tuple[Any, Any]:
         """(coefficient buffer, index buffer or None) for a scalar sigma or a map."""

@@ -115,11 +115,10 @@ def code_fingerprint() -> str:
     return h.hexdigest()
 
 
-def device_identity() -> str:
-    """The OpenCL device that computes the margin points (platform, device, driver)."""
-    from ..device.choice import cl_context
-
-    dev = cl_context()[1].device
+def device_identity(device: Any) -> str:
+    """The OpenCL device (a :class:`~..device.choice.Device`) that computes the margin
+    points: platform, device, driver."""
+    dev = device.cl_device
     return f"{dev.platform.name}|{dev.name}|{dev.driver_version}"
 
 
@@ -127,10 +126,11 @@ class TileStore:
     """One layout's tiles in ``folder/layout-<key>/L<level>_M<margin>.npz``. ``notes``
     says what was read, written, removed or could not be (for the render's log)."""
 
-    def __init__(self, folder: Path, layout_key: str, limit: int | None = None) -> None:
+    def __init__(self, folder: Path, layout_key: str, device: Any,
+                 limit: int | None = None) -> None:
         self.root = Path(folder)
         self.key = hashlib.blake2b(
-            f"{layout_key}|{code_fingerprint()}|{device_identity()}".encode(),
+            f"{layout_key}|{code_fingerprint()}|{device_identity(device)}".encode(),
             digest_size=16).hexdigest()
         self.entry = self.root / f"layout-{self.key}"
         self.limit = limit_bytes() if limit is None else limit

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..device.choice import Device
 from ..scene import Camera
 from ..surface.texture_maps import (
     TextureMaps,
@@ -64,12 +65,13 @@ def texels_per_pixel(points: NDArray[Any], tris: NDArray[Any], uv: NDArray[Any],
 
 def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
                            texel: NDArray[np.intp] | None = None, period: int = 2,
-                           normal: NDArray[np.float32] | None = None
-                           ) -> dict[str, NDArray[np.float32]]:
+                           normal: NDArray[np.float32] | None = None,
+                           device: Device | None = None) -> dict[str, NDArray[np.float32]]:
     """Each light's per-texel visibility from interleaved shadow rays of ``period``,
     reconstructed in texture space (``filter_interleaved``) and returned per covered
     texel (``texel``: the points' flat indices, in their order; by default row order).
-    ``normal``: the maps' normal map where they let it go (:func:`normal_map`)."""
+    ``normal``: the maps' normal map where they let it go (:func:`normal_map`);
+    ``device``: as :func:`filter_interleaved`'s."""
     covered = maps.triangle >= 0
     if texel is None:
         texel = np.flatnonzero(covered)
@@ -80,5 +82,5 @@ def interleaved_visibility(res: IrradianceResult, maps: TextureMaps,
     for i, p in enumerate(paths):
         visibility_plane(res.visibility[p], res.carries_light(p), texel, vis[i])
     filtered = filter_interleaved(vis, None, maps.surface[1] if normal is None else normal,
-                                  at=texel, period=period)
+                                  at=texel, period=period, device=device)
     return {**res.visibility, **dict(zip(paths, filtered, strict=True))}

@@ -10,7 +10,7 @@ import time
 from collections.abc import Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from ...errors import InputError
 from ..bands import in_bands
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device, or_default
 from ..device.memory import (
     host_buffer,
     host_output,
@@ -51,23 +51,24 @@ MAX_FILTER_LIGHTS = 4
 go in further launches."""
 
 
-@device_cache(maxsize=4 * MAX_FILTER_LIGHTS)
-def _interleave_kernel(lights: int, at: bool = False, period: int = 2) -> Any:
-
-    program = build(_INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}", f"-DAT={int(at)}",
-                                         f"-DPERIOD={period}"])
+@lru_cache(maxsize=4 * MAX_FILTER_LIGHTS)
+def _interleave_kernel(device: Device, lights: int, at: bool = False, period: int = 2
+                       ) -> Any:
+    program = build(device, _INTERLEAVE_KERNEL, [f"-DLIGHTS={lights}", f"-DAT={int(at)}",
+                                                 f"-DPERIOD={period}"])
     return Kernel(program, "filter_interleaved", 1 if at else 2)
 
 
 _PENUMBRA_KERNEL = cl_source(__package__, "penumbra.cl")
 
 
-@device_cache(maxsize=len(INTERLEAVE_PERIODS))
-def _penumbra_kernel(period: int = 2) -> Any:
-    return Kernel(build(_PENUMBRA_KERNEL, [f"-DPERIOD={period}"]), "penumbra_at", 1)
+@lru_cache(maxsize=len(INTERLEAVE_PERIODS))
+def _penumbra_kernel(device: Device, period: int = 2) -> Any:
+    return Kernel(build(device, _PENUMBRA_KERNEL, [f"-DPERIOD={period}"]), "penumbra_at", 1)
 
 
-def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
+def irradiance_kernels(device: Device, lights: Sequence[Light], samples: int,
+                       interleaved: bool,
                        textured_domes: Collection[str] = (), filtered: bool = True,
                        sequence: str = "stratified", refined: bool = False,
                        period: int = 2) -> list[Any]:
@@ -75,24 +76,24 @@ def irradiance_kernels(lights: Sequence[Light], samples: int, interleaved: bool,
     :func:`filter_interleaved` at the covered texels (``at``, as the renderer runs it)
     or (if ``refined``) :func:`refine_penumbrae`'s :func:`penumbra_at` will launch for
     these lights at the interleaving ``period`` (for :class:`~.opencl.Prewarm`)."""
-    kernels, interleaved_lights = [_offset_kernel()], 0
+    kernels, interleaved_lights = [_offset_kernel(device)], 0
     for light in lights:
         if not np.any(light.radiance > 0):
             continue
         count, inter = sample_plan(light, samples, interleaved, sequence, period)
         interleaved_lights += inter
         if light.kind in DEVICE_SAMPLED_KINDS and light.path not in textured_domes:
-            kernels.append(_sample_kernel(light.kind, count, inter))
+            kernels.append(_sample_kernel(device, light.kind, count, inter))
             if refined and inter:  # the penumbrae's other classes' strata
-                kernels.append(_sample_kernel(light.kind, (period * period - 1) * count,
-                                              inter))
+                kernels.append(_sample_kernel(device, light.kind,
+                                              (period * period - 1) * count, inter))
     if filtered:
         for start in range(0, interleaved_lights, MAX_FILTER_LIGHTS):
-            kernels.append(_interleave_kernel(min(MAX_FILTER_LIGHTS,
-                                                  interleaved_lights - start), True,
-                                              period))
+            kernels.append(_interleave_kernel(device, min(MAX_FILTER_LIGHTS,
+                                                          interleaved_lights - start),
+                                              True, period))
     if refined and interleaved_lights:
-        kernels.append(_penumbra_kernel(period))
+        kernels.append(_penumbra_kernel(device, period))
     return kernels
 
 
@@ -132,8 +133,8 @@ def visibility_plane(visibility: NDArray[Any], carries: NDArray[np.bool_],
 
 def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any] | None,
                        normal: NDArray[Any], min_cos: float = 0.9,
-                       at: NDArray[Any] | None = None, period: int = 2
-                       ) -> NDArray[np.float32]:
+                       at: NDArray[Any] | None = None, period: int = 2,
+                       device: Device | None = None) -> NDArray[np.float32]:
     """Texture-space reconstruction of interleaved shadow rays: each texel's visibility
     (L, H, W: one plane per light) becomes the tent average over the (2p - 1)^2 texels
     around it for the ``period`` p, weights (p - |dx|)(p - |dy|) / p^4 ((1 2 1)^2 / 16
@@ -145,7 +146,8 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any] | None,
     texels, returned as (L, N) (the renderer's covered texels: the demo face covers 46%
     of its texture). The visibility is a fraction (>= 0); with ``traced`` None, its
     planes say it themselves, negated where a texel traced nothing
-    (:func:`visibility_plane`)."""
+    (:func:`visibility_plane`). ``device``: where it runs (None:
+    :func:`~..device.choice.or_default`)."""
     vis = np.asarray(visibility, dtype=np.float32)
     if vis.ndim != 3 or (traced is not None and np.shape(traced) != vis.shape) or \
             np.shape(normal) != (*vis.shape[1:], 3):
@@ -161,24 +163,24 @@ def filter_interleaved(visibility: NDArray[Any], traced: NDArray[Any] | None,
     points = None if at is None else flat_texels(at, h, w)
     if points is not None and not points.size:
         return np.zeros((lights, 0), np.float32)
-    _, queue = cl_context()
+    device = or_default(device)
     # over the arrays' own memory on a CPU device (copies of 0.3 GB took 0.5 s at
     # texture 4096)
-    nrm_buf = host_buffer(np.asarray(normal, np.float32))
+    nrm_buf = host_buffer(device, np.asarray(normal, np.float32))
     out = np.empty_like(vis) if points is None else np.empty((lights, points.size),
                                                              np.float32)
-    at_args = () if points is None else (host_buffer(points), np.int32(points.size))
+    at_args = () if points is None else (host_buffer(device, points), np.int32(points.size))
     for start in range(0, lights, MAX_FILTER_LIGHTS):
         part = slice(start, min(start + MAX_FILTER_LIGHTS, lights))
         out_part = out[part]
         # the buffers (and the arrays they hold) stay referenced until the read
-        vis_buf = host_buffer(vis[part])
-        out_buf = host_output(out_part)
+        vis_buf = host_buffer(device, vis[part])
+        out_buf = host_output(device, out_part)
         grid = (w, h) if points is None else (points.size,)
-        _interleave_kernel(part.stop - start, points is not None, period)(
-            queue, grid, None, vis_buf, nrm_buf, out_buf, np.int32(h),
+        _interleave_kernel(device, part.stop - start, points is not None, period)(
+            device.queue, grid, None, vis_buf, nrm_buf, out_buf, np.int32(h),
             np.int32(w), np.float32(min_cos), *at_args)
-        read_output(queue, out_buf, out_part)
+        read_output(device, out_buf, out_part)
     return out
 
 
@@ -264,12 +266,13 @@ class IrradianceResult:
 _OFFSET_KERNEL = cl_source(__package__, "offset_origin.cl")
 
 
-@device_cache(maxsize=1)
-def _offset_kernel() -> Any:
-    return Kernel(build(_OFFSET_KERNEL), "offset_origin", 1)
+@lru_cache(maxsize=4)
+def _offset_kernel(device: Device) -> Any:
+    return Kernel(build(device, _OFFSET_KERNEL), "offset_origin", 1)
 
 
-def ray_origins(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np.float32]:
+def ray_origins(points: NDArray[Any], normals: NDArray[Any], device: Device | None = None
+                ) -> NDArray[np.float32]:
     """:func:`~.raytrace.offset_ray_origin` on the OpenCL device, the same floats bit for
     bit: the shadow rays' origins (N, 3). numpy's passes took 13 ms of the demo face's
     interleaved irradiance at texture 1024 (0.43 s), before its first ray."""
@@ -280,8 +283,8 @@ def ray_origins(points: NDArray[Any], normals: NDArray[Any]) -> NDArray[np.float
                          f"{n.shape}")
     out = np.empty_like(p)
     if p.size:
-        _, queue = cl_context()
-        run_on_host_arrays(_offset_kernel(), queue, (p.size,),
+        device = or_default(device)
+        run_on_host_arrays(_offset_kernel(device), device, (p.size,),
                            [p, n, np.float32(OFFSET_INT_SCALE), np.float32(OFFSET_FLOAT_SCALE),
                             np.float32(OFFSET_ORIGIN), np.int32(p.size)], [out])
     return out
@@ -305,6 +308,7 @@ def irradiance_texture(
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     interleave: NDArray[Any] | None = None, sequence: str = "stratified",
     coherent: bool = False, complement: bool = False, period: int = 2,
+    device: Device | None = None,
 ) -> IrradianceResult:
     """Irradiance entering the skin at surface points (N, 3) with unit normals, summed
     over ``lights`` with ``samples`` shadow rays per light and point (the points of
@@ -322,8 +326,10 @@ def irradiance_texture(
     not cast. The rays go to Embree sorted along a Morton curve of their origins, or in
     the points' own order if they are ``coherent`` (neighbours on the surface next to
     each other, as a texture's texels in :func:`~.texture_maps.texels_in_blocks`). Each
-    point's result does not depend on the order.
+    point's result does not depend on the order. ``device``: where the ray origins and
+    samples are made (None: :func:`~..device.choice.or_default`).
     """
+    device = or_default(device)
     start = time.perf_counter()
     pos = np.asarray(positions, dtype=np.float32)
     nrm = np.asarray(normals, dtype=np.float32)
@@ -336,7 +342,7 @@ def irradiance_texture(
         """``a`` (per sorted point) in the points' own order."""
         return a if back_order is None else np.take(a, back_order, axis=0)
 
-    origins = ray_origins(pos, nrm)
+    origins = ray_origins(pos, nrm, device)
     n = pos.shape[0]
     arrived: list[tuple[NDArray[np.float32], NDArray[np.float32]]] = []
     visibility: dict[str, NDArray[np.float32]] = {}
@@ -352,7 +358,7 @@ def irradiance_texture(
         samplers.append(LightSampler(light, origins, nrm, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes,
                                      1.0 if boundary is None else boundary.eta,
-                                     point_buffers=point_buffers,
+                                     device=device, point_buffers=point_buffers,
                                      sequence=sequence, complement=complement,
                                      period=period))
     n_rays = 0
@@ -529,7 +535,8 @@ def penumbra_texels(visibility: NDArray[Any], traced: NDArray[Any],
 
 
 def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
-                at: NDArray[Any], period: int = 2) -> NDArray[np.bool_]:
+                at: NDArray[Any], period: int = 2, device: Device | None = None
+                ) -> NDArray[np.bool_]:
     """:func:`penumbra_texels` at the texels of ``at`` (flat indices into the (H, W)
     planes), on the OpenCL device: one work-item per listed texel, not two 3 x 3
     filters over the whole texture and a gather (54 ms for the demo face's two lights
@@ -542,20 +549,20 @@ def penumbra_at(visibility: NDArray[Any], traced: NDArray[Any],
     points = flat_texels(at, h, w)
     out = np.zeros(points.size, np.uint8)
     if points.size:
-        _, queue = cl_context()
-        run_on_host_arrays(_penumbra_kernel(period), queue, (points.size,),
+        device = or_default(device)
+        run_on_host_arrays(_penumbra_kernel(device, period), device, (points.size,),
                            [vis, np.ascontiguousarray(traced, np.bool_).view(np.uint8),
                             points, np.int32(h), np.int32(w), np.int32(points.size)], [out])
     return out.view(np.bool_)
 
 
 def _penumbra(result: IrradianceResult, path: str, shape: tuple[int, int],
-              texel32: NDArray[Any], period: int) -> NDArray[np.int64]:
+              texel32: NDArray[Any], period: int, device: Device) -> NDArray[np.int64]:
     """The points (indices of ``result``'s) in a light's penumbra after the interleaved
     pass (:func:`penumbra_at`)."""
     vis1, traced = np.zeros(shape, np.float32), np.zeros(shape, bool)
     light_planes(result.visibility[path], result.carries_light(path), texel32, vis1, traced)
-    return np.flatnonzero(penumbra_at(vis1, traced, texel32, period))
+    return np.flatnonzero(penumbra_at(vis1, traced, texel32, period, device))
 
 
 def refine_penumbrae(
@@ -564,7 +571,7 @@ def refine_penumbrae(
     samples: int, boundary: SkinBoundary | None = None,
     seed: int = 0, dome_textures: dict[str, NDArray[np.float32]] | None = None,
     sequence: str = "stratified", texel: NDArray[np.intp] | None = None,
-    coherent: bool = False, period: int = 2,
+    coherent: bool = False, period: int = 2, device: Device | None = None,
 ) -> tuple[IrradianceResult, dict[str, NDArray[np.int64]]]:
     """Adaptive shadow rays: after an interleaved pass of ``period`` p (``result``: every
     covered texel of ``covered`` traced the p^2-th of the strata its ``interleave``
@@ -575,7 +582,8 @@ def refine_penumbrae(
     reconstruction there is its own value. The error target is full sampling's at a
     fraction of its rays (cast as :func:`irradiance_texture` casts them).
     Returns the result (visibility final, ``interleaved`` empty) and the refined points
-    (indices into ``positions``) per light."""
+    (indices into ``positions``) per light. ``device``: as :func:`irradiance_texture`'s."""
+    device = or_default(device)
     start = time.perf_counter()
     visibility = dict(result.visibility)
     unshadowed = dict(result.unshadowed)
@@ -595,7 +603,7 @@ def refine_penumbrae(
         if light.path not in result.interleaved:
             continue
         where = refined[light.path] = _penumbra(result, light.path, covered.shape, texel32,
-                                                period)
+                                                period, device)
         if not where.size:
             continue
         # each point's result does not depend on the order: the rays go along a
@@ -604,11 +612,13 @@ def refine_penumbrae(
         nrm_at = np.take(nrm, at, axis=0)  # fancy indexing of (N, 3) rows: 5x as long
         # each penumbra texel the strata of the interleaved classes it has not traced
         # (the other p^2 - 1 shares of them, once each)
-        samplers.append(LightSampler(light, ray_origins(np.take(pos, at, axis=0), nrm_at),
+        samplers.append(LightSampler(light, ray_origins(np.take(pos, at, axis=0), nrm_at,
+                                                        device),
                                      nrm_at, samples, light_rng(seed, light),
                                      (dome_textures or {}).get(light.path), classes[at],
                                      1.0 if boundary is None else boundary.eta,
-                                     sequence=sequence, complement=True, period=period))
+                                     device=device, sequence=sequence, complement=True,
+                                     period=period))
     # each pass's weights average over its own strata, 1 / p^2 and the rest of them:
     # the texel's estimate from all of them weights the passes so (0.25 and 0.75 at 2)
     first = np.float32(1.0 / (period * period))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import threading
 import zlib
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -15,14 +15,14 @@ from numpy.typing import NDArray
 
 from ...errors import InputError
 from ..cache import kept
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device
 from ..device.memory import (
     device_buffer,
     host_buffer,
     host_output,
     read_output,
 )
-from ..device.programs import Kernel, build, jit_at_first_launch
+from ..device.programs import Kernel, build
 from ..device.sources import cl_source
 from ..options import INTERLEAVE_PERIODS
 from ..scene import Light
@@ -284,15 +284,14 @@ entering weight 0.26-0.41 s in numpy, 21-23 ms on the device with the download."
 _SAMPLE_LOCK = threading.Lock()
 
 
-@device_cache(maxsize=8)
-def _sample_kernel(kind: str, count: int, interleaved: bool) -> Any:
-
+@lru_cache(maxsize=8)
+def _sample_kernel(device: Device, kind: str, count: int, interleaved: bool) -> Any:
     # where kernels are compiled at their first launch (PoCL) both kinds share one
     # program: a build's fixed cost (0.29 s cold) once
-    kinds = (1, 2) if jit_at_first_launch() else (1 if kind == "sphere" else 2,)
+    kinds = (1, 2) if device.jit_at_first_launch else (1 if kind == "sphere" else 2,)
     source = "".join(f"#define KIND {k}\n" + _SAMPLE_KERNEL.replace(
         "sample_entering(", f"sample_entering_{k}(") + "#undef KIND\n" for k in kinds)
-    program = build(source, [f"-DCOUNT={count}", f"-DINTERLEAVED={int(interleaved)}"])
+    program = build(device, source, [f"-DCOUNT={count}", f"-DINTERLEAVED={int(interleaved)}"])
     return Kernel(program, f"sample_entering_{1 if kind == 'sphere' else 2}", 1)
 
 
@@ -311,13 +310,14 @@ class LightSampler:
     the same points share one device buffer each of the origins, normals and classes.
     ``sequence``: the sample points, :func:`light_sample_set`. With ``complement`` as well,
     each point traces the strata its class does not, the other classes' sets in turn
-    (:func:`refine_penumbrae`: with its first share, all of them)."""
+    (:func:`refine_penumbrae`: with its first share, all of them). ``device``: where
+    the samples of :data:`DEVICE_SAMPLED_KINDS` are made (None: in numpy)."""
 
     def __init__(self, light: Light, origins: NDArray[Any], normals: NDArray[Any],
                  samples: int, rng: np.random.Generator,
                  dome_texture: NDArray[np.float32] | None = None,
                  interleave: NDArray[Any] | None = None, eta: float = 1.0,
-                 device: bool = True,
+                 device: Device | None = None,
                  point_buffers: dict[str, Any] | None = None,
                  sequence: str = "stratified", complement: bool = False,
                  period: int = 2) -> None:
@@ -350,7 +350,8 @@ class LightSampler:
         self.colour = np.ones(3, np.float32) if light.kind == "dome" and dome_texture is not \
             None else surface_radiance(light).astype(np.float32)
         # the device kernel makes a sphere's cone and every frame per point itself
-        on_device = device and light.kind in DEVICE_SAMPLED_KINDS and dome_texture is None
+        on_device = device is not None and light.kind in DEVICE_SAMPLED_KINDS and \
+            dome_texture is None
         radius = max(light.radius, 1e-9)
         if light.kind == "distant":
             self.half = math.radians(max(light.angle_deg, 0.0)) / 2
@@ -369,33 +370,33 @@ class LightSampler:
         else:
             raise InputError(f"unsupported light kind {light.kind!r} at {light.path}")
         self._sphere = [np.float32(x) for x in (*np.asarray(light.position)[:3], radius)]
-        self.device = self._device_setup({} if point_buffers is None else point_buffers) \
-            if on_device else None
+        self.device = self._device_setup(device, {} if point_buffers is None else
+                                         point_buffers) if on_device else None
 
-    def _device_setup(self, points: dict[str, Any]) -> dict[str, Any]:
+    def _device_setup(self, device: Any, points: dict[str, Any]) -> dict[str, Any]:
         """The device buffers :meth:`entering_sample` reads, uploaded once per sampler;
         the origins and normals once into ``points``, which samplers of the same points
         share."""
         def buf(a: Any, dtype: Any = np.float32) -> Any:
-            return device_buffer(np.asarray(a, dtype))
+            return device_buffer(device, np.asarray(a, dtype))
 
         if "origin" not in points:
             # the arrays themselves on a CPU device (the callers keep them, unchanged,
             # until the samplers close), not copies: half the samplers' time and 0.16 GB
             # of the irradiance task's peak at texture 4096
-            points.update(origin=host_buffer(np.asarray(self.origins, np.float32)),
-                          normal=host_buffer(np.asarray(self.normals, np.float32)))
+            points.update(origin=host_buffer(device, np.asarray(self.origins, np.float32)),
+                          normal=host_buffer(device, np.asarray(self.normals, np.float32)))
         if self.classes is not None and "classes" not in points:
-            points["classes"] = host_buffer(self.classes)
+            points["classes"] = host_buffer(device, self.classes)
         table = transmission_table(self.eta)
         u, v = self.grid[:, 0], self.grid[:, 1]
         strata_uv = np.stack([u, np.cos(2 * math.pi * v), np.sin(2 * math.pi * v), 0 * u], 1)
         interleaved = self.sets is not None
-        return {**points, "strata_uv": buf(strata_uv),
+        return {**points, "device": device, "strata_uv": buf(strata_uv),
                 "classes": points["classes"] if interleaved else buf([0], np.uint8),
                 "sets": buf(self.sets if interleaved else [0], np.int32),
                 "table": buf(table), "table_n": np.int32(table.size),
-                "kernel": _sample_kernel(self.light.kind, self.count, interleaved)}
+                "kernel": _sample_kernel(device, self.light.kind, self.count, interleaved)}
 
     def close(self) -> None:
         """Let the device buffers go (a light's sampler is done once its rays are)."""
@@ -428,17 +429,18 @@ class LightSampler:
         out = (d_into, np.empty(n, np.float32), far_into)
         if n == 0:  # no launch: mapping an empty output is an OpenCL error
             return out[0], out[2], out[1]
-        _, queue = cl_context()
+        device = dev["device"]
+        queue = device.queue
         # each sample's own arrays, written in place on a CPU device (a copy out of
         # device buffers took 1.3-2.9 ms of a sample's 4-7 at texture 1024)
-        buffers = [host_output(a) for a in out]
+        buffers = [host_output(device, a) for a in out]
         with _SAMPLE_LOCK:  # a kernel object's arguments are shared: one launch at a time
             dev["kernel"](queue, (-(-n // SAMPLE_POINTS_PER_ITEM),), None, dev["origin"],
                           dev["normal"], dev["strata_uv"], dev["classes"], dev["sets"],
                           *self._sphere, dev["table"], dev["table_n"], np.int32(k), *buffers,
                           np.int32(n), np.int32(first))
         for buffer, array in zip(buffers, out, strict=True):
-            read_output(queue, buffer, array)
+            read_output(device, buffer, array)
         d, w, far = out
         return d, far, w
 
@@ -451,11 +453,11 @@ class LightSampler:
 
     def sample(self, k: int) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
         """Sample k of every point: one stratum for all, or the point's k-th stratum (in
-        numpy: a sampler made with ``device=False``, or of a kind the device does not
+        numpy: a sampler made without a device, or of a kind the device does not
         sample)."""
         if self.device is not None:
             raise InputError(f"light {self.light.path}: sampled on the device "
-                             "(entering_sample); make the sampler with device=False")
+                             "(entering_sample); make the sampler without a device")
         if self.sets is None or self.classes is None:
             u, v = self.grid[k]
         else:

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device, or_default
 from ..device.memory import run_on_host_arrays
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
@@ -100,13 +101,14 @@ def resampled_texels(image: NDArray[Any], size: int, index: NDArray[np.integer]
 _POWER_KERNEL = cl_source(__package__, "resample_power.cl")
 
 
-def times_resampled_power(rgb: NDArray[np.float32], image: NDArray[Any], power: float
-                          ) -> None:
+def times_resampled_power(rgb: NDArray[np.float32], image: NDArray[Any], power: float,
+                          device: Device | None = None) -> None:
     """``rgb *= max(resample_bilinear(image, S), 0) ** power`` in place for an (S, S, 3)
     float32 ``rgb`` and an (H, W, 3) ``image``, on the OpenCL device without making the
     resampled (S, S, 3) image (201 MB at texture 4096): a render's albedo weight after
     the blur (d'Eon et al. 2007's split) from the albedo's own texture. The same floats
-    as numpy's for powers 1 and 1/2 (:data:`EXACT_POWERS`); others within OpenCL's pow."""
+    as numpy's for powers 1 and 1/2 (:data:`EXACT_POWERS`); others within OpenCL's pow.
+    ``device``: where it runs (None: :func:`~..device.choice.or_default`)."""
     src = np.ascontiguousarray(image, np.float32)
     size = rgb.shape[0]
     if rgb.shape != (size, size, 3) or rgb.dtype != np.float32 or src.ndim != 3 or \
@@ -119,8 +121,8 @@ def times_resampled_power(rgb: NDArray[np.float32], image: NDArray[Any], power: 
         fx = fy = np.zeros(size, np.float32)
     else:
         (x0, fx), (y0, fy) = _axis_weights(w, size), _axis_weights(h, size)
-    _, queue = cl_context()
-    run_on_host_arrays(_power_kernel(EXACT_POWERS.get(power, 0)), queue, (size, size),
+    device = or_default(device)
+    run_on_host_arrays(_power_kernel(device, EXACT_POWERS.get(power, 0)), device, (size, size),
                        [src, x0.astype(np.int32), fx, y0.astype(np.int32), fy, np.int32(w),
                         np.int32(h), np.int32(size), np.float32(power)], [rgb])
 
@@ -130,6 +132,7 @@ EXACT_POWERS = {1.0: 1, 0.5: 2}
 kernels' POWER."""
 
 
-@device_cache(maxsize=3)
-def _power_kernel(mode: int) -> Any:
-    return Kernel(build(_POWER_KERNEL, [f"-DPOWER={mode}"]), "times_resampled_power", 2)
+@lru_cache(maxsize=6)
+def _power_kernel(device: Device, mode: int) -> Any:
+    return Kernel(build(device, _POWER_KERNEL, [f"-DPOWER={mode}"]),
+                  "times_resampled_power", 2)

@@ -15,14 +15,14 @@ the numpy version's last write does; one per texel interpolates the attributes);
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import InputError
-from ..device.choice import cl_context, device_cache
+from ..device.choice import Device, or_default
 from ..device.memory import host_buffer, host_output, read_output
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
@@ -379,25 +379,26 @@ def rasterize_reference(
 _KERNEL = cl_source(__package__, "texture_maps.cl")
 
 
-@device_cache()
-def texture_kernels() -> tuple[Any, Any]:
-
-    program = build(_KERNEL)
+@lru_cache(maxsize=4)
+def texture_kernels(device: Device) -> tuple[Any, Any]:
+    program = build(device, _KERNEL)
     return Kernel(program, "claim_texels", 1), Kernel(program, "texel_attributes", 2)
 
 
 def rasterize(
     points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
     uv_tris: NDArray[np.int32], size: int, meters_per_unit: float,
-    region_weights: NDArray[np.float64] | None = None,
+    region_weights: NDArray[np.float64] | None = None, device: Device | None = None,
 ) -> TextureMaps:
     """Rasterise triangles (vertex indices ``tris``, UV indices ``uv_tris``) at ``size``
     on the OpenCL device: the maps of :func:`rasterize_reference` (the same float64
-    coverage test and float32 interpolation; normals within float32 rounding)."""
+    coverage test and float32 interpolation; normals within float32 rounding).
+    ``device``: where it runs (None: :func:`~..device.choice.or_default`)."""
     tq, det, tri_mm_u, tri_mm_v, normals = _triangles(points, tris, uv, uv_tris, size,
                                                       meters_per_unit)
-    _, queue = cl_context()
-    claim, attributes = texture_kernels()
+    device = or_default(device)
+    queue = device.queue
+    claim, attributes = texture_kernels(device)
     n_tris = tq.shape[0]
     n_regions = 0 if region_weights is None else int(np.shape(region_weights)[1])
 
@@ -405,14 +406,14 @@ def rasterize(
     tq, det, tris = (np.ascontiguousarray(a, t) for a, t in ((tq, np.float64),
                                                           (det, np.float64),
                                                           (tris, np.int32)))
-    tq_buf, det_buf = host_buffer(tq), host_buffer(det)
-    corner_buf = host_buffer(tris)
+    tq_buf, det_buf = host_buffer(device, tq), host_buffer(device, det)
+    corner_buf = host_buffer(device, tris)
     table = _attribute_table(points, normals, region_weights)
-    table_buf = host_buffer(table)
+    table_buf = host_buffer(device, table)
     tri_mm = np.stack([tri_mm_u, tri_mm_v], 1).astype(np.float32)
-    tri_mm_buf = host_buffer(tri_mm)
+    tri_mm_buf = host_buffer(device, tri_mm)
     triangle = np.full((size, size), -1, np.int32)
-    tri_buf = host_output(triangle)
+    tri_buf = host_output(device, triangle)
     if n_tris:
         claim(queue, (n_tris,), None, tq_buf, det_buf, tri_buf, np.int32(size),
               np.int32(n_tris))
@@ -421,14 +422,14 @@ def rasterize(
            "mm_u": np.empty((size, size), np.float32), "mm_v": np.empty((size, size), np.float32),
            "regions": np.empty((size, size, n_regions) if n_regions else 1,
                                REGION_WEIGHT_DTYPE)}
-    bufs = {k: host_output(v) for k, v in out.items()}
+    bufs = {k: host_output(device, v) for k, v in out.items()}
     attributes(queue, (size, size), None, tri_buf, tq_buf, det_buf, corner_buf, table_buf,
                tri_mm_buf, bufs["position"],
                bufs["normal"], bufs["mm_u"], bufs["mm_v"], bufs["regions"], np.int32(size),
                np.int32(n_regions))
-    read_output(queue, tri_buf, triangle)
+    read_output(device, tri_buf, triangle)
     for k, v in out.items():
-        read_output(queue, bufs[k], v)
+        read_output(device, bufs[k], v)
     return TextureMaps(size, triangle, out["position"], out["normal"], out["mm_u"],
                        out["mm_v"], out["regions"] if n_regions else None,
                        _texel_surface(triangle, tq, det, tris, table), tri_mm,

@@ -119,7 +119,7 @@ def test_intel_runtime_is_registered_and_survives_pymeshlab() -> None:
     assert Path(icd).is_absolute() and Path(icd).name == "libintelocl.so"
 
 
-_LOADED = ("from skinpipe.render.device import choice, runtimes; c = choice.device_choice();"
+_LOADED = ("from skinpipe.render.device import choice, runtimes; c = choice.open_device().choice;"
            "maps = open('/proc/self/maps').read();"
            "print(c.candidate.runtime, 'libintelocl' in maps, runtimes.SETUP.notes)")
 
@@ -150,10 +150,9 @@ def test_intel_runtime_is_loaded_only_where_it_may_be_used(tmp_path: Path) -> No
     if first.startswith("pocl-cpu"):
         # Intel's asked for only after a first query left it out: an error that says so,
         # and asked for again, the note once
-        late = run("from skinpipe.render.device import choice, runtimes; choice.device_choice();"
-                   "choice.set_device('intel')\n"
+        late = run("from skinpipe.render.device import choice, runtimes; choice.open_device()\n"
                    "for _ in range(2):\n"
-                   "    try: choice.device_choice()\n"
+                   "    try: choice.open_device('intel')\n"
                    "    except Exception as exc: print(type(exc).__name__, exc)\n"
                    "print(sum('first OpenCL query' in n for n in runtimes.SETUP.notes))")
         assert late.startswith("InputError") and "first OpenCL query" in late, late
@@ -211,16 +210,15 @@ def test_unknown_device_is_one_clear_error_without_traceback() -> None:
     assert len(err) == 1 and "no OpenCL device matches 'no-such-device'" in err[0]
 
 
-def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
+def test_ledger_counts_builds_and_launches(cl_device: choice.Device) -> None:
     import pyopencl as cl
 
-    assert choice.device_choice().candidate.runtime == cl_device.runtime
     before = programs.LEDGER.copy()
     # launched without a local size, the grid is padded: the kernel tests its bounds
-    program = programs.build("__kernel void twice(__global float *a, const int n)"
+    program = programs.build(cl_device, "__kernel void twice(__global float *a, const int n)"
                            "{ if (get_global_id(0) < n) a[get_global_id(0)] *= 2.0f; }")
     kernel = programs.Kernel(program, "twice", 1)
-    ctx, queue = choice.cl_context()
+    ctx, queue = cl_device.context, cl_device.queue
     a = np.arange(8, dtype=np.float32)
     buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
     kernel(queue, (8,), None, buf, np.int32(8))
@@ -233,12 +231,11 @@ def test_ledger_counts_builds_and_launches(cl_device: Candidate) -> None:
     assert since["kernel_launches"] == {"twice": 2}
 
 
-def test_an_empty_output_reads_back_without_a_map(cl_device: Candidate) -> None:
+def test_an_empty_output_reads_back_without_a_map(cl_device: choice.Device) -> None:
     # OpenCL refuses to map zero bytes (clEnqueueMapBuffer: INVALID_VALUE): an empty
     # output has nothing to read back, and its buffer (one placeholder element) stays
-    _, queue = choice.cl_context()
     empty = np.empty((0, 3), np.float32)
-    memory.read_output(queue, memory.host_output(empty), empty)
+    memory.read_output(cl_device, memory.host_output(cl_device, empty), empty)
     assert empty.shape == (0, 3)
 
 
@@ -256,31 +253,27 @@ __kernel void encode(__global const float *f, const int n, __global ushort *out)
 """
 
 
-def _half_kernel(name: str) -> object:
+def _half_kernel(device: choice.Device, name: str) -> object:
     from skinpipe.render.device.programs import HALF_BITS, Kernel, build
 
-    return Kernel(build(HALF_BITS + _HALF_TEST_KERNELS), name, 1)
+    return Kernel(build(device, HALF_BITS + _HALF_TEST_KERNELS), name, 1)
 
 
-@pytest.mark.usefixtures("cl_device")
-def test_half_bits_decode_as_numpy_does_every_finite_half() -> None:
-    from skinpipe.render.device.choice import cl_context
+def test_half_bits_decode_as_numpy_does_every_finite_half(cl_device: choice.Device) -> None:
     from skinpipe.render.device.memory import run_on_host_arrays
 
     bits = np.arange(1 << 16, dtype=np.uint16)
     bits = bits[np.isfinite(bits.view(np.float16))]
     out = np.empty(bits.size, np.float32)
-    run_on_host_arrays(_half_kernel("decode"), cl_context()[1], (bits.size,),
+    run_on_host_arrays(_half_kernel(cl_device, "decode"), cl_device, (bits.size,),
                        [bits, np.int32(bits.size)], [out])
     np.testing.assert_array_equal(out.view(np.uint32),
                                   bits.view(np.float16).astype(np.float32).view(np.uint32))
 
 
-@pytest.mark.usefixtures("cl_device")
-def test_half_bits_encode_rounds_as_numpy_does() -> None:
+def test_half_bits_encode_rounds_as_numpy_does(cl_device: choice.Device) -> None:
     # every half's value, the midpoints between neighbours (ties: to even) and one float
     # ulp either side of them, and random floats across half's normal and subnormal range
-    from skinpipe.render.device.choice import cl_context
     from skinpipe.render.device.memory import run_on_host_arrays
 
     halves = np.arange(0x7bff + 1, dtype=np.uint16).view(np.float16).astype(np.float32)
@@ -293,6 +286,6 @@ def test_half_bits_encode_rounds_as_numpy_does() -> None:
                         np.float32(10.0) ** rng.uniform(-9, 4.8, 200_000).astype(np.float32)])
     f = np.concatenate([f, -f])
     out = np.empty(f.size, np.uint16)
-    run_on_host_arrays(_half_kernel("encode"), cl_context()[1], (f.size,),
+    run_on_host_arrays(_half_kernel(cl_device, "encode"), cl_device, (f.size,),
                        [f, np.int32(f.size)], [out])
     np.testing.assert_array_equal(out, f.astype(np.float16).view(np.uint16))

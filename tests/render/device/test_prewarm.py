@@ -4,6 +4,7 @@ kernels (skinpipe/render/device/programs.py, light sampling plans)."""
 from __future__ import annotations
 
 import re
+from functools import partial
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ import skinpipe.render.diffusion.gather as gather_module
 import skinpipe.render.diffusion.layout as layout_module
 import skinpipe.render.diffusion.margins as margins_module
 from skinpipe.render.device import programs
-from skinpipe.render.device.choice import Candidate
+from skinpipe.render.device.choice import Device
 from skinpipe.render.device.programs import fixed_local_size
 from skinpipe.render.diffusion import direct_blur, push_pull, recursive_blur
 from skinpipe.render.light import irradiance, samples
@@ -56,26 +57,26 @@ def test_every_kernel_returns_at_its_bounds_test(module: str) -> None:
         assert "] =" not in head and "STORE(" not in head, k.group(1)
 
 
-def test_prewarm_builds_ahead_and_the_render_finds_its_programs(cl_device: Candidate
-                                                                ) -> None:
+def test_prewarm_builds_ahead_and_the_render_finds_its_programs(cl_device: Device) -> None:
     def fails() -> None:
         raise RuntimeError("a step that fails is skipped")
 
     push_pull.push_pull_kernels.cache_clear()
     before = programs.LEDGER.copy()
-    pre = programs.start_prewarm([fails, push_pull.push_pull_kernels])
+    pre = programs.start_prewarm(cl_device, [fails, partial(push_pull.push_pull_kernels,
+                                                            cl_device)])
     programs.wait_for_prewarm()
     since = programs.LEDGER.since(before)
     assert since["kernels_prewarmed"] == 3 and pre.seconds > 0
     # the render's own call finds the program built (no second build)
     built = since["programs_built"]
-    pull, _, _ = push_pull.push_pull_kernels()
+    pull, _, _ = push_pull.push_pull_kernels(cl_device)
     assert programs.LEDGER.since(before)["programs_built"] == built
     # and the prewarmed kernel computes (the fill of an empty texel)
     v = np.zeros((6, 5, 3), np.float32)
     c = np.zeros((6, 5), np.float32)
     v[2, 3], c[2, 3] = (1.0, 2.0, 3.0), 1.0
-    out = push_pull.push_pull(v, c)
+    out = push_pull.push_pull(v, c, device=cl_device)
     np.testing.assert_allclose(out[0, 0], (1.0, 2.0, 3.0), rtol=1e-5)
     assert pull.name == "pull"
 
@@ -93,12 +94,12 @@ def test_sample_plan_is_what_the_sampler_traces(kind: str, samples: int,
     nrm = np.tile(np.float32([0, 0, 1]), (4, 1))
     classes = np.arange(4) if interleaved else None
     sampler = LightSampler(light, pts, nrm, samples, np.random.default_rng(0),
-                           interleave=classes, device=False)
+                           interleave=classes)
     count, inter = sample_plan(light, samples, interleaved)
     assert (count, inter) == (sampler.count, sampler.sets is not None)
 
 
-def test_a_step_that_fails_costs_only_time(cl_device: Candidate) -> None:
+def test_a_step_that_fails_costs_only_time(cl_device: Device) -> None:
     """A step that raises is skipped (the render meets it again where its error is
     reported); the steps after it still run."""
     def missing() -> None:
@@ -106,6 +107,7 @@ def test_a_step_that_fails_costs_only_time(cl_device: Candidate) -> None:
 
     push_pull.push_pull_kernels.cache_clear()
     before = programs.LEDGER.copy()
-    programs.start_prewarm([missing, push_pull.push_pull_kernels])
+    programs.start_prewarm(cl_device, [missing, partial(push_pull.push_pull_kernels,
+                                                        cl_device)])
     programs.wait_for_prewarm()
     assert programs.LEDGER.since(before)["kernels_prewarmed"] == 3

@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from skinpipe.errors import InputError
-from skinpipe.render.device import choice, programs
+from skinpipe.render.device import programs
+from skinpipe.render.device.choice import open_device
 from skinpipe.render.diffusion import blur_switch
 from skinpipe.render.diffusion.blur_switch import (
     FIR_MAX_RADIUS_TUNED,
@@ -36,8 +37,8 @@ def test_fixed_switch_and_bad_values() -> None:
 
 def test_prefers_direct_follows_the_limits() -> None:
     narrow = DirectLimits(3, 3, "fixed")
-    assert prefers_direct(1.0, 1.0, limits=narrow)  # radius 3
-    assert not prefers_direct(2.0, 1.0, limits=narrow)  # radius 7
+    assert prefers_direct(open_device(), 1.0, 1.0, limits=narrow)  # radius 3
+    assert not prefers_direct(open_device(), 2.0, 1.0, limits=narrow)  # radius 7
 
 
 @pytest.mark.usefixtures("cl_device")
@@ -48,23 +49,22 @@ def test_measured_on_each_device_and_cached(monkeypatch: pytest.MonkeyPatch,
     blur_switch.direct_limit.cache_clear()
     try:
         # each kind measured when first asked, and only that kind
-        tex, source, seconds = blur_switch.direct_limit(per_texel=True)
+        tex, source, seconds = blur_switch.direct_limit(open_device(), per_texel=True)
         assert source == "measured" and seconds > 0
         assert 0 <= tex <= FIR_MAX_RADIUS_PER_TEXEL
-        assert blur_switch.known_limit(per_texel=False) is None
-        one, source, _ = blur_switch.direct_limit(per_texel=False)
+        assert blur_switch.known_limit(open_device(), per_texel=False) is None
+        one, source, _ = blur_switch.direct_limit(open_device(), per_texel=False)
         assert source == "measured" and 0 <= one <= FIR_MAX_RADIUS_TUNED
         blur_switch.direct_limit.cache_clear()
-        assert blur_switch.direct_limit(per_texel=True)[:2] == (tex, "cache")
-        assert blur_switch.direct_limit(per_texel=False)[:2] == (one, "cache")
+        assert blur_switch.direct_limit(open_device(), per_texel=True)[:2] == (tex, "cache")
+        assert blur_switch.direct_limit(open_device(), per_texel=False)[:2] == (one, "cache")
     finally:
         blur_switch.direct_limit.cache_clear()
-    assert choice.device_choice() is not None
 
 
 def test_measuring_one_kind_times_only_its_kernels(cl_device: object) -> None:
     before = programs.LEDGER.copy()
-    limits = blur_switch.measure_direct_limits(256, one_sigma=False)
+    limits = blur_switch.measure_direct_limits(open_device(), 256, one_sigma=False)
     assert limits.max_radius is None and limits.max_radius_per_texel is not None
     launched = programs.LEDGER.since(before)["kernel_launches"]
     assert "fir_band" not in launched and any(k.startswith("fir_band_texel") for k in launched)

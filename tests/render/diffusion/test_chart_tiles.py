@@ -21,7 +21,7 @@ from scipy.special import ndtr
 from skinpipe.cli import main
 from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN
-from skinpipe.render.device.choice import cl_context
+from skinpipe.render.device.choice import Device, open_device
 from skinpipe.render.device.memory import host_buffer
 from skinpipe.render.diffusion.diffuse import diffuse
 from skinpipe.render.diffusion.layout import ChartLayout, DiffusionLayout, _fill_level, chart_layout
@@ -84,7 +84,7 @@ def texel_mm(size: int) -> tuple[np.ndarray, np.ndarray]:
 def _layout(size: int = 1024, geometry: bool = True):
     pts, tris, uv = seam_patch()
     maps = rasterize(pts, tris, uv, tris, size, 0.001)
-    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    charts = chart_layout(open_device(), maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
     assert charts.n_charts == 2
     return maps, charts if geometry else ChartLayout(charts.chart, charts.n_charts)
 
@@ -162,7 +162,7 @@ def notched_patch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _notched_layout(size: int):
     pts, tris, uv = notched_patch()
     maps = rasterize(pts, tris, uv, tris, size, 0.001)
-    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    charts = chart_layout(open_device(), maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
     assert charts.n_charts == 2
     at = int((LEFT_UV[1] + UV_PER_MM) * size), int((LEFT_UV[0] + UV_PER_MM) * size)
     return maps, charts, int(charts.chart[at])
@@ -180,7 +180,7 @@ def test_margins_read_the_surface_as_far_as_the_blurs_reach(level: int) -> None:
 
     size, margin = 256, 6
     maps, charts, ell = _notched_layout(size)
-    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+    layout = DiffusionLayout(open_device(), maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              None, charts)
     tiles = layout.grid(level, margin).tiles
     h, w = tiles.shape
@@ -472,15 +472,15 @@ def test_the_device_splat_fills_the_tiles_as_the_numpy_splat_does() -> None:
     import pyopencl as cl
 
     maps, charts = _layout(256)
-    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+    layout = DiffusionLayout(open_device(), maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              None, charts)
     e = np.random.default_rng(3).random((256, 256, 3)).astype(np.float32)
     grids = {k: layout.grid(k, 4) for k in range(4)}
     scratch = layout.buffer("tmp", max(g.shape[0] * g.shape[1] * 16 for g in grids.values()))
-    got = {k: _fill_level(layout, grid, host_buffer(e), scratch,
+    got = {k: _fill_level(layout, grid, host_buffer(open_device(), e), scratch,
                           layout.buffer(f"level {k}", grid.shape[0] * grid.shape[1] * 16))
            for k, grid in grids.items()}
-    _, queue = cl_context()
+    queue = open_device().queue
     covered = charts.chart >= 0
     for k, grid in grids.items():
         want = fill(grid.tiles, e[covered], charts.chart, charts.coverage)
@@ -497,21 +497,18 @@ def test_the_device_carries_the_margins_across_the_seam_as_numpy_does(
     against numpy's, levels 0-3 of the two-chart patch, flat and bent into a trough
     (z = bend x^2: points land on the other chart off their tangent plane, some miss):
     the same reads bit for bit."""
-    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
-    import skinpipe.render.diffusion.margins as margins_module
 
-    if not margins_module._device_has_doubles():
+    if not open_device().has_doubles:
         pytest.skip("the device has no doubles: the margins are numpy's alone")
     pts, tris, uv = seam_patch()
     pts = pts + np.stack([0 * pts[:, 0], 0 * pts[:, 0], bend * pts[:, 0] ** 2], axis=1)
     maps = rasterize(pts, tris, uv, tris, 256, 0.001)
-    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    charts = chart_layout(open_device(), maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
     tiles = {}
     for device in (True, False):
-        for module in (margins_module, chart_tiles_module):
-            monkeypatch.setattr(module, "_device_has_doubles", lambda device=device: device)
-        layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                                 None, charts)
+        monkeypatch.setattr(Device, "has_doubles", property(lambda _, device=device: device))
+        layout = DiffusionLayout(open_device(), maps.mm_per_texel_u, maps.mm_per_texel_v,
+                                 maps.coverage, None, charts)
         tiles[device] = [layout.grid(k, 6).tiles for k in range(4)]
     for k, (mine, want) in enumerate(zip(tiles[True], tiles[False], strict=True)):
         assert want.reads.count > 0, k
@@ -529,7 +526,7 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
     from skinpipe.render.device.memory import host_output, read_output
 
-    kernel = chart_tiles_module.seam_read_kernel()
+    kernel = chart_tiles_module.seam_read_kernel(open_device())
     if kernel is None:
         pytest.skip("the device has no doubles: the host reads across the seams")
     rng = np.random.default_rng(level)
@@ -540,11 +537,12 @@ def test_the_device_reads_at_any_position_as_scipy_does(level: int) -> None:
     reads = chart_tiles_module.SeamReads((h, w), level, rows, xy)
     src = rng.random((h * w, 4)).astype(np.float32)
     got = np.empty_like(src)
-    out = host_output(got)
-    _, queue = cl_context()
-    kernel(queue, (h * w,), None, host_buffer(rows), host_buffer(xy), np.int32(h),
-           np.int32(w), np.int32(level > 0), host_buffer(src), np.int32(h * w), out)
-    read_output(queue, out, got)
+    device = open_device()
+    out = host_output(device, got)
+    kernel(device.queue, (h * w,), None, host_buffer(device, rows), host_buffer(device, xy),
+           np.int32(h), np.int32(w), np.int32(level > 0), host_buffer(device, src),
+           np.int32(h * w), out)
+    read_output(device, out, got)
     np.testing.assert_array_equal(got, src + reads.matrix @ src)
 
 
@@ -556,20 +554,17 @@ def test_the_device_finds_the_texel_coverage_as_numpy_does(
     UV layout turned 0.3 rad (its borders cross the texels at every phase): the same
     shares bit for bit (test_texel_coverage_is_the_share_of_the_square_on_its_chart
     holds the device's to the exact overlap)."""
-    import skinpipe.render.diffusion.chart_tiles as chart_tiles_module
-    import skinpipe.render.diffusion.margins as margins_module
 
-    if not margins_module._device_has_doubles():
+    if not open_device().has_doubles:
         pytest.skip("the device has no doubles: the coverage is numpy's alone")
     pts, tris, uv = seam_patch()
     pts = pts + np.stack([0 * pts[:, 0], 0 * pts[:, 0], bend * pts[:, 0] ** 2], axis=1)
     turn = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
     uv = (uv - 0.5) @ turn.T * 0.7 + 0.5
     maps = rasterize(pts, tris, uv, tris, 512, 0.001)
-    charts = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
-    for module in (margins_module, chart_tiles_module):
-        monkeypatch.setattr(module, "_device_has_doubles", lambda: False)
-    again = chart_layout(maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    charts = chart_layout(open_device(), maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
+    monkeypatch.setattr(Device, "has_doubles", property(lambda _: False))
+    again = chart_layout(open_device(), maps, pts, tris, uv, tris, RayScene([(pts, tris)]), 0)
     partial = charts.coverage[(charts.coverage > 0) & (charts.coverage < 1)]
     assert partial.size > 500 and np.unique(partial).size > 8
     np.testing.assert_array_equal(charts.coverage, again.coverage)
@@ -600,7 +595,7 @@ def test_without_the_device_reads_the_host_reads_across_the_seams_the_same(
     outs = []
     for device_reads in (True, False):
         if not device_reads:
-            monkeypatch.setattr(layout_module, "seam_read_kernel", lambda: None)
+            monkeypatch.setattr(layout_module, "seam_read_kernel", lambda device: None)
         out, stats = diffuse(e, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              v, w, charts=charts)
         assert len(set(stats.levels)) >= 2  # several levels, each filled in turn
@@ -617,10 +612,10 @@ def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
     from skinpipe.render.device.memory import host_output, read_output
 
     maps, charts = _layout(256)
-    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+    layout = DiffusionLayout(open_device(), maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              None, charts)
-    _, queue = cl_context()
-    kernel = chart_tiles_module.seam_read_kernel()
+    queue = open_device().queue
+    kernel = chart_tiles_module.seam_read_kernel(open_device())
     for k in range(4):
         grid = layout.grid(k, 4)
         reads = grid.seam_buffers()
@@ -628,10 +623,10 @@ def test_the_device_reads_across_the_seams_as_scipy_does() -> None:
         n = grid.shape[0] * grid.shape[1]
         src = np.random.default_rng(k).random((n, 4)).astype(np.float32)
         got = np.empty_like(src)
-        out = host_output(got)
-        source = host_buffer(src)
+        out = host_output(open_device(), got)
+        source = host_buffer(open_device(), src)
         kernel(queue, (n,), None, *reads, *(np.int32(x) for x in (*grid.shape, k > 0)),
                source, np.int32(n), out)
-        read_output(queue, out, got)
+        read_output(open_device(), out, got)
         np.testing.assert_array_equal(got, grid.tiles.read_across_seams(src.copy()),
                                       err_msg=f"level {k}")

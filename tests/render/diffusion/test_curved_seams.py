@@ -16,6 +16,7 @@ import pymeshlab
 import pytest
 
 from skinpipe.cli import main
+from skinpipe.render.device.choice import open_device
 from skinpipe.render.diffusion.diffuse import diffuse
 from skinpipe.render.diffusion.layout import chart_layout
 from skinpipe.render.light.raytrace import RayScene
@@ -77,7 +78,7 @@ def _largest_error(mesh: MeshData, geodesic: Callable[[np.ndarray, np.ndarray], 
     layout = unwrap(mesh, min_chart_area=min_chart_area)
     tris, uv_tris = triangulate(mesh), layout.uv_indices.reshape(-1, 3)
     maps = rasterize(mesh.points, tris, layout.uv, uv_tris, 512, 0.001)
-    charts = chart_layout(maps, mesh.points, tris, layout.uv, uv_tris,
+    charts = chart_layout(open_device(), maps, mesh.points, tris, layout.uv, uv_tris,
                           RayScene([(mesh.points, tris)]), 0)
     cov = maps.coverage
     light = np.array([math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))])

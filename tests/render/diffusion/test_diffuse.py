@@ -11,6 +11,7 @@ import pytest
 from skinpipe.errors import InputError
 from skinpipe.profile.models import fit_error_eq2c, sum_of_gaussians
 from skinpipe.profile.reference_data import DEON_2007_SKIN
+from skinpipe.render.device.choice import open_device
 from skinpipe.render.diffusion.diffuse import diffuse
 from skinpipe.render.diffusion.gather import OpenCLBlur, blur_reference, diffuse_gather
 from skinpipe.render.diffusion.inputs import unit_region_weights
@@ -27,7 +28,7 @@ def test_opencl_matches_float64_reference() -> None:
     sigma_u = rng.uniform(0.1, 6.0, (h, w))
     sigma_v = rng.uniform(0.1, 6.0, (h, w))
     coverage = (rng.random((h, w)) > 0.15).astype(np.float32)
-    ours = OpenCLBlur(coverage).blur(image, sigma_u, sigma_v)
+    ours = OpenCLBlur(open_device(), coverage).blur(image, sigma_u, sigma_v)
     ref = blur_reference(image, sigma_u, sigma_v, coverage)
     np.testing.assert_allclose(ours, ref, rtol=1e-5, atol=1e-6)
 
@@ -37,7 +38,8 @@ def test_constant_field_stays_constant_at_chart_borders() -> None:
     coverage = np.zeros((h, w), np.float32)
     coverage[4:28, 6:20] = 1.0
     image = np.ones((h, w, 4), np.float32)
-    out = OpenCLBlur(coverage).blur(image, np.full((h, w), 5.0), np.full((h, w), 5.0))
+    out = OpenCLBlur(open_device(), coverage).blur(image, np.full((h, w), 5.0),
+                                                   np.full((h, w), 5.0))
     np.testing.assert_allclose(out[coverage > 0], 1.0, rtol=1e-5)
 
 
@@ -257,7 +259,7 @@ def test_a_prepared_layout_serves_many_diffusions_like_a_fresh_one() -> None:
     mm_u = np.tile(np.linspace(0.05, 0.09, n), (n, 1))
     mm_v = np.full((n, n), 0.07)
     rw = np.stack([xx / (n - 1), 1 - xx / (n - 1)], -1)
-    layout = DiffusionLayout(mm_u, mm_v, cov, rw)
+    layout = DiffusionLayout(open_device(), mm_u, mm_v, cov, rw)
     cases = [(np.array([1e-6, 0.004, 0.004, 0.3]), rng.random((2, 4, 3))),
              (np.array([0.01, 0.5, 2.0]), rng.random((2, 3, 3))),
              (np.array([1e-6, 0.004, 0.004, 0.3]), rng.random((2, 4, 3)))]
@@ -281,7 +283,7 @@ def test_a_layout_lets_its_work_go_and_makes_it_again_the_same() -> None:
 
     e, mm_u, mm_v, cov, rw = _stretched_layout(90)
     v, w = np.array([0.002, 0.05, 0.6, 3.0]), np.random.default_rng(2).random((2, 4, 3))
-    layout = DiffusionLayout(mm_u, mm_v, cov, rw)
+    layout = DiffusionLayout(open_device(), mm_u, mm_v, cov, rw)
     before, _ = diffuse_prepared(layout, e, v, w)
     assert layout._buffers and layout._grids
     layout.release_work()
@@ -509,8 +511,8 @@ def test_region_weights_made_from_the_triangles_diffuse_as_the_map() -> None:
     terms = diffusion_terms(fits)
     rng = np.random.default_rng(4)
     e = (rng.random((192, 192, 3)) * maps.coverage[..., None]).astype(np.float32)
-    layouts = [DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
-                               maps.region_weights, texel_regions=regions)
+    layouts = [DiffusionLayout(open_device(), maps.mm_per_texel_u, maps.mm_per_texel_v,
+                               maps.coverage, maps.region_weights, texel_regions=regions)
                for regions in (None, maps.texel_regions)]
     assert not layouts[0].by_triangle and layouts[0].region_weights is not None
     assert layouts[1].by_triangle and layouts[1].region_weights is None

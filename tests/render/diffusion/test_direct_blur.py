@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from skinpipe.errors import InputError
+from skinpipe.render.device.choice import open_device
 from skinpipe.render.diffusion.blur_switch import prefers_direct
 from skinpipe.render.diffusion.direct_blur import (
     FIR_MAX_ERROR,
@@ -54,7 +55,7 @@ def test_matches_the_exact_gaussian_to_1e3_of_the_peak(sigma: float) -> None:
     n = 2 * half + 1
     img = np.zeros((n, n, 4), np.float32)
     img[half, half] = 1.0
-    got = DirectBlur(n, n).blur(img, sigma, sigma)[..., 0]
+    got = DirectBlur(open_device(), n, n).blur(img, sigma, sigma)[..., 0]
     k = np.arange(-half, half + 1)
     g = np.exp(-k * k / (2 * sigma * sigma))
     g /= g.sum()
@@ -72,7 +73,7 @@ def test_matches_the_exact_gaussian_to_1e3_of_the_peak(sigma: float) -> None:
 ])
 def test_opencl_agrees_with_the_float64_reference(h: int, w: int, su: float, sv: float) -> None:
     img = np.random.default_rng(3).random((h, w, 4)).astype(np.float32)
-    ours = DirectBlur(h, w).blur(img, su, sv)
+    ours = DirectBlur(open_device(), h, w).blur(img, su, sv)
     ref = direct_reference(img, su, sv)
     assert np.abs(ours - ref).max() / np.abs(ref).max() < 1e-5
 
@@ -109,11 +110,11 @@ def test_per_texel_weights_agree_with_the_float64_reference(h: int, w: int) -> N
     import pyopencl as cl
 
     img, tu, tv, iu, iv = _texel_case(h, w, 4)
-    blur = DirectBlur(h, w)
+    blur = DirectBlur(open_device(), h, w)
     blur.upload(img)
     flags = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
     bu, bv = (cl.Buffer(blur.ctx, flags, hostbuf=i) for i in (iu, iv))
-    direct_kernels().blur_per_texel(blur.buf_a, blur.buf_b, h, w, tu, tv, bu, bv)
+    direct_kernels(open_device()).blur_per_texel(blur.buf_a, blur.buf_b, h, w, tu, tv, bu, bv)
     blur.queue.finish()
     blur.buf_a, blur.buf_b = blur.buf_b, blur.buf_a
     ours = blur.download()
@@ -125,7 +126,7 @@ def test_texels_outside_count_as_zero() -> None:
     # a constant image keeps its value inside and falls at the borders by the mass the
     # kernel puts outside: 1 - sum of the weights past the edge, per axis
     h, w, s = 64, 300, 2.0
-    out = DirectBlur(h, w).blur(np.ones((h, w, 4), np.float32), s, s)
+    out = DirectBlur(open_device(), h, w).blur(np.ones((h, w, 4), np.float32), s, s)
     wts = fir_weights(s)
     edge = 1.0 - wts[1:].sum()  # at the first texel: half the kernel lies outside
     assert out[h // 2, w // 2, 0] == pytest.approx(1.0, abs=1e-6)
@@ -135,18 +136,20 @@ def test_texels_outside_count_as_zero() -> None:
 
 def test_band_fits_the_ring_budget_and_dispatch_rule() -> None:
     assert band_columns(3) == 128 and band_columns(8) == 64 and band_columns(40) == 16
-    assert prefers_direct(1.0, 2.0) and prefers_direct(4.0, 0.5)
-    assert not prefers_direct(1.0, 6.0)
+    assert prefers_direct(open_device(), 1.0, 2.0) and prefers_direct(open_device(), 4.0, 0.5)
+    assert not prefers_direct(open_device(), 1.0, 6.0)
     # per-texel weights cost more a tap: a narrower limit
-    assert prefers_direct(2.0, 2.0, per_texel=True) and not prefers_direct(4.0, 1.0, per_texel=True)
+    device = open_device()
+    assert prefers_direct(device, 2.0, 2.0, per_texel=True)
+    assert not prefers_direct(device, 4.0, 1.0, per_texel=True)
 
 
 def test_bad_input_is_refused() -> None:
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(InputError, match="sigma"):
             fir_radius(bad)
-    blur = DirectBlur(8, 8)
+    blur = DirectBlur(open_device(), 8, 8)
     with pytest.raises(InputError, match="texture"):
         blur.upload(np.zeros((8, 9, 4), np.float32))
     with pytest.raises(InputError, match="differ"):
-        direct_kernels().blur(blur.buf_a, blur.buf_a, 8, 8, 1.0, 1.0)
+        direct_kernels(open_device()).blur(blur.buf_a, blur.buf_a, 8, 8, 1.0, 1.0)

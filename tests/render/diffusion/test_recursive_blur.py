@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from skinpipe.render.device.choice import open_device
 from skinpipe.render.diffusion.recursive_blur import (
     QUANT_STEPS_PER_OCTAVE,
     QUANTIZE_CHUNK,
@@ -25,7 +26,7 @@ def _impulse_response(sigma: float) -> tuple[np.ndarray, np.ndarray]:
     half = int(8 * sigma) + 8
     img = np.zeros((2 * half + 1, 2 * half + 1, 4), np.float32)
     img[half, half] = 1.0
-    got = RecursiveBlur(2 * half + 1, 2 * half + 1).blur(img, sigma, sigma)[..., 0]
+    got = RecursiveBlur(open_device(), 2 * half + 1, 2 * half + 1).blur(img, sigma, sigma)[..., 0]
     k = np.arange(-half, half + 1)
     g = np.exp(-k * k / (2 * sigma * sigma))
     g /= g.sum()
@@ -53,7 +54,7 @@ def test_opencl_agrees_with_the_float64_reference_per_texel() -> None:
     img = rng.random((h, w, 4)).astype(np.float32)
     su = rng.uniform(0.3, 9.0, (h, w))
     sv = rng.uniform(0.3, 9.0, (h, w))
-    ours = RecursiveBlur(h, w).blur(img, su, sv)
+    ours = RecursiveBlur(open_device(), h, w).blur(img, su, sv)
     ref = recursive_reference(img, su, sv)
     assert np.abs(ours - ref).max() / np.abs(ref).max() < 1e-5
 
@@ -69,7 +70,7 @@ def test_rows_longer_than_local_memory_blur_the_same_through_global_scratch(
     img = rng.random((h, w, 4)).astype(np.float32)
     su = rng.uniform(0.3, 9.0, (h, w))
     sv = rng.uniform(0.3, 9.0, (h, w))
-    blur = RecursiveBlur(h, w)
+    blur = RecursiveBlur(open_device(), h, w)
     assert blur.iir.max_line >= max(h, w)  # every device the tests run on
     want = [blur.blur(img, *sigmas) for sigmas in ((su, sv), (3.5, 6.0))]
     monkeypatch.setattr(blur.iir, "max_line", 16)  # rows of 61 and 39 texels: past it
@@ -104,10 +105,10 @@ def test_table_is_finite_and_extreme_inputs_stay_finite() -> None:
     img = np.zeros((16, 24, 4), np.float32)
     img[8, 12] = 1e30  # large but finite
     sig = np.full((16, 24), 1e6)  # clamped to the table's widest sigma
-    out = RecursiveBlur(16, 24).blur(img, sig, np.zeros((16, 24)))
+    out = RecursiveBlur(open_device(), 16, 24).blur(img, sig, np.zeros((16, 24)))
     assert np.all(np.isfinite(out))
     with pytest.raises(ValueError, match="texture must be"):
-        RecursiveBlur(16, 24).blur(np.zeros((16, 16, 4)), 1.0, 1.0)
+        RecursiveBlur(open_device(), 16, 24).blur(np.zeros((16, 16, 4)), 1.0, 1.0)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

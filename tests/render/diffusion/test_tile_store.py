@@ -11,6 +11,7 @@ import os
 import re
 import threading
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from skinpipe.render.options import RenderOptions
 from skinpipe.render.renderer import Renderer
 from skinpipe.usd.io import open_stage_guarded
 
+from ..opencl_device import DEVICE
 from ..test_renderer import SMALL
 from .test_chart_tiles import _layout
 
@@ -45,7 +47,7 @@ def patch_layout():
 
 def _diffused(patch_layout, store: TileStore | None) -> tuple[np.ndarray, DiffusionLayout]:
     maps, charts = patch_layout
-    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+    layout = DiffusionLayout(DEVICE, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              None, charts, store)
     rng = np.random.default_rng(3)
     light = (rng.random((SIZE, SIZE, 3)) * (maps.coverage > 0)[..., None]).astype(np.float32)
@@ -61,9 +63,9 @@ def test_stored_tiles_read_back_give_the_same_diffusion(patch_layout, tmp_path: 
     tiles, arrays and reads, the same blur indices and steps derived from the texel
     sizes (stored in their place), and the same diffused light bit for bit."""
     reference, made = _diffused(patch_layout, None)
-    first = TileStore(tmp_path, "patch")
+    first = TileStore(tmp_path, "patch", DEVICE)
     out1, _ = _diffused(patch_layout, first)
-    second = TileStore(tmp_path, "patch")
+    second = TileStore(tmp_path, "patch", DEVICE)
     out2, layout2 = _diffused(patch_layout, second)
     assert first.saved and not first.loaded
     assert sorted(second.loaded) == sorted(first.saved) and not second.saved
@@ -86,7 +88,7 @@ def test_stored_tiles_read_back_give_the_same_diffusion(patch_layout, tmp_path: 
 
 def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Path) -> None:
     _, layout = _diffused(patch_layout, None)
-    store = TileStore(tmp_path, "patch")
+    store = TileStore(tmp_path, "patch", DEVICE)
     level, margin = next(iter(layout._grids))
     # LevelGrid dropped the texel sizes: the store takes tiles straight from tile_level
     from skinpipe.render.diffusion.chart_tiles import tile_level
@@ -95,23 +97,23 @@ def test_a_wider_stored_margin_serves_a_narrower_one(patch_layout, tmp_path: Pat
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
                        maps.mm_per_texel_v, level, margin + 2, charts.geometry,
                        charts.coverage)
-    store.save(tiles, LevelGrid(tiles).derived())
+    store.save(tiles, LevelGrid(DEVICE, tiles).derived())
     store.flush()
-    assert store.load(level, margin, LevelGrid).tiles.margin == margin + 2
-    assert store.load(level, margin + 3, LevelGrid) is None
-    assert store.load(level + 1, margin, LevelGrid) is None
+    assert store.load(level, margin, partial(LevelGrid, DEVICE)).tiles.margin == margin + 2
+    assert store.load(level, margin + 3, partial(LevelGrid, DEVICE)) is None
+    assert store.load(level + 1, margin, partial(LevelGrid, DEVICE)) is None
 
 
 def test_a_damaged_file_is_removed_and_the_tiles_made_again(patch_layout,
                                                             tmp_path: Path) -> None:
-    reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch"))
-    files = sorted(TileStore(tmp_path, "patch").entry.glob("*.npz"))
+    reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch", DEVICE))
+    files = sorted(TileStore(tmp_path, "patch", DEVICE).entry.glob("*.npz"))
     damaged = files[0]
     data = bytearray(damaged.read_bytes())
     data[len(data) // 2] ^= 0xFF  # one flipped byte inside an array: the zip's CRC
     damaged.write_bytes(bytes(data))
     files[1].write_bytes(files[1].read_bytes()[:1000])  # a truncated one
-    store = TileStore(tmp_path, "patch")
+    store = TileStore(tmp_path, "patch", DEVICE)
     out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
     assert sum("cannot be used" in n for n in store.notes) == 2, store.notes
@@ -124,8 +126,8 @@ def test_an_old_format_or_reads_past_their_end_are_made_again(patch_layout,
     their tiles made again: one in the sparse-matrix format the store used before
     (indptr, indices, data), one whose texel rows would read past the reads' end (the
     device kernel would read out of bounds)."""
-    reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch"))
-    files = sorted(TileStore(tmp_path, "patch").entry.glob("*.npz"))
+    reference, _ = _diffused(patch_layout, TileStore(tmp_path, "patch", DEVICE))
+    files = sorted(TileStore(tmp_path, "patch", DEVICE).entry.glob("*.npz"))
     assert len(files) >= 2
     for path, how in zip(files, ("old format", "past the end"), strict=False):
         with np.load(path) as z:
@@ -140,7 +142,7 @@ def test_an_old_format_or_reads_past_their_end_are_made_again(patch_layout,
             arrays["rows"] = rows
         with path.open("wb") as f:
             np.savez(f, **arrays)
-    store = TileStore(tmp_path, "patch")
+    store = TileStore(tmp_path, "patch", DEVICE)
     out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
     assert sum("cannot be used" in n for n in store.notes) == 2, store.notes
@@ -152,7 +154,7 @@ def test_a_folder_that_cannot_be_written_costs_only_the_store(patch_layout,
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where the store's folder should be")
     with pytest.warns(CacheWarning, match="not-a-folder cannot be used"):
-        store = TileStore(blocker, "patch")
+        store = TileStore(blocker, "patch", DEVICE)
     reference, _ = _diffused(patch_layout, None)
     out, _ = _diffused(patch_layout, store)
     np.testing.assert_array_equal(out, reference)
@@ -178,7 +180,7 @@ def test_the_least_recently_used_layouts_go_past_the_limit(patch_layout,
     lookalike.mkdir()
     (lookalike / "L0_M5.npz").write_bytes(b"z" * 5000)
     os.utime(lookalike, (1.0, 1.0))
-    store = TileStore(tmp_path, "patch", limit=1)  # smaller than anything: evict all else
+    store = TileStore(tmp_path, "patch", DEVICE, limit=1)  # smaller than anything: evict all else
     _diffused(patch_layout, store)
     assert not old.exists()
     assert (scans / "head.ply").is_file() and (lookalike / "L0_M5.npz").is_file()
@@ -188,10 +190,10 @@ def test_the_least_recently_used_layouts_go_past_the_limit(patch_layout,
 
 def test_the_key_holds_the_layout_and_the_code(tmp_path: Path,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    a, b = TileStore(tmp_path, "mesh a"), TileStore(tmp_path, "mesh b")
+    a, b = TileStore(tmp_path, "mesh a", DEVICE), TileStore(tmp_path, "mesh b", DEVICE)
     assert a.key != b.key
     monkeypatch.setattr(tile_store, "code_fingerprint", lambda: "another build")
-    assert TileStore(tmp_path, "mesh a").key != a.key
+    assert TileStore(tmp_path, "mesh a", DEVICE).key != a.key
 
 
 def test_a_second_renderer_reads_the_first_ones_tiles(lit_patch: Path,
@@ -262,7 +264,7 @@ def test_prepare_makes_the_blurs_device_buffers_beside_the_irradiance(patch_layo
     and blurs read, so the diffusion after the irradiance does not; the light is the same
     as a layout that makes them on first use."""
     maps, charts = patch_layout
-    layout = DiffusionLayout(maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
+    layout = DiffusionLayout(DEVICE, maps.mm_per_texel_u, maps.mm_per_texel_v, maps.coverage,
                              None, charts)
     layout.prepare(DEON_2007_SKIN.variances_mm2)
     assert layout._grids
@@ -286,8 +288,8 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
                        maps.mm_per_texel_v, 0, 6, charts.geometry, charts.coverage)
-    derived = LevelGrid(tiles).derived()
-    stores = [TileStore(tmp_path, "patch") for _ in range(4)]
+    derived = LevelGrid(DEVICE, tiles).derived()
+    stores = [TileStore(tmp_path, "patch", DEVICE) for _ in range(4)]
     for store in stores:
         store.save(tiles, derived)  # each on its own writer thread, all at once
     for store in stores:
@@ -299,7 +301,7 @@ def test_two_writers_of_one_layout_leave_one_whole_file(patch_layout, tmp_path: 
     os.umask(umask)
     # readable as the umask allows (mkstemp's 0600 would shut out a farm's other users)
     assert (entry / "L0_M6.npz").stat().st_mode & 0o777 == 0o666 & ~umask
-    back = TileStore(tmp_path, "patch").load(0, 6, LevelGrid).tiles
+    back = TileStore(tmp_path, "patch", DEVICE).load(0, 6, partial(LevelGrid, DEVICE)).tiles
     np.testing.assert_array_equal(back.owner, tiles.owner)
     np.testing.assert_array_equal(back.reads.rows, tiles.reads.rows)
     np.testing.assert_array_equal(back.reads.xy, tiles.reads.xy)
@@ -379,7 +381,7 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
     maps, charts = patch_layout
     tiles = tile_level(charts.chart, charts.n_charts, maps.mm_per_texel_u,
                        maps.mm_per_texel_v, 0, 6, charts.geometry, charts.coverage)
-    derived = LevelGrid(tiles).derived()
+    derived = LevelGrid(DEVICE, tiles).derived()
     h, w = tiles.shape
     # the flat patch has one texel size: a varying level's arrays, written out here
     varying = {**derived, "uniform": np.zeros(1, np.int8),
@@ -389,7 +391,7 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
                "steps_v": np.arange(20, 22, dtype=np.int32),
                "texel_u": np.full((h, w), 3, np.uint16), "texel_v": np.ones((h, w), np.uint16),
                "smaller": np.array([7], np.int64)}
-    grid = LevelGrid(tiles, varying)
+    grid = LevelGrid(DEVICE, tiles, varying)
     assert not grid.uniform and grid.index()[:4] == (10, 13, 20, 21)
     assert grid.texel_steps().smaller == 7
     for name, bad in (("index_u", np.full((h, w), 4, np.int32)),
@@ -398,8 +400,8 @@ def test_stored_blur_indices_past_their_steps_are_refused(patch_layout,
                       ("texel_u", np.full((h, w), 4, np.uint16)),
                       ("texel_v", np.ones((h, w), np.int32))):
         with pytest.raises(ValueError, match="level grid"):
-            LevelGrid(tiles, {**varying, name: bad})
-    store = TileStore(tmp_path, "patch")
+            LevelGrid(DEVICE, tiles, {**varying, name: bad})
+    store = TileStore(tmp_path, "patch", DEVICE)
     store.save(tiles, derived)
     store.flush()
 
@@ -493,7 +495,7 @@ def test_stored_tiles_read_a_band_at_a_time_give_the_same_diffusion(
     import skinpipe.render.diffusion.layout as layout_module
 
     reference, _ = _diffused(patch_layout, None)
-    _diffused(patch_layout, TileStore(tmp_path, "patch"))  # made and saved
+    _diffused(patch_layout, TileStore(tmp_path, "patch", DEVICE))  # made and saved
     dropped: list[int] = []
     drop = layout_module.drop_resident_pages
 
@@ -503,7 +505,7 @@ def test_stored_tiles_read_a_band_at_a_time_give_the_same_diffusion(
 
     monkeypatch.setattr(layout_module, "drop_resident_pages", counted)
     monkeypatch.setattr(layout_module, "TILE_BAND_BYTES", 4096)
-    store = TileStore(tmp_path, "patch")
+    store = TileStore(tmp_path, "patch", DEVICE)
     out, layout = _diffused(patch_layout, store)
     assert store.loaded and all(grid.stored for grid in layout._grids.values())
     np.testing.assert_array_equal(out, reference)

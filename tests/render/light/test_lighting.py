@@ -12,6 +12,7 @@ import pytest
 
 from skinpipe.errors import InputError
 from skinpipe.render.cache import write_json_entry
+from skinpipe.render.device.choice import open_device
 from skinpipe.render.light import irradiance
 from skinpipe.render.light.boundary import transmission_lookup
 from skinpipe.render.light.irradiance import (
@@ -673,7 +674,7 @@ def test_device_samples_equal_the_numpy_samples(kind: str, interleaved: bool | s
     sampler, numpy = (LightSampler(light, pts, nrm, 16, np.random.default_rng(1), None,
                                    classes, 1.4, device=dev,
                                    complement=interleaved == "complement", period=period)
-                      for dev in (True, False))
+                      for dev in (open_device(), None))
     assert sampler.device is not None and numpy.device is None
     share = 16 // period**2
     assert sampler.count == {False: 16, True: share, "complement": 16 - share}[interleaved]
@@ -716,7 +717,8 @@ def test_shadow_rays_cast_in_blocks_give_the_same_sums(monkeypatch: pytest.Monke
     whole = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
     monkeypatch.setattr(irradiance, "RAY_BLOCK_POINTS", 1000)
     assert len(irradiance.ray_blocks(LightSampler(
-        key, pos, nrm, 16, np.random.default_rng(0)))) == -(-pos.shape[0] // 1000)
+        key, pos, nrm, 16, np.random.default_rng(0), device=open_device()))) == \
+        -(-pos.shape[0] // 1000)
     blocks = irradiance_texture(pos, nrm, lights, rays, samples=16, interleave=classes)
     assert blocks.rays == whole.rays
     np.testing.assert_array_equal(blocks.entering, whole.entering)
@@ -747,7 +749,8 @@ def test_no_points_is_no_rays(kind: str) -> None:
     matrix[3, :3] = (0.0, 0.0, 5.0)
     light = Light("/L", kind, np.ones(3), matrix, radius=1.0)
     none = np.zeros((0, 3))
-    d, dist, w = LightSampler(light, none, none, 16, np.random.default_rng(0)).entering_sample(0)
+    d, dist, w = LightSampler(light, none, none, 16, np.random.default_rng(0),
+                              device=open_device()).entering_sample(0)
     assert d.shape == (0, 3) and dist.shape == (0,) and w.shape == (0,)
     res = irradiance_texture(none, none, [light], _floor(), 16, interleave=np.zeros(0, int))
     assert res.entering.shape == (0, 3) and res.rays == 0
