@@ -99,6 +99,7 @@ def test_no_import_circles() -> None:
 
 RENDER_RANK = {
     "renderer": 5, "outputs": 5, "frame": 5, "shading": 5,  # a frame's tasks and files
+    "kernel_plan": 5,
     "diffusion": 4, "light": 3, "surface": 2,  # the algorithms
     "device": 1,  # OpenCL devices, programs, memory
     "scene": 0, "options": 0, "cache": 0, "bands": 0, "sorting": 0,  # plain data, caches
@@ -124,6 +125,17 @@ def test_render_imports_downwards_only() -> None:
            if _render_part(mod) and _render_part(t)
            and RENDER_RANK[_render_part(t)] > RENDER_RANK[_render_part(mod)]]
     assert not bad
+
+
+MAX_MODULE_LINES = 1000
+"""A module longer than this holds more than one algorithm or concern (pbrt-v4's and
+mitsuba3's file per algorithm): it is split by what its parts do."""
+
+
+def test_no_module_is_over_a_thousand_lines() -> None:
+    long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long
 
 
 def test_the_package_root_and_render_have_no_import_side_effects() -> None:

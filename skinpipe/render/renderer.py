@@ -27,30 +27,23 @@ from ..profile.medium import MediumEstimate
 from .bands import beside, in_bands
 from .device.choice import Device, open_device
 from .device.huge_pages import apply_to_numpy, huge_pages_choice
-from .device.memory import streams
 from .device.programs import start_prewarm
-from .diffusion.blur_switch import TUNE_STREAM, tuning_kernels
-from .diffusion.chart_tiles import seam_read_kernel
 from .diffusion.diffuse import diffuse_prepared
-from .diffusion.direct_blur import texel_kernels
 from .diffusion.gather import diffuse_gather
 from .diffusion.layout import (
     DiffusionLayout,
     chart_layout,
-    pyramid_kernels,
     release_freed_heap,
 )
-from .diffusion.margins import margin_kernels
 from .diffusion.push_pull import (
     dilate_charts,
     prepare_dilation,
     push_pull,
-    push_pull_kernels,
 )
-from .diffusion.recursive_blur import pass_kernels
 from .diffusion.terms import DiffusionTerms, kept_diffusion_terms
 from .diffusion.tile_store import TileStore
 from .frame import CameraHits, SkinTextures, TaskLog, _BothArrived, hit_uvs
+from .kernel_plan import kernel_plan
 from .light.boundary import SkinBoundary, transmission
 from .light.interleave import (
     interleave_classes,
@@ -58,7 +51,6 @@ from .light.interleave import (
     texels_per_pixel,
 )
 from .light.irradiance import (
-    irradiance_kernels,
     irradiance_texture,
     refine_penumbrae,
 )
@@ -92,7 +84,6 @@ from .surface.texture_maps import (
     rasterize,
     texel_rows,
     texels_in_blocks,
-    texture_kernels,
     vertex_normals,
 )
 from .surface.unwrap import triangulate
@@ -175,36 +166,14 @@ class Renderer:
         return open_device(self.options.device)
 
     def _kernel_plan(self, scene: SceneData) -> list[Callable[[], Any]]:
-        """The device kernels this render will need, in the order it needs them, for a
-        :class:`~.opencl.Prewarm` to build and compile while the host works."""
-        opts, device = self.options, self.device
-        domes = [lt.path for lt in scene.lights if lt.kind == "dome" and lt.texture]
+        """The device kernels this render will need (:func:`~.kernel_plan.kernel_plan`)."""
         # each skin mesh's interleaving period where its UVs are known before the render
         # (an unwrap's are not: theirs, if not 2, are built at their first launch)
         periods = {self._interleaving(scene, m, m.uv, uv_triangles(m), triangulate(m.mesh))[0]
                    if usable_uvs(m) is None else 2 for m in scene.skin}
-        steps: list[Callable[[], Any]] = [
-            partial(texture_kernels, device),
-            *(partial(irradiance_kernels, device, scene.lights, opts.light_samples,
-                      opts.shadow_sampling != "full", domes,
-                      filtered=opts.shadow_sampling == "interleaved",
-                      sequence=opts.light_sequence,
-                      refined=opts.shadow_sampling == "adaptive", period=p)
-              for p in sorted(periods)),
-            partial(push_pull_kernels, device)]
-        if opts.scattering and opts.blur == "recursive":
-            # the seam layout's
-            steps.insert(1 + len(periods), partial(margin_kernels, device))
-            regions = sorted({0 if m.region_weights is None else m.region_weights.shape[1]
-                              for m in scene.skin})
-            steps += [partial(pyramid_kernels, device, r) for r in regions]
-            steps.append(partial(seam_read_kernel, device))
-            stream = streams(opts.texture_size ** 2 * 16)
-            # the finest level, the coarser ones (smaller: plain stores), the switch's
-            steps += [partial(pass_kernels, device, s)
-                      for s in dict.fromkeys((stream, False, TUNE_STREAM))]
-            steps += [partial(tuning_kernels, device), partial(texel_kernels, device, stream)]
-        return steps
+        regions = {0 if m.region_weights is None else m.region_weights.shape[1]
+                   for m in scene.skin}
+        return kernel_plan(self.device, self.options, scene.lights, periods, regions)
 
     def skin_textures(self, log: TaskLog, scene: SceneData, mesh: SceneMesh) -> SkinTextures:
         """A skin mesh's texture-space maps (the task texture_maps; its UVs made first where
