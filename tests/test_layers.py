@@ -138,6 +138,20 @@ def test_no_module_is_over_a_thousand_lines() -> None:
     assert not long
 
 
+MAX_RENDER_FUNCTION_LINES = 80
+"""A function of ``render/`` longer than this (docstring included) does several steps
+that read better named."""
+
+
+def test_no_render_function_is_over_eighty_lines() -> None:
+    long = {f"{p.relative_to(PACKAGE)}:{n.name}": n.end_lineno - n.lineno + 1
+            for p in (PACKAGE / "render").rglob("*.py")
+            for n in ast.walk(ast.parse(p.read_text()))
+            if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)
+            and n.end_lineno - n.lineno + 1 > MAX_RENDER_FUNCTION_LINES}
+    assert not long
+
+
 def test_the_package_root_and_render_have_no_import_side_effects() -> None:
     """``import skinpipe`` and ``import skinpipe.render`` import nothing of skinpipe's own,
     so that the profile model loads without pxr, pyopencl or pymeshlab."""

@@ -305,18 +305,9 @@ class Renderer:
             # the irradiance itself is the filled one on the charts (SkinTextures)
             return filled[..., :3], vis, notes
 
-        filled, vis, (skipped, rays_cast, seconds, penumbra) = self._cached(
-            log, "irradiance", key, compute)
-        skipped = [*skipped, *_period_notes(opts, period)]
+        filled, vis, notes = self._cached(log, "irradiance", key, compute)
         tex.irradiance_filled, tex.visibility = filled, vis
-        log.skipped += [s for s in skipped if s not in log.skipped]
-        log.measures["irradiance"] = {
-            "rays": rays_cast, "seconds": seconds,
-            "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
-            "rays_per_texel": rays_cast / max(int(covered.sum()), 1),
-            "penumbra_texels": penumbra,
-            "interleave_period": period if opts.shadow_sampling != "full" else None,
-            "texels_per_pixel": round(tex.texels_per_pixel, 3)}
+        _note_irradiance(log, opts, tex, int(covered.sum()), notes)
 
     @staticmethod
     def _hit_uvs(scene: SceneData, tex: SkinTextures, cam: CameraHits,
@@ -936,6 +927,22 @@ class Renderer:
         out["diffuse"][sel] = albedo * e / math.pi
         out["albedo"][sel] = albedo
         out["irradiance"][sel] = e
+
+
+def _note_irradiance(log: TaskLog, opts: RenderOptions, tex: SkinTextures, covered: int,
+                     notes: tuple[list[str], int, float, dict[str, int]]) -> None:
+    """The irradiance task's notes (``notes``: what it skipped, rays cast, seconds, the
+    texels refined per light) and measures in ``log``, over ``covered`` texels."""
+    skipped, rays_cast, seconds, penumbra = notes
+    skipped = [*skipped, *_period_notes(opts, tex.period)]
+    log.skipped += [s for s in skipped if s not in log.skipped]
+    log.measures["irradiance"] = {
+        "rays": rays_cast, "seconds": seconds,
+        "mrays_per_s": rays_cast / max(seconds, 1e-9) / 1e6,
+        "rays_per_texel": rays_cast / max(covered, 1),
+        "penumbra_texels": penumbra,
+        "interleave_period": tex.period if opts.shadow_sampling != "full" else None,
+        "texels_per_pixel": round(tex.texels_per_pixel, 3)}
 
 
 def _period_notes(opts: RenderOptions, period: int) -> list[str]:

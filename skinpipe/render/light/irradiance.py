@@ -343,7 +343,6 @@ def irradiance_texture(
         return a if back_order is None else np.take(a, back_order, axis=0)
 
     origins = ray_origins(pos, nrm, device)
-    n = pos.shape[0]
     arrived: list[tuple[NDArray[np.float32], NDArray[np.float32]]] = []
     visibility: dict[str, NDArray[np.float32]] = {}
     unshadowed_by_light: dict[str, tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
@@ -382,7 +381,7 @@ def irradiance_texture(
         arrived.append((back(lit), sampler.colour))
         unshadowed_by_light[light.path] = (back(unshadowed), sampler.colour)
     return IrradianceResult(arrived, visibility, unshadowed_by_light, skipped, n_rays,
-                            time.perf_counter() - start, frozenset(interleaved), n)
+                            time.perf_counter() - start, frozenset(interleaved), pos.shape[0])
 
 
 DOME_MEAN_COS = 2.0 / 3.0
@@ -565,6 +564,31 @@ def _penumbra(result: IrradianceResult, path: str, shape: tuple[int, int],
     return np.flatnonzero(penumbra_at(vis1, traced, texel32, period, device))
 
 
+def _both_passes(result: IrradianceResult, path: str, at: NDArray[np.int64],
+                 vis2: NDArray[Any], more_un: NDArray[Any], period: int
+                 ) -> tuple[NDArray[Any], tuple[NDArray[Any], NDArray[Any]]]:
+    """Light ``path``'s visibility and weights (with its colour) after the adaptive
+    pass: at its penumbra points ``at`` the two passes' estimates (the first pass's in
+    ``result``; ``vis2``, ``more_un`` the second's) weighted by their strata, elsewhere
+    the first pass's. Each pass's weights average over its own strata, 1 / p^2 and the
+    rest of them for the ``period`` p: the texel's estimate from all of them weights the
+    passes so (0.25 and 0.75 at 2). Weights, not irradiance: the light's colour is in
+    both passes' and cancels in the visibility."""
+    first = np.float32(1.0 / (period * period))
+    rest = np.float32(1.0) - first
+    w1, colour = result.unshadowed[path]
+    w1_at = np.take(w1, at, axis=0)
+    w1_sum = w1_at if w1_at.ndim == 1 else sum_axis1(w1_at)
+    w2_sum = more_un if more_un.ndim == 1 else sum_axis1(more_un)
+    lit_all = first * result.visibility[path][at] * w1_sum + rest * vis2 * w2_sum
+    w_sum = first * w1_sum + rest * w2_sum
+    vis = result.visibility[path].copy()
+    vis[at] = np.where(w_sum > 0, lit_all / np.maximum(w_sum, 1e-30), 0.0)
+    w = w1.copy()
+    w[at] = first * w1_at + rest * more_un
+    return vis, (w, colour)
+
+
 def refine_penumbrae(
     result: IrradianceResult, covered: NDArray[np.bool_], positions: NDArray[Any],
     normals: NDArray[Any], interleave: NDArray[Any], lights: list[Light], rays: RayScene,
@@ -619,10 +643,6 @@ def refine_penumbrae(
                                      1.0 if boundary is None else boundary.eta,
                                      device=device, sequence=sequence, complement=True,
                                      period=period))
-    # each pass's weights average over its own strata, 1 / p^2 and the rest of them:
-    # the texel's estimate from all of them weights the passes so (0.25 and 0.75 at 2)
-    first = np.float32(1.0 / (period * period))
-    rest = np.float32(1.0) - first
     for sampler, lit, more_un, cast in cast_samples(samplers, rays):
         path, at = sampler.light.path, cast_at[sampler.light.path]
         n_rays += cast
@@ -630,19 +650,8 @@ def refine_penumbrae(
         if boundary is not None:  # as the first pass's weights carry it
             more_un = (more_un if more_un.ndim == 2 else more_un[:, None]) * \
                 boundary.depth_factor(incidence_cos(sampler.light, pos[at], nrm[at]))
-        # weights, not irradiance: the light's colour is in both passes' and cancels in
-        # the visibility
-        w1, colour = result.unshadowed[path]
-        w1_at = np.take(w1, at, axis=0)
-        w1_sum = w1_at if w1_at.ndim == 1 else sum_axis1(w1_at)
-        w2_sum = more_un if more_un.ndim == 1 else sum_axis1(more_un)
-        lit_all = first * result.visibility[path][at] * w1_sum + rest * vis2 * w2_sum
-        w_sum = first * w1_sum + rest * w2_sum
-        vis = visibility[path] = visibility[path].copy()
-        vis[at] = np.where(w_sum > 0, lit_all / np.maximum(w_sum, 1e-30), 0.0)
-        w = w1.copy()
-        w[at] = first * w1_at + rest * more_un
-        unshadowed[path] = (w, colour)
+        visibility[path], unshadowed[path] = _both_passes(result, path, at, vis2, more_un,
+                                                          period)
     out = replace(result, visibility=visibility, unshadowed=unshadowed, rays=n_rays,
                   seconds=result.seconds + time.perf_counter() - start,
                   interleaved=frozenset())
