@@ -16,15 +16,17 @@ quotes). This module inverts a measured pencil-beam profile to (alpha, l, g):
 2. **l and g from the profile's shape.** Of R, the single scattering of the pencil is
    alpha p_g(-1) pi / 2, all of it at the entry point (the pencil goes straight down): a
    share of 1 / H(alpha, 1)^2 at g = 0, a few per cent at 0.7. The rest is multiply
-   scattered, shaped as an isotropic half space's multiply scattered light tallied by
-   the tests' light tracer (pencil_profile_table.py, from tools/tabulate_pencil_profile.py:
-   exact for g = 0), as Christensen & Burley 2015 (eq. 3, fitted to Monte Carlo:
-   (e^{-r/d} + e^{-r/3d}) / r, d = l' / s(A), their eq. 6) or as the diffusion dipole,
-   at the similarity relation's reduced albedo and mean free path l' = l / (1 - alpha g).
-   l is fitted per channel so that the model's edge-spread function (:mod:`.edge`)
-   matches the measured one in least squares; g and the model are those whose largest
-   difference is least. The measured entry spike is what fixes g: skin1's (a fifth to a
-   half of its light) gives g = 0, a diffusion-shaped capture with none g = 0.5-0.7.
+   scattered, shaped as the multiply scattered light of a half space of the same g
+   tallied by the tests' light tracer (pencil_profile_table.py, from
+   tools/tabulate_pencil_profile.py): the medium's own shape, so that the model's
+   residual is what a path tracer shows of the medium written. (Closed forms are not:
+   Christensen & Burley 2015 and the diffusion dipole, at the similarity relation's
+   reduced albedo and length, matched the sample captures' edges to 1-2% with media
+   that, traced, missed them by 3.5-7.7%.) l is fitted per channel so that the largest
+   difference of the model's edge-spread function (:mod:`.edge`) from the measured one
+   is least; g is the one whose largest difference over the channels is least. The
+   measured entry spike is what fixes g: skin1's (a fifth to a half of its light) gives
+   g = 0, a diffusion-shaped capture with none 0.7.
 3. **OpenPBR's colour.** The specification's alpha(C) is the inverse of van de Hulst's
    C(alpha) = (1 - s)(1 - 0.139 s) / (1 + 1.17 s), s = sqrt((1 - alpha) / (1 - alpha g))
    (Kulla & Conty 2017); a renderer following it recovers alpha from C = C(alpha). That C
@@ -53,8 +55,6 @@ from . import pencil_profile_table as PROFILE
 from . import pencil_reflectance_table as TABLE
 from .edge import ring_areas_beyond
 from .models import (
-    burley_scaling_searchlight,
-    dipole_tail_flux,
     fit_error_eq2c,
     ring_areas_mm2,
     ring_edges_mm,
@@ -155,8 +155,8 @@ class MediumEstimate:
     """R the medium was made to reflect (the pencil's, as the capture measures it)."""
     error_eq2c: FloatArray
     edge_error: FloatArray
-    model: str = "burley"
-    """The multiple-scattering shape that matched best (:data:`MULTIPLE_SCATTERING_MODELS`)."""
+    model: str = "traced"
+    """The multiple-scattering shape the medium was matched with: the light tracer's."""
 
     @property
     def subsurface_colour(self) -> FloatArray:
@@ -164,16 +164,19 @@ class MediumEstimate:
         return van_de_hulst_colour(self.single_scattering_albedo, self.anisotropy)
 
 
-def _traced_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: float
-                       ) -> FloatArray:
-    """The multiply scattered light of an isotropic index-matched half space as the light
-    tracer tallies it (pencil_profile_table.py), normalised, averaged over each ring: its
-    share beyond r interpolated in s = sqrt(1 - alpha) and log r; inside the first radius
-    the density is taken as flat, beyond the last there is none."""
-    s = min(max(math.sqrt(max(1.0 - albedo, 0.0)), _PROFILE_S[0]), _PROFILE_S[-1])
+def _traced_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: float,
+                       anisotropy: float = 0.0) -> FloatArray:
+    """The multiply scattered light of an index-matched half space of Henyey-Greenstein
+    ``anisotropy`` (one of the table's) as the light tracer tallies it
+    (pencil_profile_table.py), normalised, averaged over each ring: its share beyond r
+    interpolated in s = sqrt((1 - alpha) / (1 - alpha g)) and log r; inside the first
+    radius the density is taken as flat, beyond the last there is none."""
+    table = _PROFILE_BEYOND[PROFILE.ANISOTROPIES.index(anisotropy)]
+    s = math.sqrt(max(1.0 - albedo, 0.0) / (1.0 - albedo * anisotropy))
+    s = min(max(s, _PROFILE_S[0]), _PROFILE_S[-1])
     i = min(max(int(np.searchsorted(_PROFILE_S, s)) - 1, 0), _PROFILE_S.size - 2)
     f = (s - _PROFILE_S[i]) / (_PROFILE_S[i + 1] - _PROFILE_S[i])
-    row = (1.0 - f) * _PROFILE_BEYOND[i] + f * _PROFILE_BEYOND[i + 1]
+    row = (1.0 - f) * table[i] + f * table[i + 1]
     r = np.concatenate([[0.0], outer]) / mean_free_path_mm
     first = _PROFILE_RADII[0]
     beyond = np.where(r < first, 1.0 - (1.0 - row[0]) * (r / first) ** 2,
@@ -182,36 +185,14 @@ def _traced_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: floa
     return -np.diff(beyond) / (math.pi * np.diff(np.concatenate([[0.0], outer]) ** 2))
 
 
-def _burley_ring_means(outer: FloatArray, d_mm: float) -> FloatArray:
-    """Christensen & Burley's normalised profile averaged over each ring: its light
-    within r is 1 - e^{-r/d} / 4 - 3 e^{-r/3d} / 4."""
-    inner = np.concatenate([[0.0], outer[:-1]])
-
-    def within(x: FloatArray) -> FloatArray:
-        return 1.0 - 0.25 * np.exp(-x / d_mm) - 0.75 * np.exp(-x / (3.0 * d_mm))
-
-    return (within(outer) - within(inner)) / (math.pi * (outer**2 - inner**2))
-
-
 @dataclass(frozen=True)
 class _Shape:
-    """What fixes a medium's profile shape but its length: albedo alpha, anisotropy g,
-    the single scattering's share of R and Burley's scaling s."""
+    """What fixes a medium's profile shape but its length: albedo alpha, anisotropy g
+    and the single scattering's share of R."""
 
     albedo: float
     anisotropy: float
     single_share: float
-    burley_s: float
-
-    @property
-    def reduced_albedo(self) -> float:
-        """alpha' (:func:`similarity_relation`)."""
-        return similarity_relation(self.albedo, self.anisotropy)[0]
-
-    @property
-    def reduced_length(self) -> float:
-        """l' / l = 1 / (1 - alpha g): the transport mean free path's."""
-        return 1.0 / similarity_relation(self.albedo, self.anisotropy)[1]
 
 
 @cache
@@ -236,40 +217,13 @@ def _shape(reflectance: float, g: float = 0.0) -> _Shape | None:
     root = float(brentq(lambda x: float(curve(x)) - reflectance, low, high, xtol=1e-13))
     a = (1.0 - root * root) / (1.0 - g * root * root)
     back = float(henyey_greenstein(-1.0, g))  # straight back up the pencil
-    return _Shape(a, g, a * back * math.pi / 2.0 / reflectance,
-                  float(burley_scaling_searchlight(van_de_hulst_colour(a, g))))
+    return _Shape(a, g, a * back * math.pi / 2.0 / reflectance)
 
 
-def _dipole_ring_means(outer: FloatArray, albedo: float, mean_free_path_mm: float
-                       ) -> FloatArray:
-    """The index-matched diffusion dipole's normalised profile (Jensen et al. 2001, eq. 4,
-    A = 1) averaged over each ring, from its light beyond each edge in closed form
-    (:func:`~.models.dipole_tail_flux`)."""
-    sigma_tr = math.sqrt(3.0 * (1.0 - albedo)) / mean_free_path_mm
-    sources = (sigma_tr, mean_free_path_mm, mean_free_path_mm * 7.0 / 3.0)  # z_v = z_r + 4D
-    beyond = dipole_tail_flux(np.concatenate([[0.0], outer]), *sources)
-    return -np.diff(beyond) / beyond[0] / (math.pi * np.diff(
-        np.concatenate([[0.0], outer]) ** 2))
-
-
-MULTIPLE_SCATTERING_MODELS = ("traced", "burley", "dipole")
-"""Shapes of the multiply scattered light the inversion tries: the light tracer's
-isotropic half space (skin1's own: its mean free path back to 1%), Christensen & Burley
-2015 (fitted to Monte Carlo; holds near the entry point) and the diffusion dipole (Jensen
-et al. 2001; holds in the far field), each at the similarity relation's reduced albedo and
-mean free path. Each region keeps the medium whose model matches its
-edge best; the medium, not the model, is what is written."""
-
-
-def _ring_means(outer: FloatArray, shape: _Shape, mean_free_path_mm: float,
-                model: str = "burley") -> FloatArray:
-    reduced = mean_free_path_mm * shape.reduced_length
-    if model == "dipole":
-        ms = _dipole_ring_means(outer, shape.reduced_albedo, reduced)
-    elif model == "traced":
-        ms = _traced_ring_means(outer, shape.reduced_albedo, reduced)
-    else:
-        ms = _burley_ring_means(outer, reduced / shape.burley_s)
+def _ring_means(outer: FloatArray, shape: _Shape, mean_free_path_mm: float) -> FloatArray:
+    """The medium's normalised profile averaged over each ring: its single scattering
+    in the first, its multiply scattered light as traced."""
+    ms = _traced_ring_means(outer, shape.albedo, mean_free_path_mm, shape.anisotropy)
     out = (1.0 - shape.single_share) * ms
     out[0] += shape.single_share / (math.pi * outer[0] ** 2)
     return out
@@ -285,9 +239,8 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
                     ) -> MediumEstimate:
     """Invert a measured profile (``values`` (n, 3) at ``radius_mm``, any scale: only its
     shape is used) reflecting ``total_reflectance`` (3,) to a medium (see the module):
-    per channel the mean free path for each g of :data:`ANISOTROPIES` and each of
-    :data:`MULTIPLE_SCATTERING_MODELS`, keeping the g (one for all channels, as OpenPBR
-    has one) and the model whose edges match best."""
+    per channel the mean free path for each g of :data:`ANISOTROPIES`, keeping the g
+    (one for all channels, as OpenPBR has one) whose edges match best."""
     r = np.asarray(radius_mm, dtype=np.float64).reshape(-1)
     p = np.asarray(values, dtype=np.float64).reshape(r.size, -1)
     refl = np.broadcast_to(np.asarray(total_reflectance, dtype=np.float64), (p.shape[1],))
@@ -309,46 +262,45 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
     totals = np.maximum(area @ p, 1e-300)
     measured = beyond @ p / totals
 
-    def fit(shape: _Shape | None, c: int, model: str
-            ) -> tuple[float, float, _Shape] | None:
+    def fit(shape: _Shape | None, c: int) -> tuple[float, float, _Shape] | None:
         """(largest edge difference, mean free path, shape) of channel c's best fit."""
         if shape is None:
             return None
 
         def spread(log_l: float) -> FloatArray:
-            ring_means = _ring_means(outer, shape, math.exp(log_l), model)
+            ring_means = _ring_means(outer, shape, math.exp(log_l))
             return beyond @ ring_means / max(float(area @ ring_means), 1e-300) \
                 - measured[:, c]
 
-        best = minimize_scalar(lambda x: float(np.sum(spread(x) ** 2)), bounds=bounds,
+        # the largest difference, as reported and as a path tracer's image shows it
+        best = minimize_scalar(lambda x: float(np.abs(spread(x)).max()), bounds=bounds,
                                method="bounded", options={"xatol": 1e-4})
         return float(np.abs(spread(best.x)).max()), math.exp(best.x), shape
 
     for x in refl:
         albedo_from_pencil_reflectance(x)  # refuses what no medium reflects
-    fits: dict[tuple[float, str], list[tuple[float, float, _Shape]]] = {}
-    best = math.inf  # the least largest-channel error of the pairs fitted so far
+    fits: dict[float, list[tuple[float, float, _Shape]]] = {}
+    best = math.inf  # the least largest-channel error of the g fitted so far
     for g in ANISOTROPIES:
         shapes = [_shape(float(x), g) for x in refl]
-        for m in MULTIPLE_SCATTERING_MODELS:
-            found: list[tuple[float, float, _Shape]] = []
-            # the last channel first (blue: skin's shortest, the hardest edge), and a
-            # channel as far off as the best pair's worst means this pair cannot win
-            # (an earlier pair wins a tie): its other channels are not fitted
-            for c in reversed(range(len(shapes))):
-                got = fit(shapes[c], c, m)
-                if got is None or got[0] >= best:
-                    break
-                found.insert(0, got)
-            else:
-                fits[g, m] = found
-                best = min(best, max(f[0] for f in found))
-    g_best, model_best = min(fits, key=lambda k: max(f[0] for f in fits[k]))
+        found: list[tuple[float, float, _Shape]] = []
+        # the last channel first (blue: skin's shortest, the hardest edge), and a
+        # channel as far off as the best g's worst means this g cannot win (an earlier
+        # g wins a tie): its other channels are not fitted
+        for c in reversed(range(len(shapes))):
+            got = fit(shapes[c], c)
+            if got is None or got[0] >= best:
+                break
+            found.insert(0, got)
+        else:
+            fits[g] = found
+            best = min(best, max(f[0] for f in found))
+    g_best = min(fits, key=lambda k: max(f[0] for f in fits[k]))
     albedo, mfp, err2c, edge = (np.empty(p.shape[1]) for _ in range(4))
-    for c, (_, length, shape) in enumerate(fits[g_best, model_best]):
+    for c, (_, length, shape) in enumerate(fits[g_best]):
         albedo[c], mfp[c] = shape.albedo, length
-        model = _ring_means(outer, shape, length, model_best)
+        model = _ring_means(outer, shape, length)
         err2c[c] = float(fit_error_eq2c(r, p[:, c] / totals[c], model))
         edge[c] = float(np.abs(beyond_every @ model / (area @ model)
                                - beyond_every @ p[:, c] / totals[c]).max())
-    return MediumEstimate(albedo, mfp, g_best, refl.copy(), err2c, edge, model_best)
+    return MediumEstimate(albedo, mfp, g_best, refl.copy(), err2c, edge)
