@@ -1,6 +1,7 @@
 """Benchmark: the OpenPBR medium of each region, path-traced, against the measured profile.
 
-    python benchmarks/bench_openpbr_medium.py [-o benchmarks/results/openpbr_medium.json]
+    python benchmarks/bench_openpbr_medium.py [--spp N] [--profiles NAME ...]
+                                              [-o benchmarks/results/openpbr_medium.json]
 
 For the sample captures (through ``skinpipe ingest``; the level is the asset's default
 albedo, as ``author`` makes it) and for the traced skin1 profile (tests/fixtures/physics,
@@ -13,8 +14,15 @@ times its total reflectance over pi, and a render without the blocker gives that
 The independent light tracer (tests/physics/light_tracer.py) traces the same medium
 pencil-lit as a second peer. Printed per channel against the measured profile: the
 edge-spread error (largest difference beyond the central two rings, share of the
-plateau) and the total reflectance over the measured; the inversion's own model
-residual beside them. Without the ``mitsuba`` package its columns are left out.
+plateau; Mitsuba's columns averaged in bins, BINS, with the bins' noise beside) and the
+total reflectance over the measured; the inversion's own model residual beside them.
+Without the ``mitsuba`` package its columns are left out.
+
+Mitsuba's paths run without Russian roulette, cut at the depth where the albedo's
+power falls below 1e-4: its roulette survives at most 0.95 a bounce and divides by it,
+so where the single-scattering albedo exceeds 0.95 (skin's, forward scattering) a
+long path's weight grows at every bounce (alpha / 0.95) and fires fireflies (a red
+channel of albedo 0.99 had 11% column noise at 256 samples, 1% without roulette).
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -50,34 +59,49 @@ from tests.profile.test_medium import (  # noqa: E402
 
 PHOTONS = 200_000
 MITSUBA_SPP = 1024
-MITSUBA_PIXELS = (160, 96)
-"""Columns across the edge, rows along it (averaged: the edge is the same all along)."""
+"""Samples a pixel by default (--spp)."""
+DEPTH_CUT = 1e-4
+"""A path stops where the albedo's power (its weight) falls below this: the bias."""
+COLUMNS, ROWS = 160, 96
+"""Columns across the narrowest window a render serves, rows along the edge (averaged:
+the edge is the same all along)."""
+BINS = 20
+"""Bins a side of the edge (beyond the central two rings) in which Mitsuba's columns and
+the measured edge are averaged alike before their largest difference is taken: a
+column's noise would otherwise pass for edge error (the edge moves over about eight
+bins, so binning leaves its shape)."""
+GROUP_SPREAD = 2.0
+"""Edges of one medium whose windows (in mean free paths) differ by at most this factor
+share one render: the image is the same at any length scale (mu_t = 1 here, x read
+in mean free paths), so the six sample regions, one albedo a channel, need few."""
 
 
-def mitsuba_edge(variant: str, albedo: float, mfp_mm: float, g: float, half_width_mm: float,
-                 blocked: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel centres x (mm) and the exit radiance across a hard shadow edge (light on
-    x < 0) of an index-matched slab of the medium, under unit normal irradiance."""
+def mitsuba_edge(variant: str, albedo: float, g: float, half_width_mfp: float,
+                 columns: int, spp: int, blocked: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Column centres x (mean free paths) and the exit radiance across a hard shadow edge
+    (light on x < 0) of an index-matched slab of the medium (mu_t = 1), under unit normal
+    irradiance."""
     import mitsuba as mi
 
     mi.set_variant(variant)
     T = mi.ScalarTransform4f
-    px, rows = MITSUBA_PIXELS
-    depth = 200.0 * mfp_mm
-    size = 400.0 * max(mfp_mm, half_width_mm)
+    half = half_width_mfp
+    depth, size = 200.0, 400.0 * max(1.0, half)
     scene = {
-        "type": "scene", "integrator": {"type": "volpath", "max_depth": -1},
+        "type": "scene",
+        "integrator": {"type": "volpath", "rr_depth": 1 << 30,
+                       "max_depth": max(2, math.ceil(math.log(DEPTH_CUT) / math.log(albedo)))},
         "sensor": {"type": "orthographic",
                    "to_world": T.look_at(origin=[0, 0, 1], target=[0, 0, 0], up=[0, 1, 0])
-                   @ T.scale([half_width_mm, half_width_mm * rows / px, 1]),
-                   "film": {"type": "hdrfilm", "width": px, "height": rows,
+                   @ T.scale([half, half * ROWS / columns, 1]),
+                   "film": {"type": "hdrfilm", "width": columns, "height": ROWS,
                             "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": MITSUBA_SPP}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
         "light": {"type": "directional", "direction": [0, 0, -1], "irradiance": 1.0},
         "slab": {"type": "cube", "bsdf": {"type": "null"},
                  "to_world": T.translate([0, 0, -depth]) @ T.scale([size, size, depth]),
-                 "interior": {"type": "homogeneous", "albedo": float(albedo),
-                              "sigma_t": 1.0 / mfp_mm,
+                 "interior": {"type": "homogeneous", "albedo": float(albedo), "sigma_t": 1.0,
                               "phase": {"type": "hg", "g": g} if g else {"type": "isotropic"}}},
     }
     if blocked:  # a black card above the camera over x > 0: a straight, hard shadow
@@ -85,41 +109,96 @@ def mitsuba_edge(variant: str, albedo: float, mfp_mm: float, g: float, half_widt
                                                           "reflectance": 0.0},
                             "to_world": T.translate([size / 2, 0, 2.0])
                             @ T.scale([size / 2, size, 1])}
-    image = np.array(mi.render(mi.load_dict(scene))).reshape(rows, px, -1)[..., 0]
-    x = ((np.arange(px) + 0.5) / px * 2 - 1) * half_width_mm
+    image = np.array(mi.render(mi.load_dict(scene))).reshape(ROWS, columns, -1)[..., 0]
+    x = ((np.arange(columns) + 0.5) / columns * 2 - 1) * half
     return x, image.mean(axis=0)
 
 
-def mitsuba_against_measured(variant: str, radius: np.ndarray, values: np.ndarray,
-                             reflectance: np.ndarray, colour: np.ndarray,
-                             mfp_mm: np.ndarray, g: float) -> dict:
-    """Edge error and total over measured of the medium (albedo from ``colour`` as a
-    renderer following OpenPBR takes it), per channel."""
-    outer = ring_edges_mm(radius)
-    edge, total, noise = [], [], []
-    albedo = albedo_from_van_de_hulst(colour, g)
-    t = edge_positions_mm(radius)
-    for c in range(3):
-        measured = spread_beyond_rings(radius, values[:, c], t)
-        width = float(edge_width_mm(t, measured)[0])
-        half = float(np.clip(4.0 * width, 2.0, 0.9 * outer[-1]))
-        x, lit = mitsuba_edge(variant, albedo[c], mfp_mm[c], g, half)
-        _, full = mitsuba_edge(variant, albedo[c], mfp_mm[c], g, half, blocked=False)
-        plateau = float(full.mean())
-        # the measured edge averaged over each pixel's width, as the film's box does
-        sub = x[:, None] + (np.arange(8)[None, :] + 0.5 - 4) / 8 * (x[1] - x[0])
-        frac = spread_beyond_rings(radius, values[:, c], sub.reshape(-1)).reshape(-1)
-        frac = (frac / measured[0]).reshape(sub.shape).mean(axis=1)
-        keep = np.abs(x) >= outer[1]
-        edge.append(round(float(np.abs(lit / plateau - frac)[keep].max()), 4))
-        total.append(round(math.pi * plateau / float(reflectance[c]), 4))
-        noise.append(round(float(full.std() / plateau), 4))
-    return {"mitsuba_edge_error": edge, "mitsuba_over_measured_total": total,
-            "mitsuba_pixel_noise": noise}
+@dataclass
+class EdgeJob:
+    """One channel of one profile: its measured edge and the medium a renderer derives
+    from the exported OpenPBR values (albedo from the colour, as the specification's
+    inversion gives it)."""
+
+    row: dict
+    channel: int
+    radius: np.ndarray
+    values: np.ndarray
+    reflectance: float
+    albedo: float
+    mfp_mm: float
+    g: float
+
+    @property
+    def half_mm(self) -> float:
+        """Four edge widths either side, within the measured radii."""
+        t = edge_positions_mm(self.radius)
+        measured = spread_beyond_rings(self.radius, self.values, t)
+        outer = ring_edges_mm(self.radius)
+        return float(np.clip(4.0 * edge_width_mm(t, measured)[0], 2.0, 0.9 * outer[-1]))
+
+
+def _binned(x_mm: np.ndarray, values: np.ndarray, inner_mm: float, half_mm: float
+            ) -> np.ndarray:
+    """``values`` averaged over BINS groups of columns a side of the edge, within
+    inner_mm <= |x| <= half_mm."""
+    out = []
+    for side in (x_mm < 0, x_mm > 0):
+        keep = np.flatnonzero(side & (np.abs(x_mm) >= inner_mm) & (np.abs(x_mm) <= half_mm))
+        out += [values[i].mean() for i in np.array_split(keep, min(BINS, keep.size))]
+    return np.array(out)
+
+
+def _compare(job: EdgeJob, x_mfp: np.ndarray, lit: np.ndarray, plateau: float,
+             full: np.ndarray, noise_scale: float) -> None:
+    """Mitsuba's edge, total and bin noise of ``job``, into its row."""
+    x = x_mfp * job.mfp_mm
+    t = edge_positions_mm(job.radius)
+    first = spread_beyond_rings(job.radius, job.values, t)[0]
+    # the measured edge averaged over each column's width, as the film's box does
+    sub = x[:, None] + (np.arange(8)[None, :] + 0.5 - 4) / 8 * (x[1] - x[0])
+    frac = spread_beyond_rings(job.radius, job.values, sub.reshape(-1)).reshape(sub.shape)
+    frac = (frac / first).mean(axis=1)
+    inner, half = float(ring_edges_mm(job.radius)[1]), job.half_mm
+    diff = _binned(x, lit / plateau - frac, inner, half)
+    noise = _binned(x, full / plateau, inner, half).std() * noise_scale
+    c = job.channel
+    job.row.setdefault("mitsuba_edge_error", [0.0] * 3)[c] = round(float(np.abs(diff).max()), 4)
+    job.row.setdefault("mitsuba_over_measured_total", [0.0] * 3)[c] = round(
+        math.pi * plateau / job.reflectance, 4)
+    job.row.setdefault("mitsuba_bin_noise", [0.0] * 3)[c] = round(float(noise), 4)
+
+
+def mitsuba_columns(variant: str, jobs: list[EdgeJob], spp: int) -> int:
+    """Render every job's medium across a shadow edge, sharing renders between jobs of one
+    medium (see GROUP_SPREAD), and fill the rows' Mitsuba columns. Returns the renders."""
+    renders = 0
+    media: dict[tuple[float, float], list[EdgeJob]] = {}
+    for job in jobs:
+        media.setdefault((round(job.albedo, 9), job.g), []).append(job)
+    for (albedo, g), members in media.items():
+        members.sort(key=lambda j: j.half_mm / j.mfp_mm)
+        while members:
+            narrowest = members[0].half_mm / members[0].mfp_mm
+            group = [j for j in members if j.half_mm / j.mfp_mm <= GROUP_SPREAD * narrowest]
+            members = members[len(group):]
+            half = group[-1].half_mm / group[-1].mfp_mm
+            columns = math.ceil(COLUMNS * half / narrowest)
+            start = time.perf_counter()
+            x, lit = mitsuba_edge(variant, albedo, g, half, columns, spp)
+            quarter = max(16, spp // 4)  # the plateau is the mean of a whole image
+            _, full = mitsuba_edge(variant, albedo, g, half, columns, quarter, blocked=False)
+            renders += 2
+            for job in group:
+                _compare(job, x, lit, float(full.mean()), full, math.sqrt(quarter / spp))
+            print(f"  Mitsuba: albedo {albedo:.5f} g {g}, {len(group)} edge(s), {columns} "
+                  f"columns, {time.perf_counter() - start:.0f} s", flush=True)
+    return renders
 
 
 def traced_against_measured(name: str, radius: np.ndarray, values: np.ndarray,
-                            reflectance: np.ndarray, variant: str | None) -> dict:
+                            reflectance: np.ndarray) -> tuple[dict, list[EdgeJob]]:
+    """The inversion and the light tracer's columns of one profile, and its Mitsuba jobs."""
     start = time.perf_counter()
     medium = estimate_medium(radius, values, reflectance)
     seconds = time.perf_counter() - start
@@ -135,42 +214,61 @@ def traced_against_measured(name: str, radius: np.ndarray, values: np.ndarray,
     print(f"{name:10s} {medium.model:7s} g {medium.anisotropy:.1f} model edge "
           f"{row['model_edge_error']}  traced edge {edge}  total traced/measured {total}",
           flush=True)
-    if variant is not None:
-        row.update(mitsuba_against_measured(variant, radius, values, reflectance,
-                                            medium.subsurface_colour,
-                                            medium.mean_free_path_mm, medium.anisotropy))
-        print(f"{'':18s} Mitsuba volpath edge {row['mitsuba_edge_error']}  total "
-              f"{row['mitsuba_over_measured_total']}  (pixel noise "
-              f"{row['mitsuba_pixel_noise']})", flush=True)
-    return row
+    albedo = albedo_from_van_de_hulst(medium.subsurface_colour, medium.anisotropy)
+    jobs = [EdgeJob(row, c, radius, values[:, c], float(reflectance[c]), float(albedo[c]),
+                    float(medium.mean_free_path_mm[c]), medium.anisotropy) for c in range(3)]
+    return row, jobs
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "results" /
                                                       "openpbr_medium.json"))
+    parser.add_argument("--spp", type=int, default=MITSUBA_SPP,
+                        help=f"Mitsuba's samples a pixel (default {MITSUBA_SPP})")
+    parser.add_argument("--profiles", nargs="+", default=None, metavar="NAME",
+                        help="only these (skin1 and the sample regions: forehead, lips, "
+                             "chin, cheekbone, cheek, nose)")
     args = parser.parse_args()
+    wanted = set(args.profiles) if args.profiles else None
     variant, why = mono_variant()
     print(f"Mitsuba: {variant or 'left out'} ({why})")
-    rows = []
+    rows, jobs = [], []
+
+    def add(name: str, radius: np.ndarray, values: np.ndarray, reflectance: np.ndarray
+            ) -> None:
+        if wanted is None or name in wanted:
+            row, its_jobs = traced_against_measured(name, radius, values, reflectance)
+            rows.append(row)
+            jobs.extend(its_jobs)
+
     fixtures = ROOT / "tests" / "fixtures" / "physics"
     data = np.loadtxt(fixtures / "skin1.csv", delimiter=",", skiprows=1)
     totals = json.loads((fixtures / "totals.json").read_text())["skin1"]["channels"]
-    rows.append(traced_against_measured(
-        "skin1", data[:, 0], data[:, 1:],
-        np.array([math.pi * c["up_radiance_total"] for c in totals]), variant))
+    add("skin1", data[:, 0], data[:, 1:],
+        np.array([math.pi * c["up_radiance_total"] for c in totals]))
     with tempfile.TemporaryDirectory() as tmp:
         subprocess.run([sys.executable, "-m", "skinpipe", "ingest",
                         str(package_folder("samples", "captures")), "-o", f"{tmp}/p"],
                        check=True, stdout=subprocess.DEVNULL)
         for csv in sorted(Path(tmp, "p").glob("*.csv")):
             profile = read_profile_csv(csv)
-            rows.append(traced_against_measured(csv.stem, profile.radius_mm, profile.values,
-                                                np.array(DEFAULT_ALBEDO), variant))
+            add(csv.stem, profile.radius_mm, profile.values, np.array(DEFAULT_ALBEDO))
+    renders = 0
+    if variant is not None:
+        start = time.perf_counter()
+        renders = mitsuba_columns(variant, jobs, args.spp)
+        print(f"Mitsuba volpath, {args.spp} samples a pixel, {renders} renders in "
+              f"{time.perf_counter() - start:.0f} s: edge, total over measured (bin noise)")
+        for row in rows:
+            print(f"{row['profile']:10s} {row['mitsuba_edge_error']}  "
+                  f"{row['mitsuba_over_measured_total']}  ({row['mitsuba_bin_noise']})")
     out = Path(args.output)
     out.write_text(json.dumps({"photons_per_channel": PHOTONS, "mitsuba_variant": variant,
-                               "mitsuba_spp": MITSUBA_SPP, "mitsuba_pixels": MITSUBA_PIXELS,
-                               "mitsuba_note": why, "rows": rows}, indent=1) + "\n")
+                               "mitsuba_spp": args.spp, "mitsuba_depth_cut": DEPTH_CUT,
+                               "mitsuba_rows": ROWS, "mitsuba_bins_a_side": BINS,
+                               "mitsuba_renders": renders, "mitsuba_note": why,
+                               "rows": rows}, indent=1) + "\n")
     print(f"wrote {out}")
 
 
