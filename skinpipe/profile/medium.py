@@ -10,12 +10,14 @@ quotes). This module inverts a measured pencil-beam profile to (alpha, l, g):
    straight above under a normal pencil; times pi, summed over the surface, that is the
    total reflectance R the albedo texture carries. For an isotropic half space it is
    exactly R(alpha) = alpha H(alpha, 1)^2 / 8 (Chandrasekhar 1960, eq. IV.14 at
-   mu = mu0 = 1; H his function, eq. V.41); for g > 0 it is tabulated by adding-doubling
-   (pencil_reflectance_table.py, from tools/tabulate_pencil_reflectance.py). Each is
-   inverted by bisection.
+   mu = mu0 = 1; H his function, eq. V.41); for 0 < g <= 0.7 it is tabulated by
+   adding-doubling (pencil_reflectance_table.py, from tools/tabulate_pencil_reflectance.py),
+   at 0.8 and 0.9 (skin's own g, where adding-doubling's quadrature goes unstable) by the
+   light tracer that traces the shape (pencil_profile_table.py). Each is inverted by
+   bisection.
 2. **l and g from the profile's shape.** Of R, the single scattering of the pencil is
    alpha p_g(-1) pi / 2, all of it at the entry point (the pencil goes straight down): a
-   share of 1 / H(alpha, 1)^2 at g = 0, a few per cent at 0.7. The rest is multiply
+   share of 1 / H(alpha, 1)^2 at g = 0, 1-4% at 0.7, 0.6-1% at 0.9. The rest is multiply
    scattered, shaped as the multiply scattered light of a half space of the same g
    tallied by the tests' light tracer (pencil_profile_table.py, from
    tools/tabulate_pencil_profile.py): the medium's own shape, so that the model's
@@ -24,9 +26,11 @@ quotes). This module inverts a measured pencil-beam profile to (alpha, l, g):
    reduced albedo and length, matched the sample captures' edges to 1-2% with media
    that, traced, missed them by 3.5-7.7%.) l is fitted per channel so that the largest
    difference of the model's edge-spread function (:mod:`.edge`) from the measured one
-   is least; g is the one whose largest difference over the channels is least. The
-   measured entry spike is what fixes g: skin1's (a fifth to a half of its light) gives
-   g = 0, a diffusion-shaped capture with none 0.7.
+   is least (a coarse scan over four decades first: a far too long path makes a flat
+   disc over the measured radii, a second minimum); g is the one whose largest
+   difference over the channels is least. The measured entry spike is what fixes g:
+   skin1's (a fifth to a half of its light) gives g = 0, a diffusion-shaped capture with
+   none the largest tried, 0.9.
 3. **OpenPBR's colour.** The specification's alpha(C) is the inverse of van de Hulst's
    C(alpha) = (1 - s)(1 - 0.139 s) / (1 + 1.17 s), s = sqrt((1 - alpha) / (1 - alpha g))
    (Kulla & Conty 2017); a renderer following it recovers alpha from C = C(alpha). That C
@@ -47,7 +51,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.interpolate import PchipInterpolator
+from scipy.interpolate import PchipInterpolator, make_smoothing_spline
 from scipy.optimize import brentq, minimize_scalar
 
 from ..errors import InputError
@@ -69,6 +73,8 @@ _PROFILE_RADII = np.asarray(PROFILE.RADII)
 _PROFILE_BEYOND = np.asarray(PROFILE.BEYOND)
 EDGE_POSITIONS = 100
 """Edge positions the shape fit compares, log-spaced (the reported error uses all)."""
+LENGTH_SCAN = 49
+"""Mean free paths scanned (log-spaced, over a factor 10^4) before the search refines."""
 
 
 def chandrasekhar_h(albedo: float, mu: ArrayLike) -> FloatArray:
@@ -198,10 +204,21 @@ class _Shape:
 @cache
 def _reflectance_over_s(g: float) -> PchipInterpolator:
     """R against s = sqrt((1 - alpha) / (1 - alpha g)): Chandrasekhar's exact form at
-    g = 0 (257 points, interpolated to 1e-8), the adding-doubling table beyond."""
+    g = 0 (257 points, interpolated to 1e-8), the adding-doubling table to 0.7, the
+    light tracer's beyond (relative to adding-doubling's 0.7, smoothed)."""
     if g == 0.0:
         s = np.linspace(0.0, 1.0, 257)
         return PchipInterpolator(s, [pencil_reflectance(1.0 - x * x) for x in s])
+    if g in PROFILE.TRACED_REFLECTANCE:
+        # each traced total carries about 1% noise at 0.9: their ratio to the last
+        # adding-doubling row is smoothed (a penalised spline, its weight chosen by
+        # generalised cross-validation), so that the inverted albedo does not follow it
+        s = np.asarray(PROFILE.S_GRID)
+        adding_doubling = _reflectance_over_s(TABLE.ANISOTROPIES[-1])
+        ratio = make_smoothing_spline(
+            s, np.asarray(PROFILE.TRACED_REFLECTANCE[g]) / adding_doubling(s))
+        fine = np.linspace(s[0], s[-1], 257)
+        return PchipInterpolator(fine, adding_doubling(fine) * ratio(fine))
     k = TABLE.ANISOTROPIES.index(g)
     return PchipInterpolator(TABLE.S_GRID, TABLE.REFLECTANCE[k])
 
@@ -229,10 +246,10 @@ def _ring_means(outer: FloatArray, shape: _Shape, mean_free_path_mm: float) -> F
     return out
 
 
-ANISOTROPIES = TABLE.ANISOTROPIES
+ANISOTROPIES = PROFILE.ANISOTROPIES
 """The phase-function anisotropies g tried: g sets how much of the light the pencil's
 single scattering sends straight back (its entry spike), from 1 / H(alpha, 1)^2 of R at
-g = 0 to a few per cent at 0.7."""
+g = 0 to about 1% at 0.9 (skin's g is 0.8-0.9: Jacques et al. 1987)."""
 
 
 def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: ArrayLike
@@ -272,10 +289,18 @@ def estimate_medium(radius_mm: ArrayLike, values: ArrayLike, total_reflectance: 
             return beyond @ ring_means / max(float(area @ ring_means), 1e-300) \
                 - measured[:, c]
 
-        # the largest difference, as reported and as a path tracer's image shows it
-        best = minimize_scalar(lambda x: float(np.abs(spread(x)).max()), bounds=bounds,
-                               method="bounded", options={"xatol": 1e-4})
-        return float(np.abs(spread(best.x)).max()), math.exp(best.x), shape
+        def largest(log_l: float) -> float:
+            """The largest difference, as reported and as a path tracer's image shows it."""
+            return float(np.abs(spread(log_l)).max())
+
+        # a coarse scan first: far too long a path gives a flat disc over the measured
+        # radii, a second dip Brent's search alone can settle in (forward scattering)
+        grid = np.linspace(*bounds, LENGTH_SCAN)
+        k = int(np.argmin([largest(x) for x in grid]))
+        near = (grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)])
+        best = minimize_scalar(largest, bounds=near, method="bounded",
+                               options={"xatol": 1e-4})
+        return largest(best.x), math.exp(best.x), shape
 
     for x in refl:
         albedo_from_pencil_reflectance(x)  # refuses what no medium reflects

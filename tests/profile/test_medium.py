@@ -141,8 +141,8 @@ def test_the_table_is_adding_doublings_and_chandrasekhars() -> None:
 def test_a_profile_without_an_entry_spike_gets_a_forward_scattering_medium() -> None:
     """A diffusion-shaped profile (no single-scattering spike, as the sample captures'):
     the inversion scatters forward (g > 0 shrinks the spike), and the medium, traced,
-    reflects the total asked of it within 3% (the adding-doubling table, checked by the
-    independent tracer; measured 0.2-0.6%)."""
+    reflects the total asked of it within 3% (200,000 photons a channel: at g = 0.9 the
+    tracer's total carries about 1% noise per 100,000, as does the table it made)."""
     from skinpipe.profile.models import dipole_profile
     from skinpipe.profile.reference_data import ScatteringCoefficients
 
@@ -152,15 +152,31 @@ def test_a_profile_without_an_entry_spike_gets_a_forward_scattering_medium() -> 
     reflectance = np.array([0.62, 0.42, 0.33])
     medium = estimate_medium(radius, values, reflectance)
     assert medium.anisotropy >= 0.5
-    _, total = traced_against_measured(radius, values, reflectance, medium, 40_000, 7)
+    _, total = traced_against_measured(radius, values, reflectance, medium, 200_000, 7)
     assert total == pytest.approx([1.0, 1.0, 1.0], rel=0.03)
 
 
-@pytest.mark.parametrize("anisotropy", [0.0, 0.6])
+@pytest.mark.parametrize("anisotropy", [0.7, 0.8, 0.9])
+def test_the_reflectance_beyond_adding_doubling_is_the_tracers(anisotropy: float) -> None:
+    """Where adding-doubling stops (g > 0.7) the tracer's own totals give R: a fresh
+    trace off their grid (s = 0.3, 40,000 photons) within 2% of the curve, and at 0.7
+    the tracer and adding-doubling agree as closely (measured 0.6%)."""
+    from skinpipe.profile.medium import _reflectance_over_s
+
+    s = 0.3
+    albedo = (1 - s * s) / (1 - anisotropy * s * s)
+    tally = trace(Medium(albedo, 1 - albedo, anisotropy), 40_000, np.array([1e3]), seed=3)
+    assert float(_reflectance_over_s(anisotropy)(s)) == pytest.approx(
+        math.pi * tally.total, rel=0.02)
+
+
+@pytest.mark.parametrize("anisotropy", [0.0, 0.6, 0.8])
 def test_the_traced_profile_table_is_the_tracers(anisotropy: float) -> None:
     """A fresh trace off the table's grid (alpha 0.9, 100,000 photons), isotropic and
     forward scattering: the multiply scattered light beyond 0.3, 1, 3 and 10 mean free
-    paths within 0.01 of the table's."""
+    paths within 0.01 of the table's; at g = 0.8 (a row the table traced beyond
+    adding-doubling's reach) within 0.02: both traces carry about 0.01 of noise there, the
+    up-going next-event weight peaking at p_g(1) = 3.6 (15 at 0.9)."""
     from skinpipe.profile.medium import _traced_ring_means
 
     albedo = 0.9
@@ -175,7 +191,7 @@ def test_the_traced_profile_table_is_the_tracers(anisotropy: float) -> None:
     means = _traced_ring_means(outer, albedo, 1.0, anisotropy)
     within = np.cumsum(means * math.pi * np.diff(np.concatenate([[0.0], outer]) ** 2))
     table = 1 - np.interp(edges[:-1], outer, within)
-    np.testing.assert_allclose(table, traced, atol=0.01)
+    np.testing.assert_allclose(table, traced, atol=0.02 if anisotropy > 0.7 else 0.01)
 
 
 def test_a_traced_forward_scattering_medium_gives_back_its_own() -> None:
