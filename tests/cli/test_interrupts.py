@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -25,9 +26,12 @@ CAPTURES = ROOT / "skinpipe" / "samples" / "captures"
 def interrupt_when(args: list[str], marker: str, cwd: Path) -> tuple[int, str]:
     """Run ``skinpipe ARGS``, send SIGINT to its process group when ``marker`` appears on
     its stderr, and return its exit code and stderr."""
+    # as from a terminal: a suite run as a script's background job inherits SIGINT
+    # ignored, which skinpipe (as Python) keeps, and no Ctrl-C would then reach it
     proc = subprocess.Popen([sys.executable, "-m", "skinpipe", *args], cwd=cwd,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
                             env={**os.environ, "PYTHONPATH": str(ROOT)})
     seen = bytearray()
     found = threading.Event()
@@ -110,6 +114,16 @@ def test_batch_stops_on_ctrl_c(tmp_path: Path, marker: str) -> None:
     assert_interrupted("batch", code, err, tmp_path, "out")
 
 
+@pytest.fixture
+def sigint_as_from_a_terminal() -> Iterator[None]:
+    """SIGINT handled as Python handles it in a terminal, for the test's duration (a
+    suite run as a script's background job inherits it ignored)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.usefixtures("sigint_as_from_a_terminal")
 def test_an_interrupt_a_library_swallowed_still_stops_the_work() -> None:
     """casadi turns a KeyboardInterrupt in its callback into IPOPT's
     NonIpopt_Exception_Thrown: the flag set by the handler still stops the fit."""
