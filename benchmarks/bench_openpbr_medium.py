@@ -14,8 +14,11 @@ times its total reflectance over pi, and a render without the blocker gives that
 The independent light tracer (tests/physics/light_tracer.py) traces the same medium
 pencil-lit as a second peer. Printed per channel against the measured profile: the
 edge-spread error (largest difference beyond the central two rings, share of the
-plateau; Mitsuba's columns averaged in bins, BINS, with the bins' noise beside) and the
-total reflectance over the measured; the inversion's own model residual beside them.
+plateau; Mitsuba's columns averaged in bins, BINS, with the bins' noise beside, from
+the spread of its rows) and the total reflectance over the measured; the inversion's
+own model residual beside them; and Mitsuba's edge against the light tracer's of the
+same medium: chi^2 a bin with Mitsuba's noise (about 1 where the two agree), and
+their largest difference.
 Without the ``mitsuba`` package its columns are left out.
 
 Mitsuba's paths run without Russian roulette, cut at the depth where the albedo's
@@ -78,10 +81,10 @@ in mean free paths), so the six sample regions, one albedo a channel, need few."
 
 def mitsuba_edge(variant: str, albedo: float, g: float, half_width_mfp: float,
                  columns: int, spp: int, blocked: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Column centres x (mean free paths) and the exit radiance across a hard shadow edge
-    (light on x < 0) of an index-matched slab of the medium (mu_t = 1), under unit normal
-    irradiance."""
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Column centres x (mean free paths), the exit radiance across a hard shadow edge
+    (light on x < 0) of an index-matched slab of the medium (mu_t = 1) under unit normal
+    irradiance, and its standard error."""
     import mitsuba as mi
 
     mi.set_variant(variant)
@@ -111,7 +114,8 @@ def mitsuba_edge(variant: str, albedo: float, g: float, half_width_mfp: float,
                             @ T.scale([size / 2, size, 1])}
     image = np.array(mi.render(mi.load_dict(scene))).reshape(ROWS, columns, -1)[..., 0]
     x = ((np.arange(columns) + 0.5) / columns * 2 - 1) * half
-    return x, image.mean(axis=0)
+    # the rows are independent estimates of one edge: their spread is the mean's noise
+    return x, image.mean(axis=0), image.std(axis=0, ddof=1) / math.sqrt(ROWS)
 
 
 @dataclass
@@ -128,6 +132,8 @@ class EdgeJob:
     albedo: float
     mfp_mm: float
     g: float
+    traced: np.ndarray
+    """The light tracer's radiance in the measured rings, for the same medium."""
 
     @property
     def half_mm(self) -> float:
@@ -138,35 +144,44 @@ class EdgeJob:
         return float(np.clip(4.0 * edge_width_mm(t, measured)[0], 2.0, 0.9 * outer[-1]))
 
 
-def _binned(x_mm: np.ndarray, values: np.ndarray, inner_mm: float, half_mm: float
-            ) -> np.ndarray:
-    """``values`` averaged over BINS groups of columns a side of the edge, within
-    inner_mm <= |x| <= half_mm."""
+def _bins(x_mm: np.ndarray, inner_mm: float, half_mm: float) -> list[np.ndarray]:
+    """BINS groups of columns a side of the edge, within inner_mm <= |x| <= half_mm."""
     out = []
     for side in (x_mm < 0, x_mm > 0):
         keep = np.flatnonzero(side & (np.abs(x_mm) >= inner_mm) & (np.abs(x_mm) <= half_mm))
-        out += [values[i].mean() for i in np.array_split(keep, min(BINS, keep.size))]
-    return np.array(out)
+        out += np.array_split(keep, min(BINS, keep.size))
+    return out
 
 
-def _compare(job: EdgeJob, x_mfp: np.ndarray, lit: np.ndarray, plateau: float,
-             full: np.ndarray, noise_scale: float) -> None:
-    """Mitsuba's edge, total and bin noise of ``job``, into its row."""
-    x = x_mfp * job.mfp_mm
-    t = edge_positions_mm(job.radius)
-    first = spread_beyond_rings(job.radius, job.values, t)[0]
-    # the measured edge averaged over each column's width, as the film's box does
+def _edge_of(radius: np.ndarray, values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A profile's edge-spread function over its total, averaged over each column's
+    width as the film's box does."""
+    first = spread_beyond_rings(radius, values, edge_positions_mm(radius))[0]
     sub = x[:, None] + (np.arange(8)[None, :] + 0.5 - 4) / 8 * (x[1] - x[0])
-    frac = spread_beyond_rings(job.radius, job.values, sub.reshape(-1)).reshape(sub.shape)
-    frac = (frac / first).mean(axis=1)
-    inner, half = float(ring_edges_mm(job.radius)[1]), job.half_mm
-    diff = _binned(x, lit / plateau - frac, inner, half)
-    noise = _binned(x, full / plateau, inner, half).std() * noise_scale
+    return (spread_beyond_rings(radius, values, sub.reshape(-1)).reshape(sub.shape)
+            / first).mean(axis=1)
+
+
+def _compare(job: EdgeJob, x_mfp: np.ndarray, lit: np.ndarray, error: np.ndarray,
+             plateau: float) -> None:
+    """Into ``job``'s row: Mitsuba's edge error against the measured profile, its total,
+    its bins' noise, and its agreement with the light tracer's edge of the same medium
+    (chi^2 per bin with Mitsuba's noise, and the largest difference)."""
+    x = x_mfp * job.mfp_mm
+    bins = _bins(x, float(ring_edges_mm(job.radius)[1]), job.half_mm)
+    mitsuba = np.array([lit[b].mean() for b in bins]) / plateau
+    noise = np.array([math.sqrt(float(np.sum(error[b] ** 2))) / b.size for b in bins]) / plateau
+    measured = _edge_of(job.radius, job.values, x)
+    traced = _edge_of(job.radius, job.traced, x)
+    measured, traced = (np.array([v[b].mean() for b in bins]) for v in (measured, traced))
     c = job.channel
-    job.row.setdefault("mitsuba_edge_error", [0.0] * 3)[c] = round(float(np.abs(diff).max()), 4)
-    job.row.setdefault("mitsuba_over_measured_total", [0.0] * 3)[c] = round(
-        math.pi * plateau / job.reflectance, 4)
-    job.row.setdefault("mitsuba_bin_noise", [0.0] * 3)[c] = round(float(noise), 4)
+    for key, value in (("mitsuba_edge_error", np.abs(mitsuba - measured).max()),
+                       ("mitsuba_over_measured_total", math.pi * plateau / job.reflectance),
+                       ("mitsuba_bin_noise", noise.mean()),
+                       ("mitsuba_vs_traced_chi2_per_bin",
+                        np.mean(((mitsuba - traced) / noise) ** 2)),
+                       ("mitsuba_vs_traced_largest", np.abs(mitsuba - traced).max())):
+        job.row.setdefault(key, [0.0] * 3)[c] = round(float(value), 4)
 
 
 def mitsuba_columns(variant: str, jobs: list[EdgeJob], spp: int) -> int:
@@ -185,12 +200,13 @@ def mitsuba_columns(variant: str, jobs: list[EdgeJob], spp: int) -> int:
             half = group[-1].half_mm / group[-1].mfp_mm
             columns = math.ceil(COLUMNS * half / narrowest)
             start = time.perf_counter()
-            x, lit = mitsuba_edge(variant, albedo, g, half, columns, spp)
+            x, lit, error = mitsuba_edge(variant, albedo, g, half, columns, spp)
             quarter = max(16, spp // 4)  # the plateau is the mean of a whole image
-            _, full = mitsuba_edge(variant, albedo, g, half, columns, quarter, blocked=False)
+            _, full, _ = mitsuba_edge(variant, albedo, g, half, columns, quarter,
+                                      blocked=False)
             renders += 2
             for job in group:
-                _compare(job, x, lit, float(full.mean()), full, math.sqrt(quarter / spp))
+                _compare(job, x, lit, error, float(full.mean()))
             print(f"  Mitsuba: albedo {albedo:.5f} g {g}, {len(group)} edge(s), {columns} "
                   f"columns, {time.perf_counter() - start:.0f} s", flush=True)
     return renders
@@ -202,8 +218,8 @@ def traced_against_measured(name: str, radius: np.ndarray, values: np.ndarray,
     start = time.perf_counter()
     medium = estimate_medium(radius, values, reflectance)
     seconds = time.perf_counter() - start
-    edge, total = ([round(x, 4) for x in xs] for xs in traced_against(
-        radius, values, reflectance, medium, PHOTONS, 40))
+    edge, total, traced = traced_against(radius, values, reflectance, medium, PHOTONS, 40)
+    edge, total = [round(x, 4) for x in edge], [round(x, 4) for x in total]
     row = {"profile": name, "model": medium.model, "anisotropy": medium.anisotropy,
            "single_scattering_albedo": medium.single_scattering_albedo.round(5).tolist(),
            "mean_free_path_mm": medium.mean_free_path_mm.round(4).tolist(),
@@ -216,7 +232,8 @@ def traced_against_measured(name: str, radius: np.ndarray, values: np.ndarray,
           flush=True)
     albedo = albedo_from_van_de_hulst(medium.subsurface_colour, medium.anisotropy)
     jobs = [EdgeJob(row, c, radius, values[:, c], float(reflectance[c]), float(albedo[c]),
-                    float(medium.mean_free_path_mm[c]), medium.anisotropy) for c in range(3)]
+                    float(medium.mean_free_path_mm[c]), medium.anisotropy, traced[:, c])
+            for c in range(3)]
     return row, jobs
 
 
@@ -262,7 +279,9 @@ def main() -> None:
               f"{time.perf_counter() - start:.0f} s: edge, total over measured (bin noise)")
         for row in rows:
             print(f"{row['profile']:10s} {row['mitsuba_edge_error']}  "
-                  f"{row['mitsuba_over_measured_total']}  ({row['mitsuba_bin_noise']})")
+                  f"{row['mitsuba_over_measured_total']}  ({row['mitsuba_bin_noise']}); "
+                  f"against the tracer: chi2 a bin {row['mitsuba_vs_traced_chi2_per_bin']}, "
+                  f"largest {row['mitsuba_vs_traced_largest']}")
     out = Path(args.output)
     out.write_text(json.dumps({"photons_per_channel": PHOTONS, "mitsuba_variant": variant,
                                "mitsuba_spp": args.spp, "mitsuba_depth_cut": DEPTH_CUT,
