@@ -89,13 +89,17 @@ def test_skin1_profile_gives_back_skin1s_medium() -> None:
 
 def traced_against_measured(radius: np.ndarray, values: np.ndarray,
                             reflectance: np.ndarray, medium: MediumEstimate,
-                            photons: int, seed: int
-                            ) -> tuple[list[float], list[float], np.ndarray]:
+                            photons: int, seed: int, reach_mm: float | None = None
+                            ) -> tuple[list[float], list[float], np.ndarray, np.ndarray]:
     """The medium traced pencil-lit by the independent light tracer against the measured
     profile, per channel: (largest edge difference beyond the central two rings as a
-    share of the plateau, traced total reflectance over ``reflectance``), and the traced
-    radiance of each of the measured rings (n, 3)."""
-    outer = ring_edges_mm(radius)
+    share of the plateau, traced total reflectance over ``reflectance``); and the traced
+    radiance (m, 3) at radii (m,): the measured ones, continued at their spacing to
+    ``reach_mm`` where given (the light a renderer shows beyond the capture)."""
+    step = float(radius[-1] - radius[-2])
+    traced_radius = radius if reach_mm is None else np.concatenate(
+        [radius, radius[-1] + step * np.arange(1, int((reach_mm - radius[-1]) / step) + 1)])
+    outer = ring_edges_mm(traced_radius)
     t = edge_positions_mm(radius)
     keep = np.abs(t) >= outer[1] - 1e-12
     edge, total, radiance = [], [], []
@@ -104,12 +108,12 @@ def traced_against_measured(radius: np.ndarray, values: np.ndarray,
         tally = trace(Medium(a / length, (1 - a) / length, medium.anisotropy), photons,
                       outer, seed=seed + c)
         measured = spread_beyond_rings(radius, values[:, c], t)
-        traced = spread_beyond_rings(radius, tally.radiance(), t)
+        traced = spread_beyond_rings(radius, tally.radiance()[:radius.size], t)
         traced *= measured[0] / traced[0]
         edge.append(float(np.abs(traced - measured)[keep].max() / measured[0]))
         total.append(math.pi * tally.total / float(reflectance[c]))
         radiance.append(tally.radiance())
-    return edge, total, np.stack(radiance, axis=1)
+    return edge, total, traced_radius, np.stack(radiance, axis=1)
 
 
 def test_traced_medium_reproduces_the_skin1_profile() -> None:
@@ -118,7 +122,8 @@ def test_traced_medium_reproduces_the_skin1_profile() -> None:
     the measured total reflectance within 3%."""
     radius, values, reflectance = _skin1()
     medium = estimate_medium(radius, values, reflectance)
-    edge, total, _ = traced_against_measured(radius, values, reflectance, medium, 40_000, 3)
+    edge, total, *_ = traced_against_measured(radius, values, reflectance, medium, 40_000,
+                                              3)
     assert max(edge) < 0.05, edge
     assert total == pytest.approx([1.0, 1.0, 1.0], rel=0.03)
 
@@ -155,7 +160,7 @@ def test_a_profile_without_an_entry_spike_gets_a_forward_scattering_medium() -> 
     reflectance = np.array([0.62, 0.42, 0.33])
     medium = estimate_medium(radius, values, reflectance)
     assert medium.anisotropy >= 0.5
-    _, total, _ = traced_against_measured(radius, values, reflectance, medium, 200_000, 7)
+    _, total, *_ = traced_against_measured(radius, values, reflectance, medium, 200_000, 7)
     assert total == pytest.approx([1.0, 1.0, 1.0], rel=0.03)
 
 
