@@ -38,6 +38,7 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -140,7 +141,7 @@ class EdgeJob:
     """The light tracer's radiance of the same medium at traced_radius: the measured
     rings continued to REACH_MM, since Mitsuba's edge holds all the light."""
 
-    @property
+    @cached_property
     def half_mm(self) -> float:
         """Four edge widths either side, within the measured radii."""
         t = edge_positions_mm(self.radius)
