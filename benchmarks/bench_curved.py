@@ -30,7 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_mitsuba import mono_variant  # noqa: E402
-from tests.render.diffusion.test_curved_seams import _sphere, _worst_step  # noqa: E402
+from tests.render.diffusion.test_curved_seams import _worst_step  # noqa: E402
+from tests.render.terminator import (  # noqa: E402
+    sphere_render,
+    terminator_figures,
+)
 
 SKIN1 = ([0.74, 0.88, 1.01], [0.032, 0.17, 0.48])
 SPP = 4096
@@ -67,72 +71,6 @@ def mitsuba_strip(variant: str, radius_mm: float, angle_deg: float) -> np.ndarra
     return np.array(out)
 
 
-def skinpipe_render(tmp: Path, radius_mm: float, angle_deg: float) -> np.ndarray:
-    """The diffuse AOV (512 x 512 over 2.4 radii) of skinpipe's sphere, RGB."""
-    import OpenImageIO as oiio
-    from pxr import Gf, Sdf, UsdGeom
-
-    from skinpipe.cli import main
-    from tests.render_scenes import distant_down, ortho_camera_down, scene_over
-
-    fits = tmp / "fits"
-    if not fits.exists():
-        fits.mkdir()
-        assert main(["fit", str(ROOT / "tests" / "fixtures" / "physics" / "skin1.csv"),
-                     "-k", "6", "-o", str(fits / "skin1.json")]) == 0
-    mesh = _sphere(radius_mm)
-    obj = tmp / f"sphere_{radius_mm:g}.obj"
-    tri = mesh.face_indices.reshape(-1, 3) + 1
-    obj.write_text("".join(f"v {a:.6f} {b:.6f} {c:.6f}\n" for a, b, c in mesh.points)
-                   + "".join(f"f {a} {b} {c}\n" for a, b, c in tri))
-    landmarks = tmp / "landmarks.json"
-    landmarks.write_text(json.dumps({"regions": {"skin1": [[0.0, 0.0, radius_mm]]}}))
-    asset = tmp / f"asset_{radius_mm:g}"
-    if not asset.exists():
-        assert main(["author", "--fits", str(fits), "--mesh", str(obj), "--landmarks",
-                     str(landmarks), "-o", str(asset)]) == 0
-    totals = json.loads((ROOT / "tests" / "fixtures" / "physics" / "totals.json")
-                        .read_text())["skin1"]["channels"]
-    albedo = [math.pi * c["lit_up_radiance"]["0.0"] for c in totals]
-    width = 2.4 * radius_mm
-
-    def build(stage) -> None:
-        ortho_camera_down(stage, width, width)
-        UsdGeom.Xformable(distant_down(stage)).AddRotateYOp().Set(angle_deg)
-        for shader in ("/Face/Looks/SkinMaterial/PreviewSurface",
-                       "/Face/Looks/Regions/skin1/PreviewSurface"):
-            stage.OverridePrim(shader).CreateAttribute(
-                "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
-
-    scene = scene_over(asset / "asset.usda", tmp / f"scene_{radius_mm:g}_{angle_deg:g}.usda",
-                       build)
-    out = tmp / f"out_{radius_mm:g}_{angle_deg:g}"
-    assert main(["render", str(scene), "-o", str(out), "--resolution", "512x512",
-                 "--texture-size", "1024", "--rho-s", "0", "--ior", "1",
-                 "--aovs", "diffuse"]) == 0
-    buf = oiio.ImageBuf(str(out / f"{scene.stem}.exr"))
-    names = list(buf.spec().channelnames)
-    px = np.asarray(buf.get_pixels(oiio.FLOAT))
-    return np.stack([px[..., names.index(f"diffuse.{c}")] for c in "RGB"], axis=-1)
-
-
-def terminator_figures(x: np.ndarray, level: np.ndarray, terminator_mm: float
-                       ) -> dict[str, float]:
-    """The centre's level, where the light falls to 50%, 10% and 2% of it on the
-    terminator's side (x < 0), and the mean light 1-2 mm beyond the terminator."""
-    centre = float(np.interp(0.0, x, level))
-    out = {"centre": centre}
-    for share in (0.5, 0.1, 0.02):
-        below = np.flatnonzero((x < 0) & (level < share * centre))
-        i = int(below.max()) if below.size else 0
-        x0, x1, a0, a1 = x[i], x[i + 1], level[i], level[i + 1]
-        out[f"point_{round(share * 100)}_mm"] = float(
-            x0 + (share * centre - a0) / (a1 - a0) * (x1 - x0)) if a1 != a0 else float(x0)
-    past = (x < terminator_mm - 1.0) & (x > terminator_mm - 2.0)
-    out["past_terminator"] = float(level[past].mean())
-    return out
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "results" /
@@ -143,7 +81,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for radius, angle in CASES:
-            rgb = skinpipe_render(Path(tmp), radius, angle)
+            rgb = sphere_render(Path(tmp), radius, angle)
             width = 2.4 * radius
             row: dict = {"radius_mm": radius, "angle_deg": angle,
                          "seam_step": _worst_step(rgb, width, radius, angle).round(4).tolist()}
