@@ -218,3 +218,27 @@ class RayScene:
             list(pool.map(run, self._chunks(n)))
         self.stats.add("camera", n, time.perf_counter() - start)
         return prim, u, v, t
+
+
+def exit_distances(rays: RayScene, mesh_index: int, mesh_points: NDArray[np.float64],
+                   mesh_tris: NDArray[np.integer], points: NDArray[np.float64],
+                   normals: NDArray[np.float64], directions: NDArray[np.float64]
+                   ) -> NDArray[np.float64]:
+    """(N,) how far a ray into the skin along ``directions`` runs before it leaves the
+    same mesh (inf where it does not: an open scan, a hit from outside)."""
+    tris = np.asarray(mesh_tris)
+    verts = np.asarray(mesh_points, np.float64)[tris]
+    faces = np.cross(verts[:, 1] - verts[:, 0], verts[:, 2] - verts[:, 0])  # unnormalised
+    out = np.full(points.shape[0], np.inf)
+    for first in range(0, points.shape[0], 1 << 20):  # a band's arrays at a time
+        band = slice(first, min(first + (1 << 20), points.shape[0]))
+        d = np.asarray(directions[band], np.float32)
+        prim, _, _, dist = rays.intersect(offset_ray_origin(points[band],
+                                                            -np.asarray(normals[band])), d)
+        hit = np.flatnonzero(prim >= 0)
+        owner = rays.owner[prim[hit]]
+        own = owner[:, 0] == mesh_index
+        hit, local = hit[own], owner[own, 1]
+        leaving = np.einsum("ij,ij->i", faces[local], np.asarray(d[hit], np.float64)) > 0
+        out[band][hit[leaving]] = dist[hit[leaving]]
+    return out

@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...profile.medium import MediumEstimate, similarity_relation
 from . import slab_transmission_table as TABLE
-from .raytrace import RayScene, offset_ray_origin
+from .raytrace import RayScene, exit_distances, offset_ray_origin
 
 _S = np.asarray(TABLE.S_GRID)
 _LOG_TAU = np.log(np.asarray(TABLE.TAU_GRID))
@@ -167,6 +167,31 @@ def back_points(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     return index.astype(np.int64), tri.astype(np.int64), bary.astype(np.float64), thickness
 
 
+ROUNDNESS_TILT = math.radians(45.0)
+"""How far from -n the rays that tell a round part from a flat one are tilted."""
+
+
+def flatness(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
+             mesh_tris: NDArray[np.integer], points: FloatArray, normals: FloatArray,
+             thickness: FloatArray) -> FloatArray:
+    """(K,) 1 where the part under ``points`` is a slab, 0 where it is round: a chord
+    tilted by a from -n is d / cos a through a slab and d cos a through a ball or across
+    a tube; the shorter of two tilted chords (along two tangents) maps linearly from
+    d cos a -> 0 to d / cos a -> 1. Round, light reaches the far side round the
+    surface, which the diffusion carries along it already."""
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    c, s = math.cos(ROUNDNESS_TILT), math.sin(ROUNDNESS_TILT)
+    shortest = np.minimum(*(exit_distances(rays, mesh_index, mesh_points, mesh_tris, p, n,
+                                           -c * n + s * t) for t in (t1, t2)))
+    ratio = shortest / np.maximum(np.asarray(thickness, np.float64), 1e-30)
+    return np.clip((ratio - c) / (1.0 / c - c), 0.0, 1.0)
+
+
 def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
              mesh_tris: NDArray[np.integer], uv: FloatArray, uv_tris: NDArray[np.integer],
              size: int, points: FloatArray, normals: FloatArray, texel: NDArray[np.intp],
@@ -190,7 +215,10 @@ def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     covered = far >= 0
     index, far, thickness = index[covered], far[covered], thickness[covered]
     factor = media.through(thickness, None if regions is None else
-                           np.asarray(regions[index], np.float64)).astype(np.float32)
+                           np.asarray(regions[index], np.float64))
+    factor *= flatness(rays, mesh_index, mesh_points, mesh_tris, points[index],
+                       normals[index], thickness)[:, None]
+    factor = factor.astype(np.float32)
     return FarSide(index, far, factor)
 
 
