@@ -42,7 +42,8 @@ STRIP = (480, 4)
 CASES = ((10.0, 0.0), (10.0, 60.0), (5.0, 0.0), (5.0, 60.0))
 
 
-def mitsuba_strip(variant: str, radius_mm: float, angle_deg: float) -> np.ndarray:
+def mitsuba_strip(variant: str, radius_mm: float, angle_deg: float, spp: int = SPP
+                  ) -> np.ndarray:
     """(3, STRIP[0]) the path-traced radiance along the strip through the centre."""
     import mitsuba as mi
 
@@ -60,7 +61,7 @@ def mitsuba_strip(variant: str, radius_mm: float, angle_deg: float) -> np.ndarra
                                              up=[0, 1, 0]) @ T.scale([half, half * rows / px, 1]),
                        "film": {"type": "hdrfilm", "width": px, "height": rows,
                                 "rfilter": {"type": "box"}},
-                       "sampler": {"type": "independent", "sample_count": SPP}},
+                       "sampler": {"type": "independent", "sample_count": spp}},
             "light": {"type": "directional", "direction": [-x for x in light],
                       "irradiance": 1.0},
             "ball": {"type": "sphere", "radius": radius_mm, "bsdf": {"type": "null"},

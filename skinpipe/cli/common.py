@@ -204,9 +204,11 @@ def add_render_options(p: argparse.ArgumentParser, resolution: str = "1024x1024"
                         "index-matched, where the light leaving follows each region's "
                         "medium by angle (its single scattering too)")
     p.add_argument("--no-transmission", action="store_true",
-                   help="leave out light through thin parts (ears, nostrils' rims): "
-                        "by default what the skin's far side receives leaves the near "
-                        "side through the volume, by each region's medium")
+                   help="leave out light through the volume: by default light entering "
+                        "at an angle scatters first where its refracted path takes it "
+                        "(across a terminator, into a shadow), and what thin parts' far "
+                        "side receives (ears, nostrils' rims) leaves the near side, by "
+                        "each region's medium")
     p.add_argument("--no-write-uvs", action="store_true",
                    help="do not write xatlas UVs back into the asset's geo layer")
     p.add_argument("--ocio", default=None,

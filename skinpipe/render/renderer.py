@@ -45,6 +45,7 @@ from .diffusion.tile_store import TileStore
 from .frame import CameraHits, SkinTextures, TaskLog, _BothArrived, hit_uvs
 from .kernel_plan import kernel_plan
 from .light.boundary import SkinBoundary, transmission
+from .light.first_scatter import FirstScatter, through_volume
 from .light.interleave import (
     interleave_classes,
     interleaved_visibility,
@@ -58,7 +59,7 @@ from .light.raytrace import RayScene, offset_ray_origin
 from .light.reflection_law import ReflectionLaw, angular_correction
 from .light.samples import interleave_period, light_direction, sobol_points
 from .light.specular import torrance_sparrow
-from .light.thin_parts import FarSide, ThinMedia, far_side, with_far_side
+from .light.thin_parts import FarSide, ThinMedia, far_side
 from .options import AOVS, DATA_AOVS, RenderOptions
 from .scene import SceneData, SceneDelegate, SceneMesh, content_hash
 from .shading import (
@@ -262,8 +263,9 @@ class Renderer:
                                      opts.light_samples, boundary,
                                      opts.seed, dome_textures, interleave, opts.light_sequence,
                                      coherent=True, period=period, device=self.device)
-            through = self._thin_parts(log, scene, tex, rays, positions, normals, texel,
-                                       regions) if opts.transmission else None
+            through, first = self._through_volume(
+                log, scene, tex, rays, positions, normals, texel, regions) \
+                if opts.transmission else (None, None)
             del regions
             penumbra: dict[str, int] = {}  # texels refined per light (adaptive)
             if opts.shadow_sampling == "adaptive" and res.interleaved:
@@ -292,9 +294,9 @@ class Renderer:
                 entering = res.entering_with(visibility)
             else:
                 entering = res.entering
-            if through is not None:  # the far side's light, through the volume
-                entering = with_far_side(entering, through)
-            del normal, through
+            entering = through_volume(entering, first, through, scene.lights, res,
+                                      visibility if filtered else res.visibility, log.measures)
+            del normal, through, first
             notes = (res.skipped, res.rays, res.seconds, penumbra)
             # the per-light sums go before the planes and their push-pull (0.3 GB at
             # texture 4096)
@@ -865,23 +867,29 @@ class Renderer:
         return self._cached(log, f"reflection law:{tex.mesh.path}", key, compute,
                             report=False)
 
-    def _thin_parts(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
-                    rays: RayScene, positions: NDArray[Any], normals: NDArray[Any],
-                    texel: NDArray[Any], regions: NDArray[Any] | None) -> FarSide | None:
-        """:func:`~.light.thin_parts.far_side` of the covered texels (rows of ``texel``);
-        None when no texel has a far side within reach."""
+    def _through_volume(self, log: TaskLog, scene: SceneData, tex: SkinTextures,
+                        rays: RayScene, positions: NDArray[Any], normals: NDArray[Any],
+                        texel: NDArray[Any], regions: NDArray[Any] | None
+                        ) -> tuple[FarSide | None, FirstScatter | None]:
+        """For the covered texels (rows of ``texel``) the thin parts' far sides
+        (:func:`~.light.thin_parts.far_side`; None when none is within reach) and where
+        their light first scatters (:class:`~.light.first_scatter.FirstScatter`), each
+        texel's medium its regions' blend; (None, None) without the regions' media."""
         albedo, media = self._media(log, scene, tex)
         if media is None:
-            return None
+            return None, None
         thin = ThinMedia.of(media, albedo, scene.meters_per_unit)
-        mesh = tex.mesh
+        mesh, at, size = tex.mesh, scene.meshes.index(tex.mesh), self.options.texture_size
         start = time.perf_counter()
-        far = far_side(rays, scene.meshes.index(mesh), mesh.mesh.points, tex.tris, tex.uv,
-                       tex.uv_tris, self.options.texture_size, positions, normals, texel,
-                       thin, regions)
+        far = far_side(rays, at, mesh.mesh.points, tex.tris, tex.uv, tex.uv_tris, size,
+                       positions, normals, texel, thin, regions)
         log.measures["thin_parts"] = {"texels": int(far.rows.size), "reach": thin.reach,
                                       "seconds": time.perf_counter() - start}
-        return far if far.rows.size else None
+        first = FirstScatter(rays, at, mesh.mesh.points, tex.tris, tex.uv, tex.uv_tris, size,
+                             texel, np.take(tex.maps.triangle, texel), positions, normals,
+                             thin.extinction_at(regions, texel.size), self.options.ior,
+                             self.device)
+        return (far if far.rows.size else None), first
 
     def _specular(self, scene: SceneData, pos: NDArray[Any], n: NDArray[Any],
                   view: NDArray[Any], at: dict[str, NDArray[np.float32]]

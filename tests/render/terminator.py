@@ -1,5 +1,6 @@
 """A sphere of skin1 rendered the user's way, and where its terminator lies: what
-benchmarks/bench_curved.py holds against Mitsuba 3's path-traced sphere."""
+tests/render/light/test_first_scatter.py and benchmarks/bench_curved.py hold against
+Mitsuba 3's path-traced sphere (fixtures/physics/sphere_terminator.json)."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ from .diffusion.test_curved_seams import _sphere
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def sphere_render(tmp: Path, radius_mm: float, angle_deg: float) -> np.ndarray:
-    """The diffuse AOV (512 x 512 over 2.4 radii) of skinpipe's sphere, RGB."""
+def sphere_render(tmp: Path, radius_mm: float, angle_deg: float, *extra: str) -> np.ndarray:
+    """The diffuse AOV (512 x 512 over 2.4 radii) of skinpipe's sphere, RGB; ``extra``:
+    more options for ``render``."""
     fits = tmp / "fits"
     if not fits.exists():
         fits.mkdir()
@@ -52,10 +54,10 @@ def sphere_render(tmp: Path, radius_mm: float, angle_deg: float) -> np.ndarray:
 
     scene = scene_over(asset / "asset.usda", tmp / f"scene_{radius_mm:g}_{angle_deg:g}.usda",
                        build)
-    out = tmp / f"out_{radius_mm:g}_{angle_deg:g}"
+    out = tmp / f"out_{radius_mm:g}_{angle_deg:g}{''.join(extra)}"
     assert main(["render", str(scene), "-o", str(out), "--resolution", "512x512",
                  "--texture-size", "1024", "--rho-s", "0", "--ior", "1",
-                 "--aovs", "diffuse"]) == 0
+                 "--aovs", "diffuse", *extra]) == 0
     buf = oiio.ImageBuf(str(out / f"{scene.stem}.exr"))
     names = list(buf.spec().channelnames)
     px = np.asarray(buf.get_pixels(oiio.FLOAT))

@@ -101,6 +101,13 @@ class ThinMedia:
         last = tau[np.flatnonzero(past)[-1]] if past.any() else tau[0]
         return float(last / self.reduced_extinction.min())
 
+    def extinction_at(self, weights: NDArray[Any] | None, points: int) -> NDArray[np.float32]:
+        """(N, 3) the reduced extinction at ``points`` points, the regions blended by
+        ``weights`` (N, R) (None: their mean)."""
+        if weights is None:
+            return np.tile(self.reduced_extinction.mean(axis=0), (points, 1)).astype(np.float32)
+        return np.asarray(weights, np.float32) @ self.reduced_extinction.astype(np.float32)
+
     def through(self, thickness: FloatArray, weights: FloatArray | None) -> FloatArray:
         """(N, 3) what a back point's irradiance is worth at the front, over the mean
         albedo, for ``thickness`` (N,) scene units, the regions blended by ``weights``
@@ -222,9 +229,11 @@ def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     return FarSide(index, far, factor)
 
 
-def with_far_side(entering: NDArray[np.float32], far: FarSide) -> NDArray[np.float32]:
+def with_far_side(entering: NDArray[np.float32], far: FarSide,
+                  back: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """``entering`` (N, 3) irradiance rows plus, at each row of ``far``, its far side's
-    row times its factor, the far side read as it was."""
+    row of ``back`` (the irradiance as it entered; default ``entering``) times its
+    factor."""
     out = entering.copy()
-    out[far.rows] += far.factor * entering[far.far_rows]
+    out[far.rows] += far.factor * (entering if back is None else back)[far.far_rows]
     return out
