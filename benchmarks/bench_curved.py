@@ -7,9 +7,10 @@ distant light at 0 and 60 degrees, seen from straight above. Mitsuba 3's ``volpa
 renders the medium itself (one monochrome render a channel, 4096 samples a pixel, a strip
 through the centre); skinpipe renders skin1's traced profile the user's way (the CSV
 through ``fit`` at its defaults, the sphere without UVs through ``author``, ``render
---ior 1 --rho-s 0`` with the albedo skin1 measures). Printed per channel along the strip:
-the centre's radiance over the truth's, the 50%, 10% and 2% points of the centre's level
-on the terminator's side (mm from the centre), the light just past the geometric
+--ior 1 --rho-s 0`` with the albedo skin1 measures) and, its peer, the same with
+``--no-transmission`` (no first scatter, no thin parts). Printed per channel along the
+strip: the centre's radiance over the truth's, the 50%, 10% and 2% points of the centre's
+level on the terminator's side less the truth's (mm), the light just past the geometric
 terminator (1 to 2 mm beyond it) over the truth's, and the largest seam step of the
 render (tests/render/diffusion/test_curved_seams.py's measure). Without the ``mitsuba``
 package, and lit from straight above (the terminator is the rim), only the seam steps.
@@ -72,6 +73,35 @@ def mitsuba_strip(variant: str, radius_mm: float, angle_deg: float, spp: int = S
     return np.array(out)
 
 
+def strip_figures(rgb: np.ndarray, truth: np.ndarray, radius: float, angle: float
+                  ) -> dict[str, dict[str, dict[str, float]]]:
+    """Per channel :func:`terminator_figures` of the render's strip and the truth's."""
+    width = 2.4 * radius
+    x_t = ((np.arange(STRIP[0]) + 0.5) / STRIP[0] * 2 - 1) * 1.2 * radius
+    h = rgb.shape[0]
+    x_s = (np.arange(rgb.shape[1]) + 0.5) / rgb.shape[1] * width - width / 2
+    strip = rgb[h // 2 - 2:h // 2 + 2].mean(axis=0)
+    terminator = -radius * math.cos(math.radians(angle))
+    return {name: {"truth": terminator_figures(x_t, truth[c], terminator),
+                   "skinpipe": terminator_figures(x_s, strip[:, c], terminator)}
+            for c, name in enumerate("RGB")}
+
+
+def figures_line(figures: dict[str, dict[str, dict[str, float]]]) -> str:
+    """The figures of :func:`strip_figures` against the truth, a line a channel."""
+    line = ""
+    for name, f in figures.items():
+        t, s = f["truth"], f["skinpipe"]
+        line += (f"\n  {name}: centre {s['centre'] / t['centre']:.3f} of the truth; "
+                 f"50/10/2% points {s['point_50_mm'] - t['point_50_mm']:+.2f}/"
+                 f"{s['point_10_mm'] - t['point_10_mm']:+.2f}/"
+                 f"{s['point_2_mm'] - t['point_2_mm']:+.2f} mm from the truth's "
+                 f"({t['point_50_mm']:.2f}/{t['point_10_mm']:.2f}/{t['point_2_mm']:.2f}); "
+                 f"past the terminator "
+                 f"{s['past_terminator'] / max(t['past_terminator'], 1e-12):.2f} of the truth")
+    return line
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", default=str(ROOT / "benchmarks" / "results" /
@@ -86,28 +116,15 @@ def main() -> None:
             width = 2.4 * radius
             row: dict = {"radius_mm": radius, "angle_deg": angle,
                          "seam_step": _worst_step(rgb, width, radius, angle).round(4).tolist()}
-            traced = variant is not None and angle > 0  # at 0 the terminator is the rim
-            if traced:
-                truth = mitsuba_strip(variant, radius, angle)
-                x_t = ((np.arange(STRIP[0]) + 0.5) / STRIP[0] * 2 - 1) * 1.2 * radius
-                h = rgb.shape[0]
-                x_s = (np.arange(rgb.shape[1]) + 0.5) / rgb.shape[1] * width - width / 2
-                strip = rgb[h // 2 - 2:h // 2 + 2].mean(axis=0)
-                terminator = -radius * math.cos(math.radians(angle))
-                for c, name in enumerate("RGB"):
-                    t = terminator_figures(x_t, truth[c], terminator)
-                    s = terminator_figures(x_s, strip[:, c], terminator)
-                    row[name] = {"truth": t, "skinpipe": s}
-            rows.append(row)
             line = f"R {radius:g} mm, {angle:g} deg: seam step {row['seam_step']}"
-            for name in "RGB" if traced else "":
-                t, s = row[name]["truth"], row[name]["skinpipe"]
-                line += (f"\n  {name}: centre {s['centre'] / t['centre']:.3f} of the truth; "
-                         f"50/10/2% at {s['point_50_mm']:.2f}/{s['point_10_mm']:.2f}/"
-                         f"{s['point_2_mm']:.2f} mm (truth {t['point_50_mm']:.2f}/"
-                         f"{t['point_10_mm']:.2f}/{t['point_2_mm']:.2f}); past the "
-                         f"terminator {s['past_terminator'] / max(t['past_terminator'], 1e-12):.2f}"
-                         " of the truth")
+            if variant is not None and angle > 0:  # at 0 the terminator is the rim
+                truth = mitsuba_strip(variant, radius, angle)
+                row["figures"] = strip_figures(rgb, truth, radius, angle)
+                without = sphere_render(Path(tmp), radius, angle, "--no-transmission")
+                row["without_transmission"] = strip_figures(without, truth, radius, angle)
+                line += figures_line(row["figures"]) + "\n without transmission:" \
+                    + figures_line(row["without_transmission"])
+            rows.append(row)
             print(line, flush=True)
     out = Path(args.output)
     out.write_text(json.dumps({"mitsuba_variant": variant, "mitsuba_spp": SPP,
