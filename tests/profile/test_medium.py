@@ -146,6 +146,7 @@ def test_the_table_is_adding_doublings_and_chandrasekhars() -> None:
             assert float(_reflectance_over_s(g)(s)) == pytest.approx(want, rel=2e-3)
 
 
+@pytest.mark.slow  # 600,000 photons traced at g = 0.9: about 40 s
 def test_a_profile_without_an_entry_spike_gets_a_forward_scattering_medium() -> None:
     """A diffusion-shaped profile (no single-scattering spike, as the sample captures'):
     the inversion scatters forward (g > 0 shrinks the spike), and the medium, traced,
