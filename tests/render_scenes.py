@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,41 @@ def exact_fit(name: str, variances_mm2: Any, weights: Any) -> FitResult:
 
 def deon_fit(name: str = "skin", scale: float = 1.0) -> FitResult:
     return exact_fit(name, DEON_2007_SKIN.variances_mm2 * scale, DEON_2007_SKIN.weights)
+
+
+PHYSICS = Path(__file__).parent / "fixtures" / "physics"
+
+
+def skin1_asset(tmp: Path, mesh_obj: Path, landmark_mm: list[float], asset: Path) -> Path:
+    """skin1's profile CSV through ``fit`` (into ``tmp``/fits, once) and ``mesh_obj``
+    through ``author`` into ``asset`` (once), its one region skin1 at ``landmark_mm``:
+    the user's road to a skin1 asset. Returns the asset's folder."""
+    from skinpipe.cli import main
+
+    fits = tmp / "fits"
+    if not fits.exists():
+        fits.mkdir()
+        assert main(["fit", str(PHYSICS / "skin1.csv"), "-k", "6",
+                     "-o", str(fits / "skin1.json")]) == 0
+    if not asset.exists():
+        landmarks = tmp / "landmarks.json"
+        landmarks.write_text(json.dumps({"regions": {"skin1": [list(landmark_mm)]}}))
+        assert main(["author", "--fits", str(fits), "--mesh", str(mesh_obj), "--landmarks",
+                     str(landmarks), "-o", str(asset)]) == 0
+    return asset
+
+
+def paint_skin1_albedo(stage: Any) -> None:
+    """The skin's diffuse colour over ``stage``: skin1's measured albedo (pi x the traced
+    radiance lit from above, fixtures/physics/totals.json)."""
+    from pxr import Gf, Sdf
+
+    totals = json.loads((PHYSICS / "totals.json").read_text())["skin1"]["channels"]
+    albedo = [math.pi * c["lit_up_radiance"]["0.0"] for c in totals]
+    for shader in ("/Face/Looks/SkinMaterial/PreviewSurface",
+                   "/Face/Looks/Regions/skin1/PreviewSurface"):
+        stage.OverridePrim(shader).CreateAttribute(
+            "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
 
 
 def grid_patch(n: int, size_mm: float, z: float = 0.0

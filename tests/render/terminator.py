@@ -4,53 +4,39 @@ Mitsuba 3's path-traced sphere (fixtures/physics/sphere_terminator.json)."""
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
-from pxr import Gf, Sdf, UsdGeom
+from pxr import UsdGeom
 
 from skinpipe.cli import main
 
-from ..render_scenes import distant_down, ortho_camera_down, scene_over
+from ..render_scenes import (
+    distant_down,
+    ortho_camera_down,
+    paint_skin1_albedo,
+    scene_over,
+    skin1_asset,
+)
 from .diffusion.test_curved_seams import _sphere
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def sphere_render(tmp: Path, radius_mm: float, angle_deg: float, *extra: str) -> np.ndarray:
     """The diffuse AOV (512 x 512 over 2.4 radii) of skinpipe's sphere, RGB; ``extra``:
     more options for ``render``."""
-    fits = tmp / "fits"
-    if not fits.exists():
-        fits.mkdir()
-        assert main(["fit", str(ROOT / "tests" / "fixtures" / "physics" / "skin1.csv"),
-                     "-k", "6", "-o", str(fits / "skin1.json")]) == 0
     mesh = _sphere(radius_mm)
     obj = tmp / f"sphere_{radius_mm:g}.obj"
     tri = mesh.face_indices.reshape(-1, 3) + 1
     obj.write_text("".join(f"v {a:.6f} {b:.6f} {c:.6f}\n" for a, b, c in mesh.points)
                    + "".join(f"f {a} {b} {c}\n" for a, b, c in tri))
-    landmarks = tmp / "landmarks.json"
-    landmarks.write_text(json.dumps({"regions": {"skin1": [[0.0, 0.0, radius_mm]]}}))
-    asset = tmp / f"asset_{radius_mm:g}"
-    if not asset.exists():
-        assert main(["author", "--fits", str(fits), "--mesh", str(obj), "--landmarks",
-                     str(landmarks), "-o", str(asset)]) == 0
-    totals = json.loads((ROOT / "tests" / "fixtures" / "physics" / "totals.json")
-                        .read_text())["skin1"]["channels"]
-    albedo = [math.pi * c["lit_up_radiance"]["0.0"] for c in totals]
+    asset = skin1_asset(tmp, obj, [0.0, 0.0, radius_mm], tmp / f"asset_{radius_mm:g}")
     width = 2.4 * radius_mm
 
     def build(stage) -> None:
         ortho_camera_down(stage, width, width)
         UsdGeom.Xformable(distant_down(stage)).AddRotateYOp().Set(angle_deg)
-        for shader in ("/Face/Looks/SkinMaterial/PreviewSurface",
-                       "/Face/Looks/Regions/skin1/PreviewSurface"):
-            stage.OverridePrim(shader).CreateAttribute(
-                "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+        paint_skin1_albedo(stage)
 
     scene = scene_over(asset / "asset.usda", tmp / f"scene_{radius_mm:g}_{angle_deg:g}.usda",
                        build)

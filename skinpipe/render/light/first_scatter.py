@@ -32,7 +32,7 @@ the chord's truncation of the mean path (measured: it moves the sphere's 10% poi
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from typing import Any
@@ -45,9 +45,9 @@ from ..device.memory import run_on_host_arrays
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
 from .irradiance import IrradianceResult, coloured
-from .raytrace import RayScene, exit_distances
+from .raytrace import RayScene, exit_distances, face_normals
 from .samples import Light
-from .thin_parts import FarSide, with_far_side
+from .thin_parts import BAND_POINTS, FarSide, with_far_side
 
 FloatArray = NDArray[np.float64]
 
@@ -57,15 +57,6 @@ _UPSTREAM_KERNEL = cl_source(__package__, "first_scatter.cl")
 @lru_cache(maxsize=4)
 def _upstream_kernel(device: Device) -> Kernel:
     return Kernel(build(device, _UPSTREAM_KERNEL), "upstream_read", 1)
-
-
-BAND_POINTS = 1 << 20
-"""Points whose rays go to Embree at once (the arrays are a band's, not the texture's)."""
-
-
-def _bands(n: int) -> Iterator[slice]:
-    for first in range(0, n, BAND_POINTS):
-        yield slice(first, min(first + BAND_POINTS, n))
 
 
 def light_centre(light: Light) -> tuple[bool, NDArray[np.float64]]:
@@ -100,14 +91,13 @@ def refracted_into(towards_light: FloatArray, normals: FloatArray, eta: float) -
 
 def upstream_shift(towards_light: FloatArray, normals: FloatArray, eta: float,
                    mean_path: FloatArray) -> FloatArray:
-    """(N, 3, 3) per point and channel the vector in the tangent plane from a point to
-    where the light it first scatters under entered: towards the light, of length
-    sin(theta_t) x ``mean_path`` (N, 3). Past the terminator sin(theta_i) is 1."""
+    """(N, 3) the vector in the tangent plane from each point to where the light it first
+    scatters under entered: towards the light, of length sin(theta_t) x ``mean_path``
+    (N,). Past the terminator sin(theta_i) is 1."""
     tangent = towards_light - _dot(towards_light, normals)[:, None] * normals
     length = np.linalg.norm(tangent, axis=1)
     sin_i = np.where(_dot(towards_light, normals) >= 0.0, length, 1.0)
-    unit = tangent / np.maximum(length, 1e-12)[:, None]
-    return unit[:, None, :] * (sin_i / eta)[:, None, None] * mean_path[:, :, None]
+    return tangent * (sin_i / eta * mean_path / np.maximum(length, 1e-12))[:, None]
 
 
 @dataclass(frozen=True)
@@ -157,7 +147,6 @@ def surface_reads(rays: RayScene, mesh_index: int, uv: FloatArray,
     lift = lift[:, None] * normals
     prim, u, v, _ = rays.intersect(np.asarray(points + shift + lift, np.float32),
                                    np.asarray(-normals, np.float32))
-    n = points.shape[0]
     hit = np.flatnonzero(prim >= 0)
     owner = rays.owner[prim[hit]]
     own = owner[:, 0] == mesh_index
@@ -166,8 +155,8 @@ def surface_reads(rays: RayScene, mesh_index: int, uv: FloatArray,
     a, b = u[hit, None].astype(np.float64), v[hit, None].astype(np.float64)
     at = (corners[:, 0] * (1 - a - b) + corners[:, 1] * a + corners[:, 2] * b) * size
     found = texel_reads(at, row_of, size)
-    rows = np.full((n, 4), -1, np.int64)
-    weights = np.zeros((n, 4), np.float32)
+    rows = np.full((points.shape[0], 4), -1, np.int64)
+    weights = np.zeros((points.shape[0], 4), np.float32)
     rows[hit], weights[hit] = found.rows, found.weights
     return SurfaceReads(rows, weights)
 
@@ -234,13 +223,16 @@ class FirstScatter:
         """(N, 3) ``entering`` times the share that scatters before its refracted path
         leaves the skin again, 1 - exp(-sigma_t' L) for the chord L (Embree)."""
         out = np.array(entering, np.float32, copy=True)
-        for band in _bands(self.texel.size):  # only lit points can lose light
-            lit = np.flatnonzero(entering[band].max(axis=1) > 0) + band.start
+        faces = face_normals(self.mesh_points, self.mesh_tris)
+        for first in range(0, out.shape[0], BAND_POINTS):  # a band's arrays at a time
+            band = slice(first, min(first + BAND_POINTS, out.shape[0]))
+            lit = np.flatnonzero(entering[band].max(axis=1) > 0) + first  # can lose light
             p = np.take(self.points, lit, axis=0)
             nrm = np.take(self.normals, lit, axis=0)
             w = towards_light(light, p).astype(np.float32)
             chord = exit_distances(self.rays, self.mesh_index, self.mesh_points,
-                                   self.mesh_tris, p, nrm, refracted_into(w, nrm, self.eta))
+                                   self.mesh_tris, p, nrm, refracted_into(w, nrm, self.eta),
+                                   faces)
             ends = np.isfinite(chord)  # an open scan's paths mostly leave nowhere
             lit, chord = lit[ends], chord[ends]
             out[lit] *= -np.expm1(-self.reduced_extinction[lit] * chord[:, None])
@@ -260,7 +252,8 @@ class FirstScatter:
         cast = np.empty((n_points, 3), np.uint8)
         mean_path = 1.0 / np.asarray(self.reduced_extinction, np.float32)
         at_point, vector = light_centre(light)
-        for band in _bands(n_points):
+        for first in range(0, n_points, BAND_POINTS):  # a band's arrays at a time
+            band = slice(first, min(first + BAND_POINTS, n_points))
             got = np.empty((band.stop - band.start, 3), np.float32)
             flags = np.empty((band.stop - band.start, 3), np.uint8)
             run_on_host_arrays(
@@ -281,10 +274,9 @@ class FirstScatter:
             p = np.asarray(self.points[at], np.float64)
             nrm = np.asarray(self.normals[at], np.float64)
             path = np.asarray(mean_path[at, c], np.float64)
-            shift = upstream_shift(towards_light(light, p), nrm, self.eta,
-                                   np.repeat(path[:, None], 3, axis=1))
+            shift = upstream_shift(towards_light(light, p), nrm, self.eta, path)
             reads = surface_reads(self.rays, self.mesh_index, self.uv, self.uv_tris,
-                                  self.size, row_of, p, nrm, shift[:, c], path)
+                                  self.size, row_of, p, nrm, shift, path)
             out[at, c] = reads.read(values[:, c], values[at, c])
         return out
 
@@ -293,30 +285,23 @@ def through_volume(entering: NDArray[np.float32], first: FirstScatter | None,
                    far: FarSide | None, lights: Sequence[Light], result: IrradianceResult,
                    visibility: Mapping[str, NDArray[Any]], measures: dict[str, Any]
                    ) -> NDArray[np.float32]:
-    """``entering`` (N, 3) with each light's moved to where it first scatters
-    (:func:`first_scattered`, timed into ``measures``) and the thin parts' far sides'
-    light added (:func:`~.thin_parts.with_far_side`, read as it entered: the slabs'
-    table holds all that enters the back)."""
+    """``entering`` (N, 3) with each light's but domes' (light from every side moves
+    every way at once) moved to where it first scatters (:func:`with_first_scatter`, its
+    light its unshadowed irradiance in ``result`` times ``visibility``; timed into
+    ``measures``) and the thin parts' far sides' light added (:func:`~.thin_parts.
+    with_far_side`, read as it entered: the slabs' table holds all that enters the
+    back)."""
     out = entering
     if first is not None:
         start = time.perf_counter()
-        out, moved = first_scattered(entering, first, lights, result, visibility)
-        measures["first_scatter"] = {"lights": moved, "seconds": time.perf_counter() - start}
+        moved = [light for light in lights
+                 if light.kind != "dome" and light.path in result.unshadowed]
+        out = with_first_scatter(entering, first, (
+            (light, coloured(*result.unshadowed[light.path])
+             * np.asarray(visibility[light.path], np.float32)[:, None]) for light in moved))
+        measures["first_scatter"] = {"lights": len(moved),
+                                     "seconds": time.perf_counter() - start}
     return out if far is None else with_far_side(out, far, entering)
-
-
-def first_scattered(entering: NDArray[np.float32], first: FirstScatter,
-                    lights: Sequence[Light], result: IrradianceResult,
-                    visibility: Mapping[str, NDArray[Any]]) -> tuple[NDArray[np.float32], int]:
-    """:func:`with_first_scatter` of each of ``lights`` but domes (light from every side
-    moves every way at once) that ``result`` holds, its light its unshadowed irradiance
-    times ``visibility``; and how many lights moved."""
-    moved = [light for light in lights
-             if light.kind != "dome" and light.path in result.unshadowed]
-    return with_first_scatter(entering, first, (
-        (light, coloured(*result.unshadowed[light.path])
-         * np.asarray(visibility[light.path], np.float32)[:, None]) for light in moved)), \
-        len(moved)
 
 
 def with_first_scatter(entering: NDArray[np.float32], first: FirstScatter,

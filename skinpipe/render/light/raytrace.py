@@ -220,15 +220,21 @@ class RayScene:
         return prim, u, v, t
 
 
+def face_normals(mesh_points: NDArray[np.float64], mesh_tris: NDArray[np.integer]
+                 ) -> NDArray[np.float64]:
+    """(T, 3) each triangle's unnormalised normal, by its winding."""
+    verts = np.asarray(mesh_points, np.float64)[np.asarray(mesh_tris)]
+    return np.cross(verts[:, 1] - verts[:, 0], verts[:, 2] - verts[:, 0])
+
+
 def exit_distances(rays: RayScene, mesh_index: int, mesh_points: NDArray[np.float64],
                    mesh_tris: NDArray[np.integer], points: NDArray[np.float64],
-                   normals: NDArray[np.float64], directions: NDArray[np.float64]
-                   ) -> NDArray[np.float64]:
+                   normals: NDArray[np.float64], directions: NDArray[np.float64],
+                   faces: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """(N,) how far a ray into the skin along ``directions`` runs before it leaves the
-    same mesh (inf where it does not: an open scan, a hit from outside)."""
-    tris = np.asarray(mesh_tris)
-    verts = np.asarray(mesh_points, np.float64)[tris]
-    faces = np.cross(verts[:, 1] - verts[:, 0], verts[:, 2] - verts[:, 0])  # unnormalised
+    same mesh (inf where it does not: an open scan, a hit from outside); ``faces``: the
+    mesh's :func:`face_normals`, for callers that cast in bands."""
+    faces = face_normals(mesh_points, mesh_tris) if faces is None else faces
     out = np.full(points.shape[0], np.inf)
     for first in range(0, points.shape[0], 1 << 20):  # a band's arrays at a time
         band = slice(first, min(first + (1 << 20), points.shape[0]))

@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...profile.medium import MediumEstimate, similarity_relation
 from . import slab_transmission_table as TABLE
-from .raytrace import RayScene, exit_distances, offset_ray_origin
+from .raytrace import RayScene, exit_distances, face_normals, offset_ray_origin
 
 _S = np.asarray(TABLE.S_GRID)
 _LOG_TAU = np.log(np.asarray(TABLE.TAU_GRID))
@@ -193,8 +193,9 @@ def flatness(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(n, t1)
     c, s = math.cos(ROUNDNESS_TILT), math.sin(ROUNDNESS_TILT)
+    faces = face_normals(mesh_points, mesh_tris)
     shortest = np.minimum(*(exit_distances(rays, mesh_index, mesh_points, mesh_tris, p, n,
-                                           -c * n + s * t) for t in (t1, t2)))
+                                           -c * n + s * t, faces) for t in (t1, t2)))
     ratio = shortest / np.maximum(np.asarray(thickness, np.float64), 1e-30)
     return np.clip((ratio - c) / (1.0 / c - c), 0.0, 1.0)
 

@@ -25,6 +25,7 @@ from skinpipe.render.scene import Light
 from skinpipe.render.surface.texture_maps import rasterize
 from skinpipe.render.surface.unwrap import triangulate, unwrap
 
+from ...render_scenes import grid_patch
 from ..diffusion.test_curved_seams import _sphere
 from ..terminator import sphere_render, terminator_figures
 
@@ -41,18 +42,10 @@ def _distant(towards: list[float]) -> Light:
     return Light("/L", "distant", np.ones(3), m, angle_deg=0.0)
 
 
-def _plane(side_mm: float = 40.0, n: int = 8) -> tuple[np.ndarray, ...]:
-    """A square at z = 0 facing +z, its UVs the square itself."""
-    xs = np.linspace(-side_mm / 2, side_mm / 2, n + 1)
-    points = np.array([[x, y, 0.0] for y in xs for x in xs])
-    tris = []
-    for r in range(n):
-        for c in range(n):
-            a = r * (n + 1) + c
-            tris += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
-    tris_a = np.asarray(tris, np.int32)
-    uv = (points[:, :2] + side_mm / 2) / side_mm
-    return points, tris_a, uv, tris_a
+def _plane() -> tuple[np.ndarray, ...]:
+    """A 40 mm square at z = 0 facing +z, its UVs the square itself."""
+    points, tris, uv = grid_patch(8, 40.0)
+    return points, tris, uv, tris
 
 
 def _first(points: np.ndarray, tris: np.ndarray, uv: np.ndarray, uv_tris: np.ndarray,
@@ -149,9 +142,9 @@ def test_texel_reads_agree_with_embree_projection_on_a_sphere() -> None:
     values = first.scattering(light, entering)
     got = first.read_upstream(light, values)[:, 0]
     path = np.full(pos.shape[0], 1 / 0.78)
-    shift = upstream_shift(w, nrm.astype(np.float64), 1.0, np.repeat(path[:, None], 3, 1))
+    shift = upstream_shift(w, nrm.astype(np.float64), 1.0, path)
     reads = surface_reads(first.rays, 0, uv, uv_tris, 512, first._row_of,
-                          pos.astype(np.float64), nrm.astype(np.float64), shift[:, 0], path)
+                          pos.astype(np.float64), nrm.astype(np.float64), shift, path)
     projected = reads.read(values[:, 0], values[:, 0])
     gap = np.abs(got - projected)
     assert np.quantile(gap, 0.99) < 0.015 and gap.max() < 0.1, \

@@ -7,22 +7,26 @@ at its defaults, ``author`` without UVs, ``render``)."""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from pxr import Gf, Sdf, UsdGeom
+from pxr import UsdGeom
 
 from skinpipe.cli import main
 from skinpipe.render.light.thin_parts import slab_transmission
 
 from ...physics.light_tracer import medium, trace_slab_from_below
-from ...render_scenes import distant_down, ortho_camera_down, scene_over
+from ...render_scenes import (
+    distant_down,
+    ortho_camera_down,
+    paint_skin1_albedo,
+    scene_over,
+    skin1_asset,
+)
 
-PHYSICS = Path(__file__).parents[2] / "fixtures" / "physics"
 SIDE_MM = 40.0
 
 
@@ -74,28 +78,14 @@ def _slab_obj(path: Path, thickness_mm: float, n: int = 16) -> Path:
 def _rendered_transmission(tmp: Path, thickness_mm: float, *extra: str) -> np.ndarray:
     """The diffuse radiance at the top's centre, R, G, B, under unit irradiance from
     below, the slab's albedo skin1's measured one."""
-    fits = tmp / "fits"
-    if not fits.exists():
-        fits.mkdir()
-        assert main(["fit", str(PHYSICS / "skin1.csv"), "-k", "6",
-                     "-o", str(fits / "skin1.json")]) == 0
-    landmarks = tmp / "landmarks.json"
-    landmarks.write_text(json.dumps({"regions": {"skin1": [[0.0, 0.0, 0.0]]}}))
-    asset = tmp / f"asset_{thickness_mm:g}"
-    assert main(["author", "--fits", str(fits), "--mesh",
-                 str(_slab_obj(tmp / f"slab_{thickness_mm:g}.obj", thickness_mm)),
-                 "--landmarks", str(landmarks), "-o", str(asset)]) == 0
-    totals = json.loads((PHYSICS / "totals.json").read_text())["skin1"]["channels"]
-    albedo = [math.pi * c["lit_up_radiance"]["0.0"] for c in totals]
+    asset = skin1_asset(tmp, _slab_obj(tmp / f"slab_{thickness_mm:g}.obj", thickness_mm),
+                        [0.0, 0.0, 0.0], tmp / f"asset_{thickness_mm:g}")
 
     def build(stage) -> None:
         ortho_camera_down(stage, 8.0, 8.0)
         light = distant_down(stage)
         UsdGeom.Xformable(light).AddRotateXOp().Set(180.0)  # shining up, from behind
-        for shader in ("/Face/Looks/SkinMaterial/PreviewSurface",
-                       "/Face/Looks/Regions/skin1/PreviewSurface"):
-            stage.OverridePrim(shader).CreateAttribute(
-                "inputs:diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+        paint_skin1_albedo(stage)
 
     scene = scene_over(asset / "asset.usda", tmp / f"scene_{thickness_mm:g}.usda", build)
     out = tmp / f"out_{thickness_mm:g}"
