@@ -49,7 +49,7 @@ def _plane() -> tuple[np.ndarray, ...]:
 
 
 def _first(points: np.ndarray, tris: np.ndarray, uv: np.ndarray, uv_tris: np.ndarray,
-           size: int, extinction: float, eta: float = 1.0):
+           size: int, extinction: float, eta: float = 1.0, device=None):
     maps = rasterize(points, tris, uv, uv_tris, size, 0.001)
     texel = np.flatnonzero(maps.triangle.reshape(-1) >= 0)
     pos = maps.position.reshape(-1, 3)[texel]
@@ -57,17 +57,17 @@ def _first(points: np.ndarray, tris: np.ndarray, uv: np.ndarray, uv_tris: np.nda
     first = FirstScatter(RayScene([(points, tris)]), 0, points, tris, uv, uv_tris, size,
                          texel, maps.triangle.reshape(-1)[texel], pos, nrm,
                          np.full((texel.size, 3), extinction, np.float32), eta,
-                         open_device())
+                         device or open_device())
     return first, pos, nrm
 
 
 @pytest.mark.parametrize("eta", [1.0, 1.4])
-def test_a_shadow_edge_moves_by_the_oblique_incidence_shift(eta: float) -> None:
+def test_a_shadow_edge_moves_by_the_oblique_incidence_shift(eta: float, cl_device) -> None:
     """Light at 60 degrees on a plane of reduced extinction 1/mm, shadowed for x < 0:
     what first scatters is the light that entered sin(theta_t) / sigma_t' towards the
     light (Wang & Jacques 1995), so the edge's 50% point moves to -sin(60)/eta mm
     (within a fifth of a 0.16 mm texel); lit evenly, nothing moves."""
-    first, pos, _ = _first(*_plane(), size=256, extinction=1.0, eta=eta)
+    first, pos, _ = _first(*_plane(), size=256, extinction=1.0, eta=eta, device=cl_device)
     light = _distant([math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))])
     entering = np.repeat(np.where(pos[:, 0] > 0, 0.5, 0.0)[:, None], 3, axis=1)
     out = first.upstream(light, entering.astype(np.float32))
@@ -123,7 +123,7 @@ def test_light_that_crosses_a_thin_part_unscattered_leaves_it() -> None:
     np.testing.assert_array_equal(plane.upstream(_distant([0.0, 0.0, 1.0]), lit), 1.0)
 
 
-def test_texel_reads_agree_with_embree_projection_on_a_sphere() -> None:
+def test_texel_reads_agree_with_embree_projection_on_a_sphere(cl_device) -> None:
     """On a sphere of radius 10 mm unwrapped by xatlas (charts, seams), lit at 60
     degrees, sigma_t' 0.78/mm (skin1's red): each texel's read through its triangle's
     map to texels (the device's path) against every read projected onto the surface by
@@ -134,7 +134,7 @@ def test_texel_reads_agree_with_embree_projection_on_a_sphere() -> None:
     layout = unwrap(MeshData(mesh.points, mesh.face_counts, mesh.face_indices, 0.001),
                     min_chart_area=0.5)
     tris, uv, uv_tris = triangulate(mesh), layout.uv, layout.uv_indices.reshape(-1, 3)
-    first, pos, nrm = _first(mesh.points, tris, uv, uv_tris, 512, 0.78)
+    first, pos, nrm = _first(mesh.points, tris, uv, uv_tris, 512, 0.78, device=cl_device)
     light = _distant([math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))])
     w = towards_light(light, pos)
     entering = np.repeat(np.clip(np.einsum("ij,ij->i", w, nrm), 0, None)[:, None], 3,
