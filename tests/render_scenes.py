@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from skinpipe.profile.reference_data import DEON_2007_SKIN
 from skinpipe.profile.types import FitResult
@@ -93,6 +94,21 @@ def patch_asset(out: Path, fits: list[FitResult], n: int = 16, size_mm: float = 
     regions = RegionAssignment(tuple(f.name for f in fits), face_region,
                                vertex_weights.astype(np.float32))
     return author_asset(fits, mesh, regions, out, name="Patch", up_axis="Z").asset
+
+
+def render_diffuse(scene: Path, out: Path, *options: str, aovs: str = "diffuse"
+                   ) -> NDArray[np.float32]:
+    """``skinpipe render`` of ``scene`` into ``out`` with ``options`` (and ``--aovs
+    aovs``), its diffuse AOV read back with OpenImageIO: (H, W, 3)."""
+    import OpenImageIO as oiio
+
+    from skinpipe.cli import main
+
+    assert main(["render", str(scene), "-o", str(out), "--aovs", aovs, *options]) == 0
+    buf = oiio.ImageBuf(str(out / f"{scene.stem}.exr"))
+    names = list(buf.spec().channelnames)
+    px = np.asarray(buf.get_pixels(oiio.FLOAT))
+    return np.stack([px[..., names.index(f"diffuse.{c}")] for c in "RGB"], axis=-1)
 
 
 def scene_over(asset: Path, out: Path, build: Callable[[Any], None]) -> Path:

@@ -7,15 +7,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 from pxr import UsdGeom
-
-from skinpipe.cli import main
 
 from ..render_scenes import (
     distant_down,
     ortho_camera_down,
     paint_skin1_albedo,
+    render_diffuse,
     scene_over,
     skin1_asset,
 )
@@ -41,13 +39,8 @@ def sphere_render(tmp: Path, radius_mm: float, angle_deg: float, *extra: str) ->
     scene = scene_over(asset / "asset.usda", tmp / f"scene_{radius_mm:g}_{angle_deg:g}.usda",
                        build)
     out = tmp / f"out_{radius_mm:g}_{angle_deg:g}{''.join(extra)}"
-    assert main(["render", str(scene), "-o", str(out), "--resolution", "512x512",
-                 "--texture-size", "1024", "--rho-s", "0", "--ior", "1",
-                 "--aovs", "diffuse", *extra]) == 0
-    buf = oiio.ImageBuf(str(out / f"{scene.stem}.exr"))
-    names = list(buf.spec().channelnames)
-    px = np.asarray(buf.get_pixels(oiio.FLOAT))
-    return np.stack([px[..., names.index(f"diffuse.{c}")] for c in "RGB"], axis=-1)
+    return render_diffuse(scene, out, "--resolution", "512x512", "--texture-size", "1024",
+                          "--rho-s", "0", "--ior", "1", *extra)
 
 
 def terminator_figures(x: np.ndarray, level: np.ndarray, terminator_mm: float

@@ -18,13 +18,18 @@ import math
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 
 from skinpipe.cli import main
 from skinpipe.profile.edge import edge_width_mm, spread_beyond_rings
 
-from ..render_scenes import distant_down, hidden_blocker, ortho_camera_down, scene_over
+from ..render_scenes import (
+    distant_down,
+    hidden_blocker,
+    ortho_camera_down,
+    render_diffuse,
+    scene_over,
+)
 
 PHYSICS = Path(__file__).parents[1] / "fixtures" / "physics"
 SLAB_MM = {"skin1": 60.0, "skin1_eta1.4": 60.0, "forward": 60.0, "marble": 200.0}
@@ -102,13 +107,9 @@ def _rendered_edge(tmp: Path, medium: str, road: str = "csv", *fit_args: str
     assert main(["author", "--fits", str(fits), "--mesh", str(_grid_obj(tmp / "slab.obj", size)),
                  "--landmarks", str(landmarks), "-o", str(asset)]) == 0
     out = tmp / "out"
-    assert main(["render", str(_scene(tmp, asset / "asset.usda", size)), "-o", str(out),
-                 "--resolution", f"{PIXELS}x{ROWS}", "--texture-size", "2048",
-                 "--aovs", "beauty,diffuse"]) == 0
-    buf = oiio.ImageBuf(str(out / "scene.exr"))
-    names = list(buf.spec().channelnames)
-    px = np.asarray(buf.get_pixels(oiio.FLOAT))
-    line = np.stack([px[..., names.index(f"diffuse.{c}")] for c in "RGB"], axis=-1)
+    line = render_diffuse(_scene(tmp, asset / "asset.usda", size), out, "--resolution",
+                          f"{PIXELS}x{ROWS}", "--texture-size", "2048",
+                          aovs="beauty,diffuse")
     x = ((np.arange(PIXELS) + 0.5) / PIXELS - 0.5) * size
     return x, line[ROWS // 4:3 * ROWS // 4].mean(axis=0)
 

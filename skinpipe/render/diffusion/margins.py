@@ -20,6 +20,7 @@ from ..device.memory import host_buffer, run_on_host_arrays
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
 from ..sorting import unique_keys
+from ..surface.texture_maps import texels_per_scene_unit
 
 
 @dataclass(frozen=True)
@@ -44,15 +45,9 @@ class SeamGeometry:
 
     @cached_property
     def texels_per_scene_unit(self) -> NDArray[np.float64]:
-        """(T, 2, 3) per triangle J^+ = (J^T J)^-1 J^T: finest texels per scene unit
-        along the surface (closed form: numpy's batched SVD took 24 s on the demo)."""
-        j = self.jacobian
-        jtj = np.einsum("tki,tkj->tij", j, j)
-        det = jtj[:, 0, 0] * jtj[:, 1, 1] - jtj[:, 0, 1] * jtj[:, 1, 0]
-        inv = np.stack([np.stack([jtj[:, 1, 1], -jtj[:, 0, 1]], axis=1),
-                        np.stack([-jtj[:, 1, 0], jtj[:, 0, 0]], axis=1)], axis=1)
-        inv /= np.where(np.abs(det) > 1e-300, det, np.inf)[:, None, None]
-        return np.einsum("tij,tkj->tik", inv, j)
+        """(T, 2, 3) per triangle J^+: finest texels per scene unit along the surface
+        (:func:`~..surface.texture_maps.texels_per_scene_unit`)."""
+        return texels_per_scene_unit(self.jacobian)
 
     @cached_property
     def device_buffers(self) -> dict[str, Any]:

@@ -44,9 +44,10 @@ from ..device.choice import Device
 from ..device.memory import run_on_host_arrays
 from ..device.programs import Kernel, build
 from ..device.sources import cl_source
+from ..surface.texture_maps import texels_per_scene_unit, triangle_jacobians
 from .irradiance import IrradianceResult, coloured
 from .raytrace import RayScene, exit_distances, face_normals
-from .samples import Light
+from .samples import Light, light_direction
 from .thin_parts import BAND_POINTS, FarSide, with_far_side
 
 FloatArray = NDArray[np.float64]
@@ -66,15 +67,6 @@ def light_centre(light: Light) -> tuple[bool, NDArray[np.float64]]:
     if light.kind == "distant":
         return False, -np.asarray(light.axis, np.float64)
     return True, np.asarray(light.position, np.float64)
-
-
-def towards_light(light: Light, points: NDArray[Any]) -> FloatArray:
-    """(N, 3) unit directions from ``points`` to ``light``'s centre."""
-    at_point, vector = light_centre(light)
-    if not at_point:
-        return np.broadcast_to(vector, (points.shape[0], 3))
-    to = vector - np.asarray(points, np.float64)
-    return to / np.maximum(np.sqrt(_dot(to, to)), 1e-30)[:, None]
 
 
 def _dot(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -185,25 +177,14 @@ class FirstScatter:
 
     @cached_property
     def _texels_per_length(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Per triangle the map of a vector in its plane (scene units) to texels (T, 2,
-        3), F (E^T E)^-1 E^T for its edges E in space and F in texels, and a texel's
-        size in scene units (T,; 0 where the triangle is degenerate)."""
-        p = np.asarray(self.mesh_points, np.float64)[np.asarray(self.mesh_tris)]
-        t = np.asarray(self.uv, np.float64)[np.asarray(self.uv_tris).reshape(-1, 3)] \
-            * self.size
-        e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)  # (T, 3, 2)
-        f = np.stack([t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]], axis=2)  # (T, 2, 2)
-        g = np.einsum("tki,tkj->tij", e, e)
-        det_g = g[:, 0, 0] * g[:, 1, 1] - g[:, 0, 1] ** 2
-        det_f = np.abs(f[:, 0, 0] * f[:, 1, 1] - f[:, 0, 1] * f[:, 1, 0])
-        ok = (det_g > 0) & (det_f > 0)
-        g_inv = np.stack([np.stack([g[:, 1, 1], -g[:, 0, 1]], axis=1),
-                          np.stack([-g[:, 1, 0], g[:, 0, 0]], axis=1)], axis=1) \
-            / np.where(ok, det_g, 1.0)[:, None, None]
-        k = np.einsum("tij,tjk,tlk->til", f, g_inv, e) * ok[:, None, None]
-        size = np.where(ok, np.sqrt(np.sqrt(np.where(ok, det_g, 0.0))
-                                    / np.where(ok, det_f, 1.0)), 0.0)
-        return (np.ascontiguousarray(k.reshape(-1, 6), np.float32),
+        """Per triangle the map of a vector in its plane (scene units) to texels (T, 6:
+        :func:`~..surface.texture_maps.texels_per_scene_unit`) and a texel's size in
+        scene units, sqrt |J_x x J_y| (T,; 0 where the triangle is degenerate)."""
+        _, _, jac = triangle_jacobians(self.mesh_points, np.asarray(self.mesh_tris),
+                                       self.uv, np.asarray(self.uv_tris).reshape(-1, 3),
+                                       self.size)
+        size = np.sqrt(np.linalg.norm(np.cross(jac[:, :, 0], jac[:, :, 1]), axis=1))
+        return (np.ascontiguousarray(texels_per_scene_unit(jac).reshape(-1, 6), np.float32),
                 size.astype(np.float32))
 
     def upstream(self, light: Light, entering: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -229,7 +210,7 @@ class FirstScatter:
             lit = np.flatnonzero(entering[band].max(axis=1) > 0) + first  # can lose light
             p = np.take(self.points, lit, axis=0)
             nrm = np.take(self.normals, lit, axis=0)
-            w = towards_light(light, p).astype(np.float32)
+            w = np.asarray(light_direction(light, p)[0], np.float32)
             chord = exit_distances(self.rays, self.mesh_index, self.mesh_points,
                                    self.mesh_tris, p, nrm, refracted_into(w, nrm, self.eta),
                                    faces)
@@ -274,7 +255,7 @@ class FirstScatter:
             p = np.asarray(self.points[at], np.float64)
             nrm = np.asarray(self.normals[at], np.float64)
             path = np.asarray(mean_path[at, c], np.float64)
-            shift = upstream_shift(towards_light(light, p), nrm, self.eta, path)
+            shift = upstream_shift(light_direction(light, p)[0], nrm, self.eta, path)
             reads = surface_reads(self.rays, self.mesh_index, self.uv, self.uv_tris,
                                   self.size, row_of, p, nrm, shift, path)
             out[at, c] = reads.read(values[:, c], values[at, c])

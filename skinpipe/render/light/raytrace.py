@@ -227,6 +227,26 @@ def face_normals(mesh_points: NDArray[np.float64], mesh_tris: NDArray[np.integer
     return np.cross(verts[:, 1] - verts[:, 0], verts[:, 2] - verts[:, 0])
 
 
+def hits_leaving(rays: RayScene, mesh_index: int, faces: NDArray[np.float64],
+                 points: NDArray[Any], normals: NDArray[Any], directions: NDArray[Any]
+                 ) -> tuple[NDArray[np.intp], NDArray[Any], NDArray[Any], NDArray[Any],
+                            NDArray[Any]]:
+    """Rays from ``points`` (started just under the surface, along -``normals``) into
+    the skin along ``directions`` that leave the same mesh (``faces``: its
+    :func:`face_normals`; a hit from outside, a fold or another part, is none): their
+    indices, the triangle hit (local to the mesh), its barycentrics u, v and the
+    distance."""
+    d = np.asarray(directions, np.float32)
+    prim, u, v, dist = rays.intersect(offset_ray_origin(points, -np.asarray(normals)), d)
+    hit = np.flatnonzero(prim >= 0)
+    owner = rays.owner[prim[hit]]
+    own = owner[:, 0] == mesh_index
+    hit, local = hit[own], owner[own, 1]
+    leaving = np.einsum("ij,ij->i", faces[local], np.asarray(d[hit], np.float64)) > 0
+    hit, local = hit[leaving], local[leaving]
+    return hit, local, u[hit], v[hit], dist[hit]
+
+
 def exit_distances(rays: RayScene, mesh_index: int, mesh_points: NDArray[np.float64],
                    mesh_tris: NDArray[np.integer], points: NDArray[np.float64],
                    normals: NDArray[np.float64], directions: NDArray[np.float64],
@@ -238,13 +258,7 @@ def exit_distances(rays: RayScene, mesh_index: int, mesh_points: NDArray[np.floa
     out = np.full(points.shape[0], np.inf)
     for first in range(0, points.shape[0], 1 << 20):  # a band's arrays at a time
         band = slice(first, min(first + (1 << 20), points.shape[0]))
-        d = np.asarray(directions[band], np.float32)
-        prim, _, _, dist = rays.intersect(offset_ray_origin(points[band],
-                                                            -np.asarray(normals[band])), d)
-        hit = np.flatnonzero(prim >= 0)
-        owner = rays.owner[prim[hit]]
-        own = owner[:, 0] == mesh_index
-        hit, local = hit[own], owner[own, 1]
-        leaving = np.einsum("ij,ij->i", faces[local], np.asarray(d[hit], np.float64)) > 0
-        out[band][hit[leaving]] = dist[hit[leaving]]
+        hit, _, _, _, dist = hits_leaving(rays, mesh_index, faces, points[band],
+                                          normals[band], directions[band])
+        out[band][hit] = dist
     return out

@@ -162,7 +162,7 @@ def scrambled_sobol(m: int, rng: np.random.Generator) -> NDArray[np.float64]:
                 read, make)
 
 
-def _frame(axis: NDArray[Any], dtype: Any = np.float64) -> NDArray[Any]:
+def orthonormal_frame(axis: NDArray[Any], dtype: Any = np.float64) -> NDArray[Any]:
     """An orthonormal basis (rows t, b, axis) around unit vectors ``axis`` (..., 3),
     branch-free and without cross products (Duff et al. 2017, "Building an Orthonormal
     Basis, Revisited", JCGT 6(1))."""
@@ -182,11 +182,11 @@ def cone_direction(axis: NDArray[Any], cos_max: NDArray[Any] | float,
                    u: NDArray[Any] | float, v: NDArray[Any] | float,
                    frame: NDArray[Any] | None = None) -> NDArray[np.float64]:
     """Uniform directions in the cone of half-angle acos(cos_max) around ``axis``
-    (``frame``: ``_frame(axis)`` if already computed)."""
+    (``frame``: ``orthonormal_frame(axis)`` if already computed)."""
     cos_t = 1.0 - np.asarray(u) * (1.0 - np.asarray(cos_max))
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t * cos_t))
     phi = 2 * math.pi * np.asarray(v)
-    f = _frame(axis) if frame is None else frame
+    f = orthonormal_frame(axis) if frame is None else frame
     # local (x, y, z) times the frame's rows t, b, axis, written out: einsum is slow here
     return ((sin_t * np.cos(phi))[..., None] * f[..., 0, :]
             + (sin_t * np.sin(phi))[..., None] * f[..., 1, :]
@@ -198,7 +198,7 @@ def cosine_direction(normal: NDArray[Any] | None, u: NDArray[Any] | float,
                      ) -> NDArray[np.float64]:
     """Cosine-weighted hemisphere directions around unit ``normal`` (..., 3); u and v are
     scalars or one per point."""
-    f = _frame(normal) if frame is None else frame
+    f = orthonormal_frame(normal) if frame is None else frame
     uu = np.asarray(u, dtype=f.dtype)[..., None]
     phi = np.asarray(v, dtype=f.dtype)[..., None] * f.dtype.type(2 * math.pi)
     r, z = np.sqrt(uu), np.sqrt(np.maximum(0, 1 - uu))
@@ -355,18 +355,18 @@ class LightSampler:
         radius = max(light.radius, 1e-9)
         if light.kind == "distant":
             self.half = math.radians(max(light.angle_deg, 0.0)) / 2
-            self.frame = _frame(-light.axis)
+            self.frame = orthonormal_frame(-light.axis)
         elif light.kind == "sphere":
             if not on_device:  # the device makes the cone and the rays' length per point
                 dist, axis, self.cos_max = sphere_cone(light, origins)
                 self.solid = 2 * math.pi * (1 - self.cos_max)
-                self.frame = _frame(axis, np.float32)
+                self.frame = orthonormal_frame(axis, np.float32)
                 self.far = np.maximum(dist - radius, 0.0).astype(np.float32)  # rays end at it
         elif light.kind == "rect":
             self.area = emitting_area(light)
         elif light.kind == "dome":
             if not on_device:
-                self.frame = _frame(normals, np.float32)
+                self.frame = orthonormal_frame(normals, np.float32)
         else:
             raise InputError(f"unsupported light kind {light.kind!r} at {light.path}")
         self._sphere = [np.float32(x) for x in (*np.asarray(light.position)[:3], radius)]

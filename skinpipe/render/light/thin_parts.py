@@ -35,7 +35,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...profile.medium import MediumEstimate, similarity_relation
 from . import slab_transmission_table as TABLE
-from .raytrace import RayScene, exit_distances, face_normals, offset_ray_origin
+from .raytrace import RayScene, exit_distances, face_normals, hits_leaving
+from .samples import orthonormal_frame
 
 _S = np.asarray(TABLE.S_GRID)
 _LOG_TAU = np.log(np.asarray(TABLE.TAU_GRID))
@@ -148,24 +149,15 @@ def back_points(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     the same mesh within ``reach``: those indices, the skin triangle hit (local index into
     ``mesh_tris``), its barycentrics (K, 2) and the distance. A hit from outside (a fold,
     another part in the way) is none. In bands of :data:`BAND_POINTS` points."""
-    tris = np.asarray(mesh_tris)
-    verts = np.asarray(mesh_points, np.float64)
+    faces = face_normals(mesh_points, mesh_tris)
     found: list[tuple[NDArray[np.int64], ...]] = []
     for first in range(0, points.shape[0], BAND_POINTS):
         band = slice(first, min(first + BAND_POINTS, points.shape[0]))
         n = np.asarray(normals[band], np.float32)
-        prim, u, v, dist = rays.intersect(offset_ray_origin(points[band], -n), -n)
-        hit = np.flatnonzero(prim >= 0)
-        owner = rays.owner[prim[hit]]
-        own = owner[:, 0] == mesh_index
-        hit, local = hit[own], owner[own, 1]
-        tri = verts[tris[local]]  # (H, 3, 3)
-        face = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        leaving = np.einsum("ij,ij->i", face, -n[hit]) > 0
-        keep = leaving & (dist[hit] <= reach)
-        hit = hit[keep]
-        found.append((hit + first, local[keep], np.stack([u[hit], v[hit]], axis=1),
-                      dist[hit].astype(np.float64)))
+        hit, local, u, v, dist = hits_leaving(rays, mesh_index, faces, points[band], n, -n)
+        keep = dist <= reach
+        found.append((hit[keep] + first, local[keep],
+                      np.stack([u[keep], v[keep]], axis=1), dist[keep].astype(np.float64)))
     if not found:
         return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
                 np.zeros(0))
@@ -188,10 +180,8 @@ def flatness(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     surface, which the diffusion carries along it already."""
     p = np.asarray(points, np.float64)
     n = np.asarray(normals, np.float64)
-    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(n, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(n, t1)
+    frame = orthonormal_frame(n)
+    t1, t2 = frame[:, 0], frame[:, 1]
     c, s = math.cos(ROUNDNESS_TILT), math.sin(ROUNDNESS_TILT)
     faces = face_normals(mesh_points, mesh_tris)
     shortest = np.minimum(*(exit_distances(rays, mesh_index, mesh_points, mesh_tris, p, n,

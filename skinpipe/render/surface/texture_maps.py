@@ -283,6 +283,20 @@ def triangle_jacobians(points: NDArray[np.float64], tris: NDArray[np.int32],
     return tq, det, edges @ inv
 
 
+def texels_per_scene_unit(jacobian: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(T, 2, 3) per triangle J^+ = (J^T J)^-1 J^T of :func:`triangle_jacobians`' J
+    (T, 3, 2): texels per scene unit along the surface, a vector in the triangle's
+    plane mapped to texels (zero where J is; closed form: numpy's batched SVD took 24 s
+    on the demo)."""
+    j = jacobian
+    jtj = np.einsum("tki,tkj->tij", j, j)
+    det = jtj[:, 0, 0] * jtj[:, 1, 1] - jtj[:, 0, 1] * jtj[:, 1, 0]
+    inv = np.stack([np.stack([jtj[:, 1, 1], -jtj[:, 0, 1]], axis=1),
+                    np.stack([-jtj[:, 1, 0], jtj[:, 0, 0]], axis=1)], axis=1)
+    inv /= np.where(np.abs(det) > 1e-300, det, np.inf)[:, None, None]
+    return np.einsum("tij,tkj->tik", inv, j)
+
+
 def _triangles(points: NDArray[np.float64], tris: NDArray[np.int32], uv: NDArray[np.float64],
                uv_tris: NDArray[np.int32], size: int, meters_per_unit: float
                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],

@@ -16,11 +16,11 @@ from skinpipe.render.device.choice import open_device
 from skinpipe.render.light.first_scatter import (
     FirstScatter,
     surface_reads,
-    towards_light,
     upstream_shift,
     with_first_scatter,
 )
 from skinpipe.render.light.raytrace import RayScene
+from skinpipe.render.light.samples import light_direction
 from skinpipe.render.scene import Light
 from skinpipe.render.surface.texture_maps import rasterize
 from skinpipe.render.surface.unwrap import triangulate, unwrap
@@ -136,7 +136,7 @@ def test_texel_reads_agree_with_embree_projection_on_a_sphere(cl_device) -> None
     tris, uv, uv_tris = triangulate(mesh), layout.uv, layout.uv_indices.reshape(-1, 3)
     first, pos, nrm = _first(mesh.points, tris, uv, uv_tris, 512, 0.78, device=cl_device)
     light = _distant([math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))])
-    w = towards_light(light, pos)
+    w = light_direction(light, pos)[0]
     entering = np.repeat(np.clip(np.einsum("ij,ij->i", w, nrm), 0, None)[:, None], 3,
                          axis=1).astype(np.float32)
     values = first.scattering(light, entering)
