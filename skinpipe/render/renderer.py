@@ -37,6 +37,7 @@ from .diffusion.layout import (
 )
 from .diffusion.push_pull import (
     dilate_charts,
+    extrapolate_charts,
     prepare_dilation,
     push_pull,
 )
@@ -550,8 +551,8 @@ class Renderer:
             energy = flux_out / flux_in if flux_in > 0 else 1.0
             times_albedo_weight(out, albedo, tex.albedo_image, 1.0 - a, self.device)
             out *= np.float32(1.0 / math.pi)
-            radiance = dilate_charts(push_pull(out, cov, in_place=True, device=self.device),
-                                     cov)
+            radiance = extrapolate_charts(
+                push_pull(out, cov, in_place=True, device=self.device), cov)
             return radiance, skipped, passes, energy, work
 
         radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)

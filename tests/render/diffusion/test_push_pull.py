@@ -142,3 +142,28 @@ def test_a_prepared_dilation_is_the_one_dilate_charts_reads() -> None:
     prepare_dilation(np.ones((4, 4), np.float32))
     prepare_dilation(np.zeros((4, 4), np.float32))
     assert _nearest_sources.cache_info().misses == 1
+
+
+def test_extrapolation_continues_each_chart_s_slope_into_its_ring() -> None:
+    """A ramp of slope 1 a texel on a disc chart and another chart two texels from it:
+    a bilinear lookup between a chart's edge texel and the texel beside it reads the
+    ramp (a copy was off by the slope's half texel); each ring continues its own chart,
+    the second ring keeps the copy, and nothing goes below zero."""
+    from scipy.ndimage import binary_dilation
+
+    from skinpipe.render.diffusion.push_pull import extrapolate_charts
+    from skinpipe.render.shading import bilinear
+
+    yy, xx = np.mgrid[0:40, 0:40]
+    cov = (((yy - 20) ** 2 + (xx - 14) ** 2) < 10**2).astype(np.float32)
+    cov[5:35, 27:30] = 1  # a second chart, two texels right of the disc
+    ramp = np.where(xx < 26, 3.0 + xx, 100.0 - 30 * (xx - 26)).astype(np.float32)
+    out = extrapolate_charts(np.where(cov > 0, ramp, 0.0).astype(np.float32), cov)
+    disc = cov.copy()
+    disc[:, 26:] = 0
+    first = binary_dilation(disc > 0, np.ones((3, 3), bool)) & (disc == 0) & (xx < 26)
+    np.testing.assert_allclose(out[first], ramp[first], atol=1e-4)
+    assert out[20, 26] == 100.0  # the second chart's own slope, not the disc's
+    assert out[20, 30] == 0.0 and out[20, 31] == 10.0  # 2 x 10 - 40 clamped; a copy
+    uv = np.array([[(23.6 + 0.5) / 40, (20 + 0.5) / 40]])  # the disc's edge texel is 23
+    np.testing.assert_allclose(bilinear(out, uv)[0], 3.0 + 23.6, atol=1e-4)
