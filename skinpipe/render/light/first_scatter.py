@@ -31,6 +31,7 @@ the chord's truncation of the mean path (measured: it moves the sphere's 10% poi
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -54,6 +55,11 @@ FloatArray = NDArray[np.float64]
 
 _UPSTREAM_KERNEL = cl_source(__package__, "first_scatter.cl")
 
+CHORD_OPTICAL_DEPTH = math.log(1e4)
+"""Chords are traced this many mean free paths (sigma_t' L) deep, no farther: past it a
+ten-thousandth of the light leaves unscattered, and Embree leaves the rest of the head
+unvisited (at texture 4096 on the demo face the chords took 1.9 s a light)."""
+
 
 @lru_cache(maxsize=4)
 def _upstream_kernel(device: Device) -> Kernel:
@@ -67,6 +73,12 @@ def light_centre(light: Light) -> tuple[bool, NDArray[np.float64]]:
     if light.kind == "distant":
         return False, -np.asarray(light.axis, np.float64)
     return True, np.asarray(light.position, np.float64)
+
+
+def _channel_max(rgb: NDArray[Any]) -> NDArray[Any]:
+    """(N,) the largest of each row of (N, 3): by columns (a reduction along the short
+    axis took 16x as long, 0.3 s a light at texture 4096)."""
+    return np.maximum(np.maximum(rgb[:, 0], rgb[:, 1]), rgb[:, 2])
 
 
 def _dot(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -207,16 +219,18 @@ class FirstScatter:
         faces = face_normals(self.mesh_points, self.mesh_tris)
         for first in range(0, out.shape[0], BAND_POINTS):  # a band's arrays at a time
             band = slice(first, min(first + BAND_POINTS, out.shape[0]))
-            lit = np.flatnonzero(entering[band].max(axis=1) > 0) + first  # can lose light
+            lit = np.flatnonzero(_channel_max(entering[band]) > 0) + first  # can lose light
             p = np.take(self.points, lit, axis=0)
             nrm = np.take(self.normals, lit, axis=0)
             w = np.asarray(light_direction(light, p)[0], np.float32)
+            sigma = self.reduced_extinction[lit]
+            deepest = CHORD_OPTICAL_DEPTH / np.maximum(-_channel_max(-sigma), 1e-30)
             chord = exit_distances(self.rays, self.mesh_index, self.mesh_points,
                                    self.mesh_tris, p, nrm, refracted_into(w, nrm, self.eta),
-                                   faces)
+                                   faces, deepest)
             ends = np.isfinite(chord)  # an open scan's paths mostly leave nowhere
             lit, chord = lit[ends], chord[ends]
-            out[lit] *= -np.expm1(-self.reduced_extinction[lit] * chord[:, None])
+            out[lit] *= -np.expm1(-sigma[ends] * chord[:, None])
         return out
 
     def read_upstream(self, light: Light, values: NDArray[np.float32]) -> NDArray[np.float32]:

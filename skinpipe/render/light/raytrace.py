@@ -196,10 +196,13 @@ class RayScene:
         self.stats.add("occlusion", traced, time.perf_counter() - start)
         return out
 
-    def intersect(self, origins: NDArray[Any], directions: NDArray[Any]
+    def intersect(self, origins: NDArray[Any], directions: NDArray[Any],
+                  max_distance: NDArray[Any] | float | None = None
                   ) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.float32],
                              NDArray[np.float32]]:
-        """First hits: (scene triangle or -1, barycentric u, v, distance)."""
+        """First hits before ``max_distance`` (scene units, per ray or one for all;
+        default: beyond the scene): (scene triangle or -1, barycentric u, v, distance).
+        Embree leaves the boxes beyond a short ray's end unvisited."""
         n = origins.shape[0]
         start = time.perf_counter()
         o = _writable(origins)
@@ -208,9 +211,13 @@ class RayScene:
         u = np.zeros(n, np.float32)
         v = np.zeros(n, np.float32)
         t = np.full(n, np.inf, np.float32)
+        far = None if max_distance is None else \
+            np.ascontiguousarray(np.broadcast_to(np.asarray(max_distance, np.float32), (n,)))
 
         def run(s: slice) -> None:
-            res = self.scene.run(o[s], d[s], output=1)
+            # embreex writes the hits' distances into the array it is given
+            res = self.scene.run(o[s], d[s], output=1) if far is None else \
+                self.scene.run(o[s], d[s], output=1, dists=far[s].copy())
             prim[s] = res["primID"]
             u[s], v[s], t[s] = res["u"], res["v"], res["tfar"]
 
@@ -228,16 +235,18 @@ def face_normals(mesh_points: NDArray[np.float64], mesh_tris: NDArray[np.integer
 
 
 def hits_leaving(rays: RayScene, mesh_index: int, faces: NDArray[np.float64],
-                 points: NDArray[Any], normals: NDArray[Any], directions: NDArray[Any]
+                 points: NDArray[Any], normals: NDArray[Any], directions: NDArray[Any],
+                 max_distance: NDArray[Any] | float | None = None
                  ) -> tuple[NDArray[np.intp], NDArray[Any], NDArray[Any], NDArray[Any],
                             NDArray[Any]]:
     """Rays from ``points`` (started just under the surface, along -``normals``) into
-    the skin along ``directions`` that leave the same mesh (``faces``: its
-    :func:`face_normals`; a hit from outside, a fold or another part, is none): their
-    indices, the triangle hit (local to the mesh), its barycentrics u, v and the
-    distance."""
+    the skin along ``directions`` whose first hit before ``max_distance`` (default: any)
+    leaves the same mesh (``faces``: its :func:`face_normals`; a hit from outside, a
+    fold or another part, is none): their indices, the triangle hit (local to the mesh),
+    its barycentrics u, v and the distance."""
     d = np.asarray(directions, np.float32)
-    prim, u, v, dist = rays.intersect(offset_ray_origin(points, -np.asarray(normals)), d)
+    prim, u, v, dist = rays.intersect(offset_ray_origin(points, -np.asarray(normals)), d,
+                                      max_distance)
     hit = np.flatnonzero(prim >= 0)
     owner = rays.owner[prim[hit]]
     own = owner[:, 0] == mesh_index
@@ -250,15 +259,19 @@ def hits_leaving(rays: RayScene, mesh_index: int, faces: NDArray[np.float64],
 def exit_distances(rays: RayScene, mesh_index: int, mesh_points: NDArray[np.float64],
                    mesh_tris: NDArray[np.integer], points: NDArray[np.float64],
                    normals: NDArray[np.float64], directions: NDArray[np.float64],
-                   faces: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+                   faces: NDArray[np.float64] | None = None,
+                   max_distance: NDArray[Any] | float | None = None) -> NDArray[np.float64]:
     """(N,) how far a ray into the skin along ``directions`` runs before it leaves the
-    same mesh (inf where it does not: an open scan, a hit from outside); ``faces``: the
-    mesh's :func:`face_normals`, for callers that cast in bands."""
+    same mesh (inf where it does not: an open scan, a hit from outside, or not before
+    ``max_distance``, per ray or one for all); ``faces``: the mesh's
+    :func:`face_normals`, for callers that cast in bands."""
     faces = face_normals(mesh_points, mesh_tris) if faces is None else faces
     out = np.full(points.shape[0], np.inf)
     for first in range(0, points.shape[0], 1 << 20):  # a band's arrays at a time
         band = slice(first, min(first + (1 << 20), points.shape[0]))
-        hit, _, _, _, dist = hits_leaving(rays, mesh_index, faces, points[band],
-                                          normals[band], directions[band])
+        hit, _, _, _, dist = hits_leaving(
+            rays, mesh_index, faces, points[band], normals[band], directions[band],
+            max_distance if max_distance is None or np.ndim(max_distance) == 0
+            else np.asarray(max_distance)[band])
         out[band][hit] = dist
     return out

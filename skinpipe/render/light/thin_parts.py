@@ -154,7 +154,9 @@ def back_points(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     for first in range(0, points.shape[0], BAND_POINTS):
         band = slice(first, min(first + BAND_POINTS, points.shape[0]))
         n = np.asarray(normals[band], np.float32)
-        hit, local, u, v, dist = hits_leaving(rays, mesh_index, faces, points[band], n, -n)
+        # rays end at the reach: Embree then leaves the rest of the head unvisited
+        hit, local, u, v, dist = hits_leaving(rays, mesh_index, faces, points[band], n, -n,
+                                              reach)
         keep = dist <= reach
         found.append((hit[keep] + first, local[keep],
                       np.stack([u[keep], v[keep]], axis=1), dist[keep].astype(np.float64)))

@@ -46,6 +46,29 @@ def test_one_length_for_all_rays(far: float | None) -> None:
     assert rays.stats.rays.get("occlusion", 0) == (0 if far == 0.0 else 4)
 
 
+def test_first_hits_end_where_asked() -> None:
+    """intersect with lengths per ray or one for all: a plate at z = 10 is hit, at
+    distance 10 and its barycentrics, by the rays that reach it and by no other; the
+    caller's lengths are not changed."""
+    plate = np.array([[-50.0, -50.0, 10.0], [50.0, -50.0, 10.0], [50.0, 50.0, 10.0]])
+    rays = RayScene([(plate, np.array([[0, 1, 2]]))], threads=2)
+    n = CHUNK_RAYS + 100
+    origins = np.tile(np.float32([10.0, -10.0, 0.0]), (n, 1))
+    up = np.tile(np.float32([0.0, 0.0, 1.0]), (n, 1))
+    far = np.random.default_rng(3).uniform(5.0, 15.0, n).astype(np.float32)
+    kept = far.copy()
+    whole = rays.intersect(origins, up)
+    prim, u, v, t = rays.intersect(origins, up, far)
+    np.testing.assert_array_equal(prim >= 0, far > 10.0)
+    reach = far > 10.0
+    for got, full in zip((u, v, t), whole[1:], strict=True):
+        np.testing.assert_array_equal(got[reach], full[reach])
+    np.testing.assert_allclose(t[reach], 10.0)
+    np.testing.assert_array_equal(far, kept)
+    assert (rays.intersect(origins[:3], up[:3], 9.0)[0] < 0).all()
+    assert (rays.intersect(origins[:3], up[:3], 11.0)[0] >= 0).all()
+
+
 def offset_by_listing(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Wächter & Binder's listing 6-1, written out per coordinate over whole arrays."""
     of_i = (np.float32(256.0) * n).astype(np.int32)
