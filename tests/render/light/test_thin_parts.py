@@ -160,3 +160,53 @@ def test_a_ball_is_round_and_a_slab_flat() -> None:
     round_ = thin_parts.flatness(RayScene([(ball.points, tris)]), 0, ball.points, tris,
                                  4.99 * n, n, np.full(20, 10.0))  # within the facets
     assert np.all(round_ < 0.02), round_
+
+
+def test_probing_blocks_finds_the_far_sides_every_texel_finds(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A closed box 10 x 10 x 2 mm unwrapped by xatlas, at texture 2048 with blocks of 8
+    texels probed first: the same far sides, far texels and factors as rays from every
+    texel, from fewer rays (the sides, 10 mm across, have none within the 3.3 mm reach)."""
+    from skinpipe.render.light import thin_parts
+    from skinpipe.render.light.raytrace import RayScene
+    from skinpipe.render.surface.texture_maps import rasterize
+    from skinpipe.render.surface.unwrap import triangulate, unwrap
+    from skinpipe.usd.mesh import MeshData
+
+    box = np.array([[x, y, z] for z in (0.0, 2.0) for y in (0.0, 10.0) for x in (0.0, 10.0)])
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    corners = box[np.ravel(quads)]  # each face its own corners: flat normals
+    tris = np.array([(4 * q, 4 * q + 1 + k, 4 * q + 2 + k) for q in range(6) for k in (0, 1)],
+                    np.int32)
+    mesh = MeshData(corners, np.full(len(tris), 3, np.int32), tris.reshape(-1), 0.001)
+    layout = unwrap(mesh)
+    uv_tris = layout.uv_indices.reshape(-1, 3)
+    maps = rasterize(corners, triangulate(mesh), layout.uv, uv_tris, 2048, 0.001)
+    texel = np.flatnonzero(maps.coverage.ravel() > 0)
+    points = maps.position.reshape(-1, 3)[texel]
+    normals = maps.normal.reshape(-1, 3)[texel]
+    media = thin_parts.ThinMedia(np.full((1, 3), 0.9), np.full((1, 3), 4.0), np.ones(3))
+    assert 3.0 < media.reach < 5.0
+
+    cast = thin_parts.back_points
+    counted = [0]
+
+    def counting(*args: object) -> tuple[np.ndarray, ...]:
+        counted[0] += len(args[4])  # type: ignore[arg-type]
+        return cast(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(thin_parts, "back_points", counting)
+
+    def far(probe_size: int) -> tuple[thin_parts.FarSide, int]:
+        monkeypatch.setattr(thin_parts, "PROBE_TEXTURE_SIZE", probe_size)
+        counted[0] = 0
+        got = thin_parts.far_side(RayScene([(corners, tris)]), 0, corners, tris, layout.uv,
+                                  uv_tris, 2048, points, normals, texel, media, None)
+        return got, counted[0]
+
+    (every, every_rays), (probed, probed_rays) = far(2048), far(256)
+    assert 0.5 * texel.size < every.rows.size < 0.8 * texel.size
+    for a, b in ((every.rows, probed.rows), (every.far_rows, probed.far_rows),
+                 (every.factor, probed.factor)):
+        np.testing.assert_array_equal(a, b)
+    assert probed_rays < 0.9 * every_rays, (probed_rays, every_rays)
