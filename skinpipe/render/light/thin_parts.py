@@ -25,7 +25,7 @@ not modelled twice.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -206,7 +206,8 @@ PROBE_RING_BLOCKS = 2
 
 
 def _rows_to_cast(row_of: NDArray[np.int32],
-                  cast: Any) -> NDArray[np.int64] | None:
+                  cast: Callable[[NDArray[np.int64]], tuple[NDArray[Any], ...]]
+                  ) -> NDArray[np.int64] | None:
     """The rows (ascending) whose rays :func:`far_side` casts, for a texture of each
     texel's row ``row_of`` (size, size; -1 off the charts), ``cast`` giving the rows
     with a far side among rows it is given; None: every row (a texture no larger than
@@ -241,6 +242,7 @@ def far_side(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     row_of[texel] = np.arange(texel.size, dtype=np.int32)
 
     def cast(rows: NDArray[np.int64] | None) -> tuple[NDArray[Any], ...]:
+        """:func:`back_points` of ``rows`` (None: all), as rows."""
         if rows is None:
             return back_points(rays, mesh_index, mesh_points, mesh_tris, points, normals,
                                media.reach)
