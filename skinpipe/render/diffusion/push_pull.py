@@ -192,14 +192,19 @@ def dilate_charts(values: NDArray[Any], coverage: NDArray[Any], ring: int = GUTT
     """``values`` (H, W[, C]) with each texel within ``ring`` texels of a chart (8-connected
     steps) set to a nearest covered texel's value; in place when ``values`` is float32,
     returned."""
+    return _dilated(values, coverage, ring)[0]
+
+
+def _dilated(values: NDArray[Any], coverage: NDArray[Any], ring: int
+             ) -> tuple[NDArray[np.float32], tuple[NDArray[np.int64], NDArray[np.int64]] | None]:
+    """:func:`dilate_charts`, and the gutter it copied (None: none)."""
     v = np.asarray(values, dtype=np.float32)
     gutter = _gutter(coverage, ring)
-    if gutter is None:
-        return v
-    dst, src = gutter
-    flat = v.reshape(np.size(coverage), -1)
-    flat[dst] = flat[src]
-    return v
+    if gutter is not None:
+        dst, src = gutter
+        flat = v.reshape(np.size(coverage), -1)
+        flat[dst] = flat[src]
+    return v, gutter
 
 
 def extrapolate_charts(values: NDArray[Any], coverage: NDArray[Any], ring: int = GUTTER_RING
@@ -208,8 +213,7 @@ def extrapolate_charts(values: NDArray[Any], coverage: NDArray[Any], ring: int =
     mean of its chart's linear continuations, 2 v(t + d) - v(t + 2 d) over the
     directions d whose two texels are covered (at least 0: light is not negative);
     texels with no such direction keep the copy. In place when ``values`` is float32."""
-    v = dilate_charts(values, coverage, ring)
-    gutter = _gutter(coverage, ring)
+    v, gutter = _dilated(values, coverage, ring)
     if gutter is None:
         return v
     covered = np.asarray(coverage) > 0

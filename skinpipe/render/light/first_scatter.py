@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..bands import band_slices
 from ..device.choice import Device
 from ..device.memory import run_on_host_arrays
 from ..device.programs import Kernel, build
@@ -217,9 +218,8 @@ class FirstScatter:
         leaves the skin again, 1 - exp(-sigma_t' L) for the chord L (Embree)."""
         out = np.array(entering, np.float32, copy=True)
         faces = face_normals(self.mesh_points, self.mesh_tris)
-        for first in range(0, out.shape[0], BAND_POINTS):  # a band's arrays at a time
-            band = slice(first, min(first + BAND_POINTS, out.shape[0]))
-            lit = np.flatnonzero(_channel_max(entering[band]) > 0) + first  # can lose light
+        for band in band_slices(out.shape[0], BAND_POINTS):  # a band's arrays at a time
+            lit = np.flatnonzero(_channel_max(entering[band]) > 0) + band.start  # can lose light
             p = np.take(self.points, lit, axis=0)
             nrm = np.take(self.normals, lit, axis=0)
             w = np.asarray(light_direction(light, p)[0], np.float32)
@@ -247,8 +247,7 @@ class FirstScatter:
         cast = np.empty((n_points, 3), np.uint8)
         mean_path = 1.0 / np.asarray(self.reduced_extinction, np.float32)
         at_point, vector = light_centre(light)
-        for first in range(0, n_points, BAND_POINTS):  # a band's arrays at a time
-            band = slice(first, min(first + BAND_POINTS, n_points))
+        for band in band_slices(n_points, BAND_POINTS):  # a band's arrays at a time
             got = np.empty((band.stop - band.start, 3), np.float32)
             flags = np.empty((band.stop - band.start, 3), np.uint8)
             run_on_host_arrays(

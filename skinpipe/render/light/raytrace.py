@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from ...errors import InputError
 from ...usd.mesh import MAX_COORDINATE
+from ..bands import band_slices
 from ..sorting import stable_order
 
 CHUNK_RAYS = 65536
@@ -211,13 +212,13 @@ class RayScene:
         u = np.zeros(n, np.float32)
         v = np.zeros(n, np.float32)
         t = np.full(n, np.inf, np.float32)
+        # a copy of the caller's lengths: embreex writes the hits' distances into them
         far = None if max_distance is None else \
-            np.ascontiguousarray(np.broadcast_to(np.asarray(max_distance, np.float32), (n,)))
+            np.array(np.broadcast_to(np.asarray(max_distance, np.float32), (n,)))
 
         def run(s: slice) -> None:
-            # embreex writes the hits' distances into the array it is given
             res = self.scene.run(o[s], d[s], output=1) if far is None else \
-                self.scene.run(o[s], d[s], output=1, dists=far[s].copy())
+                self.scene.run(o[s], d[s], output=1, dists=far[s])
             prim[s] = res["primID"]
             u[s], v[s], t[s] = res["u"], res["v"], res["tfar"]
 
@@ -267,8 +268,7 @@ def exit_distances(rays: RayScene, mesh_index: int, mesh_points: NDArray[np.floa
     :func:`face_normals`, for callers that cast in bands."""
     faces = face_normals(mesh_points, mesh_tris) if faces is None else faces
     out = np.full(points.shape[0], np.inf)
-    for first in range(0, points.shape[0], 1 << 20):  # a band's arrays at a time
-        band = slice(first, min(first + (1 << 20), points.shape[0]))
+    for band in band_slices(points.shape[0]):  # a band's arrays at a time
         hit, _, _, _, dist = hits_leaving(
             rays, mesh_index, faces, points[band], normals[band], directions[band],
             max_distance if max_distance is None or np.ndim(max_distance) == 0

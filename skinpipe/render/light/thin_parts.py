@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...profile.medium import MediumEstimate, similarity_relation
+from ..bands import band_slices
 from . import slab_transmission_table as TABLE
 from .raytrace import RayScene, exit_distances, face_normals, hits_leaving
 from .samples import orthonormal_frame
@@ -151,14 +152,13 @@ def back_points(rays: RayScene, mesh_index: int, mesh_points: FloatArray,
     another part in the way) is none. In bands of :data:`BAND_POINTS` points."""
     faces = face_normals(mesh_points, mesh_tris)
     found: list[tuple[NDArray[np.int64], ...]] = []
-    for first in range(0, points.shape[0], BAND_POINTS):
-        band = slice(first, min(first + BAND_POINTS, points.shape[0]))
+    for band in band_slices(points.shape[0], BAND_POINTS):
         n = np.asarray(normals[band], np.float32)
         # rays end at the reach: Embree then leaves the rest of the head unvisited
         hit, local, u, v, dist = hits_leaving(rays, mesh_index, faces, points[band], n, -n,
                                               reach)
         keep = dist <= reach
-        found.append((hit[keep] + first, local[keep],
+        found.append((hit[keep] + band.start, local[keep],
                       np.stack([u[keep], v[keep]], axis=1), dist[keep].astype(np.float64)))
     if not found:
         return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
