@@ -594,8 +594,11 @@ class DiffusionLayout:
         regions_at = None
         tr = self._texel_regions
         if self.by_triangle and tr is not None:
+            # a triangle's mean: the points average blocks of texels anyway
+            per_triangle = tr.weights[tr.corners].mean(axis=1, dtype=np.float32)
+
             def regions_at(texel: NDArray[np.int64], tri: NDArray[Any]) -> NDArray[Any]:
-                return tr.weights[tr.corners[tri]].mean(axis=1)
+                return per_triangle[tri]
         elif self.region_weights is not None:
             flat = self.region_weights.reshape(-1, self.region_weights.shape[2])
 

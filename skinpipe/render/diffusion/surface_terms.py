@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import pyopencl as cl
 from numpy.typing import NDArray
+from scipy.ndimage import find_objects
 
 from ..device.choice import Device
 from ..device.memory import device_buffer
@@ -215,6 +216,36 @@ class SurfacePoints:
         return sums / blocks.point[:, 3:4].astype(np.float64)
 
 
+def _blocks(chart: NDArray[np.int32], texel: NDArray[np.int32], level: int
+            ) -> tuple[NDArray[np.int32], NDArray[np.int64]]:
+    """Each covered texel's block of ``2^level`` texels a side within its chart, and each
+    block's key (chart, block row, block column): numbered within each chart's bounding
+    box of blocks (scipy.ndimage.find_objects), the empty ones dropped. A sort of the
+    keys took 1.8 s of 9.4 at texture 4096."""
+    w = chart.shape[1]
+    boxes = find_objects(chart + 1)
+    n_charts = len(boxes)
+    lo = np.zeros((n_charts, 2), np.int64)
+    size = np.zeros((n_charts, 2), np.int64)
+    for c, box in enumerate(boxes):
+        if box is not None:
+            lo[c] = (box[0].start >> level, box[1].start >> level)
+            size[c] = ((box[0].stop - 1) >> level) - lo[c, 0] + 1, \
+                ((box[1].stop - 1) >> level) - lo[c, 1] + 1
+    offset = np.concatenate([[0], np.cumsum(size[:, 0] * size[:, 1])])
+    c = chart.ravel()[texel]
+    dense = offset[c] + (((texel // w) >> level) - lo[c, 0]) * size[c, 1] + \
+        ((texel % w) >> level) - lo[c, 1]
+    used = np.flatnonzero(np.bincount(dense, minlength=int(offset[-1])))
+    number = np.zeros(int(offset[-1]), np.int32)
+    number[used] = np.arange(used.size, dtype=np.int32)
+    owner = np.searchsorted(offset, used, side="right") - 1
+    local = used - offset[owner]
+    by, bx = lo[owner, 0] + local // size[owner, 1], lo[owner, 1] + local % size[owner, 1]
+    keys = (owner << (2 * _KEY_BITS)) | (by << _KEY_BITS) | bx
+    return number[dense], keys
+
+
 def surface_points(chart: NDArray[np.int32], share: NDArray[Any] | None, triangle: NDArray[Any],
                    jacobian_mm: NDArray[Any],
                    surface_at: Callable[[NDArray[np.int64]],
@@ -229,7 +260,6 @@ def surface_points(chart: NDArray[np.int32], share: NDArray[Any] | None, triangl
     and normal at flat texel indices, ``regions_at`` the region weights (n, R) at flat
     texel indices of those triangles (None: one region). ``keep_texels``: keep each
     texel's position and normal (32 bytes a texel) for texture outputs."""
-    w = chart.shape[1]
     texel = np.flatnonzero(chart.ravel() >= 0).astype(np.int32)
     tri = np.asarray(triangle).ravel()[texel]
     jac = np.asarray(jacobian_mm, np.float64)
@@ -237,28 +267,26 @@ def surface_points(chart: NDArray[np.int32], share: NDArray[Any] | None, triangl
     weight = tri_area[tri]
     if share is not None:
         weight *= np.asarray(share, np.float32).ravel()[texel]
-    x, y = texel % w, texel // w
-    key = (chart.ravel()[texel].astype(np.int64) << (2 * _KEY_BITS)) | \
-        ((y >> finest).astype(np.int64) << _KEY_BITS) | (x >> finest).astype(np.int64)
-    del x, y
-    keys, block = np.unique(key, return_inverse=True)
-    del key
-    block = block.ravel().astype(np.int32)
+    block, keys = _blocks(chart, texel, finest)
     n0 = keys.size
-    sums: NDArray[np.float64] | None = None
+    n_columns = 7 if regions_at is None else 7 + int(regions_at(texel[:1].astype(np.int64),
+                                                                tri[:1]).shape[1])
+    sums = np.zeros((n0, n_columns), np.float64)
+    sums[:, 6] = np.bincount(block, weights=weight, minlength=n0)
     kept = np.empty((texel.size, 2, 4), np.float32) if keep_texels else None
     for s in range(0, texel.size, BAND_TEXELS):
         part = slice(s, s + BAND_TEXELS)
         position, normal = surface_at(texel[part].astype(np.int64))
-        position = position * np.float32(mm_per_unit)
-        columns = [position, normal, np.ones((position.shape[0], 1), np.float32)]
+        position *= np.float32(mm_per_unit)
+        columns = [position, normal]
         if regions_at is not None:
             columns.append(regions_at(texel[part].astype(np.int64), tri[part]))
-        v = np.concatenate(columns, axis=1) * weight[part, None]
-        if sums is None:
-            sums = np.zeros((n0, v.shape[1]), np.float64)
-        for c in range(v.shape[1]):
-            sums[:, c] += np.bincount(block[part], weights=v[:, c], minlength=n0)
+        at = 0
+        for values in columns:
+            for c in range(values.shape[1]):
+                sums[:, at + (c if at < 6 else c + 1)] += np.bincount(
+                    block[part], weights=values[:, c] * weight[part], minlength=n0)
+            at += values.shape[1]
         if kept is not None:
             kept[part, 0, :3], kept[part, 1, :3] = position, normal
     assert sums is not None
