@@ -220,12 +220,11 @@ def _rows_to_cast(row_of: NDArray[np.int32],
     probe_rows = probes[probes >= 0].astype(np.int64)
     near = np.zeros(probes.shape, bool)
     near.flat[np.flatnonzero(probes >= 0)[np.isin(probe_rows, cast(probe_rows)[0])]] = True
-    ring = PROBE_RING_BLOCKS
-    padded = np.pad(near, ring)
-    h, w = near.shape
-    for dy in range(-ring, ring + 1):  # and the blocks round: a far side's edge
-        for dx in range(-ring, ring + 1):
-            near |= padded[ring + dy:ring + dy + h, ring + dx:ring + dx + w]
+    from scipy.ndimage import binary_dilation  # lazy, as chart_tiles' filters
+
+    # and the blocks round: a far side's edge may lie in a block whose probe missed it
+    side = 2 * PROBE_RING_BLOCKS + 1
+    near = binary_dilation(near, np.ones((side, side), bool))
     rows = row_of[np.repeat(np.repeat(near, block, axis=0), block, axis=1)[:size, :size]]
     return rows[rows >= 0].astype(np.int64)
 
