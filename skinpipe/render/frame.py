@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .bands import BAND_ITEMS, in_bands
+from .diffusion.surface_terms import SurfaceLight
 from .scene import SceneMesh
 from .shading import albedo_texture
 from .surface.texture_maps import (
@@ -81,6 +82,12 @@ class SkinTextures:
     irradiance_filled: NDArray[np.float32] | None = None  # seams filled, for lookups
     visibility: dict[str, NDArray[np.float32]] = field(default_factory=dict)
     radiance: NDArray[np.float32] | None = None
+    """The diffused radiance of the terms blurred in the charts' tiles (H, W, 3)."""
+    surface_light: SurfaceLight | None = None
+    """The wide terms' light, summed on the surface and read at the camera's hits
+    (:mod:`~.diffusion.surface_terms`; x albedo^(1 - split) / pi there)."""
+    radiosity: NDArray[np.float32] | None = None
+    """All the terms' radiance at the texels, for the radiosity texture output."""
     period: int = 2
     """The interleaving period of its shadow rays (:meth:`Renderer._interleaving`)."""
     texels_per_pixel: float = 0.0

@@ -49,8 +49,8 @@ def texture_space_images(tex: SkinTextures, which: tuple[str, ...]
     out: dict[str, NDArray[np.float32]] = {}
     if "irradiance" in which and tex.irradiance is not None:
         out["irradiance"] = tex.irradiance
-    if "radiosity" in which and tex.radiance is not None:
-        out["radiosity"] = (tex.radiance * np.float32(math.pi)) * covered[..., None]
+    if "radiosity" in which and tex.radiosity is not None:
+        out["radiosity"] = (tex.radiosity * np.float32(math.pi)) * covered[..., None]
     if "stretch" in which:
         out["stretch"] = np.stack([maps.mm_per_texel_u, maps.mm_per_texel_v], axis=-1)
     if "region" in which:

@@ -28,19 +28,15 @@ from .bands import beside, in_bands
 from .device.choice import Device, open_device
 from .device.huge_pages import apply_to_numpy, huge_pages_choice
 from .device.programs import start_prewarm
-from .diffusion.diffuse import diffuse_prepared
+from .diffusion.diffuse import diffuse_on_surface
 from .diffusion.gather import diffuse_gather
 from .diffusion.layout import (
     DiffusionLayout,
     chart_layout,
     release_freed_heap,
 )
-from .diffusion.push_pull import (
-    dilate_charts,
-    extrapolate_charts,
-    prepare_dilation,
-    push_pull,
-)
+from .diffusion.push_pull import dilate_charts, prepare_dilation, push_pull
+from .diffusion.surface_terms import texel_flux
 from .diffusion.terms import DiffusionTerms, kept_diffusion_terms
 from .diffusion.tile_store import TileStore
 from .frame import CameraHits, SkinTextures, TaskLog, _BothArrived, hit_uvs
@@ -69,6 +65,7 @@ from .shading import (
     albedo_texture,
     bilinear,
     bilinear_of,
+    exitant_radiance,
     mean_albedo,
     media_summary,
     mesh_hits,
@@ -76,6 +73,7 @@ from .shading import (
     ray_owners,
     skin_media,
     surface_flux,
+    surface_radiance,
     times_albedo_weight,
 )
 from .surface.resample import (
@@ -342,7 +340,9 @@ class Renderer:
         wanted = set(self.options.aovs)
         got: dict[str, NDArray[np.float32]] = {}
         law = self._angular_law and bool(wanted & {"beauty", "diffuse"})
-        if "albedo" in wanted or law:  # the angular law scales by the albedo
+        # the angular law and the light summed on the surface scale by the albedo
+        if "albedo" in wanted or law or (wanted & {"beauty", "diffuse"} and
+                                         self.options.scattering):
             assert tex.albedo_image is not None
             size = self.options.texture_size
             got["albedo"] = bilinear_of(albedo_texels(tex.albedo_image, size), (size, size),
@@ -459,7 +459,8 @@ class Renderer:
                                    maps.coverage, maps.region_weights,
                                    chart_layout(self.device, maps, tex.mesh.mesh.points,
                                                 tex.tris, tex.uv, tex.uv_tris, rays,
-                                                mesh_index),
+                                                mesh_index,
+                                                tex.mesh.mesh.meters_per_unit * 1000.0),
                                    store, maps.texel_regions,
                                    maps.triangle_stretch() if maps.tri_mm is not None
                                    else None)
@@ -479,7 +480,8 @@ class Renderer:
                 del maps
                 # other terms (one profile for every region) add the tiles they lack
                 start = time.perf_counter()
-                prepared.prepare(terms.variances_mm2)
+                prepared.prepare(terms.variances_mm2,
+                                 texels_on_surface="radiosity" in opts.texture_outputs)
                 log.seconds["diffusion_layout"] = (log.seconds.get("diffusion_layout", 0.0)
                                                    + time.perf_counter() - start)
                 if release is not None:
@@ -527,13 +529,18 @@ class Renderer:
             # the diffusion's work buffers come (0.18 GB at texture 4096)
             release_freed_heap()
             cov = maps.coverage
-            # the blur moves flux, it must not create or lose it (chart borders included)
-            flux_in = surface_flux(pre, maps)
+            # the blur moves flux, it must not create or lose it (chart borders included);
+            # points on the surface weigh texels by their true areas (sheared charts)
+            on = None if prepared is None else prepared.surface
+            flux = partial(surface_flux, maps=maps) if on is None else partial(texel_flux, on)
+            flux_in = flux(pre)
             skipped: list[str] = []
+            surface = full = None
             if opts.scattering:
-                if prepared is not None:
-                    out, stats = diffuse_prepared(prepared, pre, terms.variances_mm2,
-                                                  terms.weights)
+                if prepared is not None:  # a radiosity output holds the surface's light too
+                    out, surface, full, stats = diffuse_on_surface(
+                        prepared, pre, terms.variances_mm2, terms.weights,
+                        texels="radiosity" in opts.texture_outputs)
                     if self.last_frame:  # its buffers stayed beside the push-pull's
                         prepared.release_work()
                 else:
@@ -542,32 +549,27 @@ class Renderer:
                                                 maps.region_weights, self.device)
                 del pre  # texture-sized arrays go as soon as they are used (peak memory)
                 skipped, passes = stats.skipped, stats.passes
-                work = {"pyramid_levels": stats.levels,
-                        "full_resolution_blurs": stats.full_blurs}
+                work = {"pyramid_levels": stats.levels, "full_resolution_blurs": stats.full_blurs,
+                        "surface_terms": stats.surface_terms}
             else:
                 out, passes, work = pre, 0, {}
                 skipped = ["diffusion: scattering off (texture-mapped irradiance only)"]
-            flux_out = surface_flux(out, maps)
+            flux_out = flux(out) + (0.0 if surface is None else surface.flux)
             energy = flux_out / flux_in if flux_in > 0 else 1.0
-            times_albedo_weight(out, albedo, tex.albedo_image, 1.0 - a, self.device)
-            out *= np.float32(1.0 / math.pi)
-            radiance = extrapolate_charts(
-                push_pull(out, cov, in_place=True, device=self.device), cov)
-            return radiance, skipped, passes, energy, work
+            radiance, full = (None if rgb is None else exitant_radiance(
+                rgb, albedo, tex.albedo_image, 1.0 - a, cov, self.device) for rgb in (out, full))
+            return radiance, surface, full, skipped, passes, energy, work
 
-        radiance, skipped, passes, energy, work = self._cached(log, "diffusion", key, compute)
-        tex.radiance = radiance
+        radiance, surface, full, skipped, passes, energy, work = self._cached(
+            log, "diffusion", key, compute)
+        tex.radiance, tex.surface_light = radiance, surface
+        tex.radiosity = radiance if full is None else full
         log.skipped += [f"{tex.mesh.path}: {s}" for s in terms.notes + skipped]
         log.measures["diffusion"] = {
-            "variances_mm2": terms.variances_mm2.tolist(),
-            "blur": opts.blur,
-            "blur_passes": passes,
-            **work,
-            "energy_ratio": energy,
-            "grid_error_eq2c": terms.error,
-            "grid_edge_error": terms.edge_error,
-            "mm_per_texel_median": texel_mm,
-        }
+            "variances_mm2": terms.variances_mm2.tolist(), "blur": opts.blur,
+            "blur_passes": passes, **work, "energy_ratio": energy,
+            "grid_error_eq2c": terms.error, "grid_edge_error": terms.edge_error,
+            "mm_per_texel_median": texel_mm}
 
     def texture_space(self, log: TaskLog, scene: SceneData, mesh: SceneMesh, rays: RayScene,
                       dome_textures: dict[str, NDArray[np.float32]] | None = None,
@@ -799,6 +801,10 @@ class Renderer:
                 leave = transmission(n_dot_v, opts.ior)[:, None]
                 assert tex.radiance is not None
                 radiance = bilinear(tex.radiance, uv)
+                if tex.surface_light is not None:  # the wide terms, summed on the surface
+                    radiance += surface_radiance(tex.surface_light, self.device,
+                                                 pos * np.float32(scene.meters_per_unit * 1e3),
+                                                 n, at["albedo"], 1.0 - opts.albedo_split)
                 law = self._reflection_law(log, scene, tex) if self._angular_law else None
                 if law is not None:
                     radiance += angular_correction(*law, scene.lights, pos, n, view, at,

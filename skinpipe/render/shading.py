@@ -3,6 +3,7 @@ texture space and its split around the diffusion, and the flux checks."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -19,6 +20,8 @@ from ..profile.medium import MediumEstimate
 from ..usd.openpbr import region_medium
 from .bands import in_bands
 from .device.choice import Device
+from .diffusion.push_pull import extrapolate_charts, push_pull
+from .diffusion.surface_terms import SurfaceLight
 from .light.raytrace import RayScene
 from .scene import SceneMesh
 from .surface.resample import (
@@ -212,6 +215,17 @@ def times_albedo_weight(rgb: NDArray[np.float32], albedo: NDArray[np.float32] | 
         times_resampled_power(rgb, image, power, device)
 
 
+def exitant_radiance(rgb: NDArray[np.float32], albedo: NDArray[np.float32] | None,
+                     image: NDArray[np.float32] | None, power: float, coverage: NDArray[Any],
+                     device: Device) -> NDArray[np.float32]:
+    """The exitant radiance texture of diffused light ``rgb`` (H, W, 3; in place): times
+    albedo^``power`` (:func:`times_albedo_weight`) / pi, pushed and pulled into the texels
+    off the charts, continued linearly beside them (:mod:`.diffusion.push_pull`)."""
+    times_albedo_weight(rgb, albedo, image, power, device)
+    rgb *= np.float32(1.0 / math.pi)
+    return extrapolate_charts(push_pull(rgb, coverage, in_place=True, device=device), coverage)
+
+
 def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -> float:
     """The flux of a texture of irradiance or radiance exitance ``rgb`` (H, W, 3) over its
     charts, summed over channels: sum of value x texel area in mm^2 (mm per texel along u
@@ -225,3 +239,14 @@ def surface_flux(rgb: NDArray[np.float32], maps: TextureMaps, rows: int = 256) -
     for part in in_bands(flux, rgb.shape[0], rows):  # on the cores; added in band order
         total += part
     return total
+
+
+def surface_radiance(light: SurfaceLight, device: Device, position_mm: NDArray[Any],
+                     normal: NDArray[Any], albedo: NDArray[Any], power: float
+                     ) -> NDArray[np.float32]:
+    """The exitant radiance of the wide terms' ``light`` at surface points
+    (:meth:`~.diffusion.surface_terms.SurfaceLight.at`), times albedo^``power`` / pi
+    as the texture's radiance (:func:`times_albedo_weight`)."""
+    rgb = light.at(device, position_mm, normal)
+    rgb *= np.power(np.maximum(albedo, 0.0), np.float32(power)) * np.float32(1.0 / math.pi)
+    return rgb

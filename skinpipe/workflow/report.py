@@ -22,7 +22,8 @@ from ..render.frame import TaskLog
 from ..render.light.raytrace import RayScene
 from ..render.options import SHADOW_SAMPLING, RenderOptions
 from ..render.renderer import Renderer
-from ..render.shading import bilinear
+from ..render.shading import bilinear, surface_radiance
+from ..render.surface.texture_maps import vertex_normals
 from ..render.surface.unwrap import triangulate
 from ..usd.io import open_stage_guarded
 
@@ -287,8 +288,14 @@ def render_tradeoff(scene: Path, sizes: Sequence[int] = (512, 1024, 2048),
                     ref[n] = (finest["flux"][idx] * prof).sum(axis=0)
                 albedo_at = bilinear(albedo, uv)
                 ref *= np.power(albedo_at, 1.0 - a) / math.pi
-                finest.update(uv=uv, ref=ref)
+                normal = (vertex_normals(mesh.mesh.points, tris)[tris[pick]] * b).sum(axis=1)
+                normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+                finest.update(uv=uv, ref=ref, p_mm=p_mm, normal=normal, albedo=albedo_at)
             got = bilinear(tex.radiance, finest["uv"]).astype(np.float64)
+            if tex.surface_light is not None:  # the wide terms, summed on the surface
+                got += surface_radiance(tex.surface_light, renderer.device, finest["p_mm"],
+                                        finest["normal"], finest["albedo"],
+                                        1.0 - opts.albedo_split)
             ref = finest["ref"]
             rel = np.sqrt(((got - ref) ** 2).mean(axis=0)) / np.maximum(ref.mean(axis=0), 1e-30)
             # per point, relative to its own value but at least 1e-3 of the brightest

@@ -36,6 +36,7 @@ from .recursive_blur import (
     QUANT_STEPS_PER_OCTAVE,
     TABLE_MIN_SIGMA,
 )
+from .surface_terms import SurfaceLight, surface_light
 
 FloatImage = NDArray[np.float32]
 TERM_BUFFER_TEXTURES = 4
@@ -283,6 +284,47 @@ def diffuse_prepared(
     np.maximum(out, 0.0, out=out)
     stats.full_blurs = blurred_texels / (h * w)
     return out, stats
+
+
+def diffuse_on_surface(layout: DiffusionLayout, irradiance: NDArray[Any],
+                       variances_mm2: NDArray[Any], term_weights: NDArray[Any],
+                       texels: bool = False
+                       ) -> tuple[NDArray[np.float32], SurfaceLight | None,
+                                  NDArray[np.float32] | None, BlurStats]:
+    """:func:`diffuse_prepared` of the terms the layout blurs in its tiles, and the
+    light of those it sums on the surface (:meth:`DiffusionLayout.surface_levels`,
+    :mod:`.surface_terms`; None if none), which the texture leaves out. With ``texels``
+    (and a layout prepared with ``texels_on_surface``) also the texture with the
+    surface's light added at its texels (None where there is none)."""
+    v = np.asarray(variances_mm2, np.float64).ravel()
+    tw = np.asarray(term_weights, np.float32)
+    levels = layout.surface_levels(v)
+    wide = [k for k, lv in enumerate(levels) if lv is not None]
+    narrow = [k for k, lv in enumerate(levels) if lv is None]
+    surface = None
+    if wide:
+        assert layout.surface is not None
+        # each block size reads the irradiance blurred by (h / 2)^2 in the tiles: a hard
+        # edge on a block's border aliases otherwise
+        pre = {}
+        for lv in sorted({int(levels[k] or 0) for k in wide}):
+            vs = layout.pre_variance(lv)
+            pre[lv] = (vs, diffuse_prepared(layout, irradiance, np.array([vs]),
+                                            np.ones((tw.shape[0], 1, 3), np.float32))[0])
+        surface = surface_light(layout.device, layout.surface, _check_irradiance(irradiance),
+                                v[wide], [int(levels[k] or 0) for k in wide], tw[:, wide],
+                                pre)
+    if narrow:
+        out, stats = diffuse_prepared(layout, irradiance, v[narrow], tw[:, narrow])
+    else:
+        out, stats = np.zeros((layout.height, layout.width, 3), np.float32), BlurStats()
+    stats.passes += len(wide)
+    stats.surface_terms = [(float(v[k]), int(levels[k] or 0)) for k in wide]
+    full = None
+    if texels and surface is not None:
+        assert layout.surface is not None
+        full = out + surface.at_texels(layout.device, layout.surface, out.shape)
+    return out, surface, full, stats
 
 
 def _blur_jobs(layout: DiffusionLayout, v: NDArray[Any], tw: NDArray[Any],

@@ -25,6 +25,8 @@ class BlurStats:
     """Texels blurred, in full-resolution 2D blurs."""
     tile_texels: dict[int, int] = field(default_factory=dict)
     """Per pyramid level used, the texels of its chart-tile atlas (tiles and margins)."""
+    surface_terms: list[tuple[float, int]] = field(default_factory=list)
+    """The terms summed on the surface (variance mm^2) and their points' block level."""
 
 
 def _check_irradiance(irradiance: NDArray[Any]) -> NDArray[np.float32]:

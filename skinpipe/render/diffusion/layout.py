@@ -50,6 +50,7 @@ from .recursive_blur import (
     iir_kernels,
     quantized_log2,
 )
+from .surface_terms import SurfacePoints, block_level, surface_points
 from .tile_store import TileStore, drop_resident_pages, extremes
 
 # ------------------------------------------- recursive, on per-chart tile pyramids
@@ -153,20 +154,21 @@ class ChartLayout:
 
 def chart_layout(device: Device, maps: Any, points: NDArray[Any], tris: NDArray[np.int32],
                  uv: NDArray[Any], uv_tris: NDArray[np.int32], rays: Any,
-                 mesh_index: int) -> ChartLayout:
+                 mesh_index: int, mm_per_unit: float = 1.0) -> ChartLayout:
     """The charts of a UV layout rasterised into ``maps`` (a
     :class:`~.texture_maps.TextureMaps`) and the surface across their seams: the chart
     of each texel, each texel's covered share, and for the margins the ray scene
     ``rays`` (a :class:`~.raytrace.RayScene` holding the mesh as ``mesh_index``), each
     triangle's chart, UV corners (texels) and Jacobian, and each texel's triangle,
     position and normal (made from the triangles where tiles are made,
-    :class:`~.texture_maps.TexelSurface`: the layout holds no position or normal map)."""
+    :class:`~.texture_maps.TexelSurface`: the layout holds no position or normal map);
+    ``mm_per_unit``: mm a scene unit."""
     tri_chart, n_charts = uv_charts(uv_tris, uv.shape[0])
     chart = at_texels(maps.triangle, tri_chart.astype(np.int32, copy=False), -1)
     corners, _, jacobian = triangle_jacobians(points, tris, uv, uv_tris.reshape(-1, 3),
                                               maps.size)
     geometry = SeamGeometry(device, rays, mesh_index, tri_chart, corners, jacobian,
-                            maps.triangle, maps.texel_surface.at)
+                            maps.triangle, maps.texel_surface.at, mm_per_unit)
     return ChartLayout(chart, n_charts, geometry,
                        texel_coverage(device, chart, maps.triangle, tri_chart, corners))
 
@@ -458,6 +460,9 @@ class DiffusionLayout:
         self.levels = _max_level(h, w) + 1
         self._grids: dict[tuple[int, int], LevelGrid] = {}
         self._buffers: dict[str, Any] = {}
+        self.surface: SurfacePoints | None = None
+        """The covered texels as points on the surface, for the wide terms
+        (:mod:`.surface_terms`; made by :meth:`prepare` while it holds the surface)."""
         # what the tiles read the texel sizes from: the maps, or where given boxes of
         # them made from the triangles (TextureMaps.triangle_stretch), so that the maps
         # need not outlive the irradiance (0.13 GB at texture 4096)
@@ -487,7 +492,7 @@ class DiffusionLayout:
         # with the rasterizer's arrays each texel's region weights are made again where
         # the accumulation reads them: the layout does not hold the map (0.2 GB at
         # texture 4096 with six regions)
-        tr = texel_regions
+        tr = self._texel_regions = texel_regions
         self.by_triangle = bool(self.n_regions and tr is not None
                                 and tr.triangle.shape == (h, w)
                                 and tr.weights.shape[1:] == (self.n_regions,))
@@ -528,11 +533,41 @@ class DiffusionLayout:
             widest[k] = max(widest.get(k, 0.0), max(_job_sigma_mm(self, float(var), k)))
         return {k: self.margin(k, sg) for k, sg in widest.items()}
 
-    def prepare(self, variances_mm2: NDArray[Any]) -> None:
+    def surface_levels(self, variances_mm2: NDArray[Any]) -> list[int | None]:
+        """Per term of ``variances_mm2`` the block size its points are summed on the
+        surface with (:func:`~.surface_terms.block_level`), None for a term blurred in
+        the tiles (all of them where :meth:`prepare` made no points)."""
+        surface = self.surface
+        levels = [None if surface is None else block_level(float(v), self.coarse_mm)
+                  for v in np.ravel(variances_mm2)]
+        return [None if lv is None or surface is None or lv < surface.finest else lv
+                for lv in levels]
+
+    def pre_variance(self, level: int) -> float:
+        """The blur (mm^2) the surface's points of blocks of ``2^level`` texels read the
+        irradiance through: (h / 2)^2 for blocks h mm apart, as a block's box does not blur
+        a hard edge on its border."""
+        return (0.5 * self.coarse_mm * 2.0**level) ** 2
+
+    def prepare(self, variances_mm2: NDArray[Any], texels_on_surface: bool = False) -> None:
         """Make the chart tiles the terms of ``variances_mm2`` need ahead of a diffusion
-        (a renderer's layout task does, so that the frames' diffusion finds them)."""
-        needed = sorted(self.level_margins(variances_mm2).items()) if self.any_covered \
-            else []
+        (a renderer's layout task does, so that the frames' diffusion finds them), and
+        the surface's points for the terms summed there (:mod:`.surface_terms`; with
+        ``texels_on_surface`` each texel's position and normal too, for a texture
+        output of the diffused light)."""
+        wide = [v for v in np.ravel(variances_mm2) if self.any_covered and
+                block_level(float(v), self.coarse_mm) is not None]
+        if wide:
+            self._make_surface(min(block_level(float(v), self.coarse_mm) or 0 for v in wide),
+                               texels_on_surface)
+        # the tiles blur only the terms the surface does not sum
+        narrow = np.array([v for v, lv in zip(np.ravel(variances_mm2),
+                                              self.surface_levels(variances_mm2), strict=True)
+                           if lv is None], np.float64)
+        if wide:  # and the blur each block size reads the irradiance through
+            blocks = {lv for lv in self.surface_levels(variances_mm2) if lv is not None}
+            narrow = np.concatenate([narrow, [self.pre_variance(lv) for lv in blocks]])
+        needed = sorted(self.level_margins(narrow).items()) if self.any_covered else []
         wanted = [km for km in needed if self._made(*km) is None and not self._load(*km)]
         if wanted and self._surface_released:
             raise RuntimeError(f"the layout's surface was let go (release_surface): no new "
@@ -554,6 +589,35 @@ class DiffusionLayout:
             # the blurs' device buffers too, here beside the irradiance rather than in
             # the diffusion after it (texture 4096: 1.1 s of a 9 s diffusion)
             self.grid(*km).device_buffers()
+
+    def _make_surface(self, finest: int, texels: bool) -> None:
+        """:attr:`surface` with blocks of ``2^finest`` texels (kept where it has them,
+        and the texels' surface if ``texels`` asks for it), while the geometry is held."""
+        s = self.surface
+        if s is not None and s.finest <= finest and (s.texel_surface is not None or
+                                                     not texels):
+            return
+        geometry = self.charts.geometry
+        if geometry is None:
+            return  # no surface (a layout without one, or let go): the tiles blur all
+        regions_at = None
+        tr = self._texel_regions
+        if self.by_triangle and tr is not None:
+            # a triangle's mean: the points average blocks of texels anyway
+            per_triangle = tr.weights[tr.corners].mean(axis=1, dtype=np.float32)
+
+            def regions_at(texel: NDArray[np.int64], tri: NDArray[Any]) -> NDArray[Any]:
+                return per_triangle[tri]
+        elif self.region_weights is not None:
+            flat = self.region_weights.reshape(-1, self.region_weights.shape[2])
+
+            def regions_at(texel: NDArray[np.int64], tri: NDArray[Any]) -> NDArray[Any]:
+                return flat[texel].astype(np.float32)
+        mm = geometry.mm_per_unit
+        self.surface = surface_points(
+            self.charts.chart, self.charts.coverage, geometry.triangle,
+            geometry.jacobian * mm, geometry.surface_at, mm, self.coarse_mm, finest,
+            regions_at, texels)
 
     def grid(self, level: int, margin: int, boxes: list[Any] | None = None) -> LevelGrid:
         """Level ``level``'s chart tiles with at least ``margin`` texels around each, made

@@ -42,6 +42,8 @@ class SeamGeometry:
     triangle: NDArray[np.int32]
     surface_at: Callable[[NDArray[np.int64]], tuple[NDArray[np.float32], NDArray[np.float32]]]
     """(N, 3) position and normal at flat finest texel indices (N,)."""
+    mm_per_unit: float = 1.0
+    """mm a scene unit (the stage's metersPerUnit x 1000)."""
 
     @cached_property
     def texels_per_scene_unit(self) -> NDArray[np.float64]:

@@ -538,9 +538,9 @@ def _render_twice(lit_patch: Path, tmp_path: Path, spoil: bool, stored: bool = T
     prepare, arrive = DiffusionLayout.prepare, renderer_module._BothArrived.arrive
     rays_began = threading.Event()
 
-    def prepare_after_the_rays(layout: DiffusionLayout, *args: Any) -> None:
+    def prepare_after_the_rays(layout: DiffusionLayout, *args: Any, **kwargs: Any) -> None:
         rays_began.wait(HANG_S)  # the maps must go before the layout is done
-        prepare(layout, *args)
+        prepare(layout, *args, **kwargs)
 
     def layout_goes_on_after_the_release(both: Any, party: str) -> None:
         # the layout goes on only once the maps went (a tiny texture's rows are taken
