@@ -598,6 +598,7 @@ def test_run_never_writes_over_a_users_file_in_its_output(ws: Path) -> None:
     _users_files_survive(ws, args, sorted(written))
 
 
+@pytest.mark.slow  # 29 s of demo runs; the default run holds the same guard for `run`
 def test_demo_never_writes_over_a_users_file_in_its_output(
         ws: Path, demo_run: tuple[Path, str, str]) -> None:
     written = json.loads((demo_run[0] / ".skinpipe-outputs.json").read_text())["files"]
