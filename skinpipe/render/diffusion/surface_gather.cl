@@ -14,9 +14,9 @@ inline float outside(const float x, const float lo, const float side)
 
 // Per term k < n_terms: the sum over the points q within its reach of p (normal n) of
 // (exp(-d^2 inv_two_var[k]) - its value at the reach) area(q) facing(q) value(q), with
-// the weights' sum in w, into sum[k]. d is the arc where the surface bends as a sphere
-// through both points with their normals. Per row of the grid's cells only the run the
-// ball of the widest reach crosses is read; the terms share the reads.
+// the weights' sum in w, into sum[k]. d is the distance between p and q in 3D, as in
+// the dipole's BSSRDF (Jensen et al. 2001). Per row of the grid's cells only the run
+// the ball of the widest reach crosses is read; the terms share the reads.
 inline void gather(const float3 p, const float3 n, __global const float4 *point,
                    __global const float4 *normal, __global const float4 *value,
                    __global const int *grid_start, const float3 origin,
@@ -56,20 +56,15 @@ inline void gather(const float3 p, const float3 n, __global const float4 *point,
                 const float3 d = q.xyz - p;
                 const float chord2 = dot(d, d);
                 if (chord2 > widest2) continue;
-                const float cos_t = clamp(dot(n, normal[s].xyz), -1.0f, 1.0f);
-                // the arc is chord x (theta / 2) / sin(theta / 2), exact on a sphere;
-                // its square's factor (asin(x) / x)^2 with x^2 = sin^2(theta / 2) = u
-                // as its series to u^5 (1e-3 short at 90 degrees; acos and sin took
-                // two thirds of the kernel's time)
-                const float u = 0.5f * (1.0f - cos_t);
-                const float d2 = chord2 * (1.0f + u * (0.33333333f + u * (0.17777778f
-                                 + u * (0.11428571f + u * (0.08126984f + u * 0.06156806f)))));
-                // the far side of a fold or a thin part faces away: its light comes
-                // through the volume (thin_parts.py), not along the surface
-                const float facing = clamp(1.0f + 2.0f * cos_t, 0.0f, 1.0f);
+                // the profile was measured on a half-space: a point whose normal turns
+                // from p's by theta lies off p's plane, and less of its light reaches
+                // p through the thinner medium between them. Full weight to 60
+                // degrees, none from 90 (the far side of a fold or a thin part: that
+                // light comes through the volume, thin_parts.py)
+                const float facing = clamp(2.0f * dot(n, normal[s].xyz), 0.0f, 1.0f);
                 const float4 v = (float4)(value[s].xyz, 1.0f) * (q.w * facing);
                 for (int k = 0; k < n_terms; ++k)
-                    if (d2 < r2[k]) sum[k] += (exp(-d2 * iv[k]) - at_reach[k]) * v;
+                    if (chord2 < r2[k]) sum[k] += (exp(-chord2 * iv[k]) - at_reach[k]) * v;
             }
         }
     }
@@ -82,7 +77,7 @@ inline float4 normalised(const float4 sum)
 
 // Up to four terms at each of the points (xyz mm, area mm^2; sorted), out[4 i + k]: the
 // normalised sum over the points of a Gaussian of variance 1 / (2 inv_two_var[k]) of
-// the arc between them, to its reach.
+// the distance between them, to its reach.
 __kernel void gather_on_surface(__global const float4 *point, __global const float4 *normal,
                                 __global const float4 *value, const int n_points,
                                 __global const int *grid_start, const float ox,
@@ -101,7 +96,7 @@ __kernel void gather_on_surface(__global const float4 *point, __global const flo
 }
 
 // The points' values at other places on the surface (``at``: xyz mm; ``facing``: their
-// unit normals): the normalised Gaussian of the arc, narrow as the points' spacing.
+// unit normals): the normalised Gaussian of the distance, narrow as the points' spacing.
 __kernel void gather_at(__global const float4 *at, __global const float4 *facing,
                         const int n_at, __global const float4 *point,
                         __global const float4 *normal, __global const float4 *value,

@@ -14,15 +14,17 @@ surface, which no chart border divides:
   the irradiance first blurred in the tiles by (h / 2)^2 (a box does not blur an edge
   on its border);
 - step 1, per term: at each point, the normalised sum over the points of a Gaussian of
-  the arc between them (Jensen et al. 2001's BSSRDF is one of distance), times area;
-  the terms of one block size are added there with the points' region weights;
+  the distance between them in 3D (as Jensen et al. 2001's BSSRDF is), times area and a
+  facing weight (below); the terms of one block size are added there with the points'
+  region weights;
 - step 2, where the light is wanted (the camera's hits, or texels for a texture
   output): the normalised Gaussian over the points, as wide as their spacing h.
 
 The blocks add h^2 / 12 to the variance, the pre-blur (h / 2)^2 and step 2 (0.7 h)^2;
-step 1 takes them off. Points
-whose normal faces away (the far side of a fold or an ear) count for nothing: that light
-comes through the volume (:mod:`..light.thin_parts`).
+step 1 takes them off. The profile was measured on a half-space; a point whose normal
+turns from the receiver's lies off its plane, and less of its light arrives. Points
+count fully to 60 degrees, not at all from 90 (the far side of a fold or an ear: that
+light comes through the volume, :mod:`..light.thin_parts`).
 """
 
 from __future__ import annotations
@@ -53,12 +55,12 @@ it): the spheres' seams and terminators measure the same at sigma / h of 1-2 as 
 MAX_SPACING_MM = 1.5
 """...and at most this far apart: a block spans a large arc of a tight curve (3.2 mm of
 a 5 mm sphere is 37 degrees), where its mean light sits off its centroid; red past
-that sphere's terminator, against the path tracer: 1.24x with blocks of 3.2 mm, 1.18x
-of 0.8 mm (an ear's rim or a nostril curves as tightly)."""
+that sphere's terminator, against the path tracer: 1.22x with blocks of 3.2 mm, 1.10x
+of 1.5 mm (an ear's rim or a nostril curves as tightly)."""
 WIDTH_SPACINGS = 0.7
 """Step 2's Gaussian, in the points' spacings (its ripple over a regular lattice is
 exp(-2 pi^2 0.7^2) = 6e-5): narrower than one spacing leaves more of the variance to
-step 1, which follows the surface's arcs."""
+step 1, which follows the surface in 3D."""
 REACH_SIGMAS = 5.0
 """Points farther than this many sigmas are left out (3.7e-6 of the peak): at 3 sigmas
 the blue past the 5 mm sphere's terminator fell from 0.80 to 0.70-0.76 of the truth, at
