@@ -31,7 +31,7 @@ def test_rings_keep_their_light_through_the_footprint(footprint_mm: float) -> No
     from dataclasses import replace
 
     truth = replace(_spike_and_tail(), footprint_sigma_mm=footprint_mm)
-    r = np.linspace(0.0, 12.0, 48001)
+    r = np.linspace(0.0, 12.0, 12001)  # 1 um: the footprint is 30 um or more
     light = np.trapezoid(truth.observed_profile(r) * 2 * np.pi * r[:, None], r, axis=0)
     assert np.allclose(light, truth.albedo_rec709(), rtol=2e-3 if footprint_mm else 2e-2)
 

@@ -69,11 +69,12 @@ def assert_interrupted(verb: str, code: int, err: str, workdir: Path, out: str) 
     assert left == [], f"left behind: {left}"
 
 
-# the demo's render stages are the render verb's (test_render_stops_on_ctrl_c): they
-# run with the slow tests, where a stop at each still costs 10-22 s of demo
-DEMO_MOMENTS = ["preparing the scan", "[2/6]", "fit chin",
+# the demo's render stages are the render verb's (test_render_stops_on_ctrl_c) and a
+# second region's fit stops as "[2/6]" does: they run with the slow tests, where a stop
+# at each still costs 8-22 s of demo
+DEMO_MOMENTS = ["preparing the scan", "[2/6]",
                 *(pytest.param(m, marks=pytest.mark.slow)
-                  for m in ("author ", "% irradiance", "% diffusion"))]
+                  for m in ("fit chin", "author ", "% irradiance", "% diffusion"))]
 
 
 @pytest.mark.parametrize("marker", DEMO_MOMENTS)
