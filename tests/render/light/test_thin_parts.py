@@ -167,7 +167,7 @@ def test_a_ball_is_round_and_a_slab_flat() -> None:
 
 def test_probing_blocks_finds_the_far_sides_every_texel_finds(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """A closed box 10 x 10 x 2 mm unwrapped by xatlas, at texture 2048 with blocks of 8
+    """A closed box 10 x 10 x 2 mm unwrapped by xatlas, at texture 1024 with blocks of 8
     texels probed first: the same far sides, far texels and factors as rays from every
     texel, from fewer rays (the sides, 10 mm across, have none within the 3.3 mm reach)."""
     from skinpipe.render.light import thin_parts
@@ -184,7 +184,7 @@ def test_probing_blocks_finds_the_far_sides_every_texel_finds(
     mesh = MeshData(corners, np.full(len(tris), 3, np.int32), tris.reshape(-1), 0.001)
     layout = unwrap(mesh)
     uv_tris = layout.uv_indices.reshape(-1, 3)
-    maps = rasterize(corners, triangulate(mesh), layout.uv, uv_tris, 2048, 0.001)
+    maps = rasterize(corners, triangulate(mesh), layout.uv, uv_tris, 1024, 0.001)
     texel = np.flatnonzero(maps.coverage.ravel() > 0)
     points = maps.position.reshape(-1, 3)[texel]
     normals = maps.normal.reshape(-1, 3)[texel]
@@ -204,10 +204,10 @@ def test_probing_blocks_finds_the_far_sides_every_texel_finds(
         monkeypatch.setattr(thin_parts, "PROBE_TEXTURE_SIZE", probe_size)
         counted[0] = 0
         got = thin_parts.far_side(RayScene([(corners, tris)]), 0, corners, tris, layout.uv,
-                                  uv_tris, 2048, points, normals, texel, media, None)
+                                  uv_tris, 1024, points, normals, texel, media, None)
         return got, counted[0]
 
-    (every, every_rays), (probed, probed_rays) = far(2048), far(256)
+    (every, every_rays), (probed, probed_rays) = far(1024), far(128)
     assert 0.5 * texel.size < every.rows.size < 0.8 * texel.size
     for a, b in ((every.rows, probed.rows), (every.far_rows, probed.far_rows),
                  (every.factor, probed.factor)):
