@@ -555,19 +555,18 @@ class DiffusionLayout:
         the surface's points for the terms summed there (:mod:`.surface_terms`; with
         ``texels_on_surface`` each texel's position and normal too, for a texture
         output of the diffused light)."""
-        wide = [v for v in np.ravel(variances_mm2) if self.any_covered and
-                block_level(float(v), self.coarse_mm) is not None]
-        if wide:
-            self._make_surface(min(block_level(float(v), self.coarse_mm) or 0 for v in wide),
-                               texels_on_surface)
-        # the tiles blur only the terms the surface does not sum
-        narrow = np.array([v for v, lv in zip(np.ravel(variances_mm2),
-                                              self.surface_levels(variances_mm2), strict=True)
-                           if lv is None], np.float64)
-        if wide:  # and the blur each block size reads the irradiance through
-            blocks = {lv for lv in self.surface_levels(variances_mm2) if lv is not None}
-            narrow = np.concatenate([narrow, [self.pre_variance(lv) for lv in blocks]])
-        needed = sorted(self.level_margins(narrow).items()) if self.any_covered else []
+        v = np.ravel(variances_mm2).astype(np.float64)
+        wide = [lv for lv in (block_level(float(x), self.coarse_mm) for x in v)
+                if lv is not None]
+        if wide and self.any_covered:
+            self._make_surface(min(wide), texels_on_surface)
+        levels = self.surface_levels(v)
+        # the tiles blur the terms the surface does not sum, and the irradiance each
+        # block size of points reads
+        tiles = [float(x) for x, lv in zip(v, levels, strict=True) if lv is None] + \
+            [self.pre_variance(lv) for lv in sorted({lv for lv in levels if lv is not None})]
+        needed = sorted(self.level_margins(np.array(tiles, np.float64)).items()) \
+            if self.any_covered else []
         wanted = [km for km in needed if self._made(*km) is None and not self._load(*km)]
         if wanted and self._surface_released:
             raise RuntimeError(f"the layout's surface was let go (release_surface): no new "

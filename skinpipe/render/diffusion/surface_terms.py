@@ -295,7 +295,6 @@ def surface_points(chart: NDArray[np.int32], share: NDArray[Any] | None, triangl
             at += values.shape[1]
         if kept is not None:
             kept[part, 0, :3], kept[part, 1, :3] = position, normal
-    assert sums is not None
     return SurfacePoints(texel, weight, block, finest, keys, sums, texel_mm, kept)
 
 
